@@ -1,0 +1,739 @@
+"""Typed data that crosses stage boundaries.
+
+Units everywhere: millimetres (mm) and degrees (deg) for geometry and angles,
+pixels (px) for image coordinates.  The *world frame* is the turntable frame:
+origin on the rotation axis at the top of the turntable plate, +Z up along the
+axis, right-handed, attached to the plate (so the plant does not move in it).
+
+Image arrays are ``(H, W, 3) uint8`` in OpenCV's BGR order; masks are
+``(H, W) bool``; pixel ``(u, v)`` is column ``u``, row ``v`` with the centre of
+the top-left pixel at ``(0, 0)``.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROLES = ("calibration", "background", "plant")
+
+
+# --------------------------------------------------------------------------- rotations
+def rotation_x(deg: float) -> np.ndarray:
+    """(3, 3) rotation about +X by ``deg`` degrees (right-handed)."""
+    a = math.radians(deg)
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def rotation_y(deg: float) -> np.ndarray:
+    """(3, 3) rotation about +Y by ``deg`` degrees (right-handed)."""
+    a = math.radians(deg)
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def rotation_z(deg: float) -> np.ndarray:
+    """(3, 3) rotation about +Z by ``deg`` degrees (right-handed)."""
+    a = math.radians(deg)
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def rotation_about_axis(direction: Sequence[float], deg: float) -> np.ndarray:
+    """(3, 3) rotation by ``deg`` about the unit vector ``direction`` (Rodrigues)."""
+    k = np.asarray(direction, dtype=float)
+    k = k / np.linalg.norm(k)
+    a = math.radians(deg)
+    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + math.sin(a) * kx + (1.0 - math.cos(a)) * (kx @ kx)
+
+
+def rotation_angle_deg(r: np.ndarray) -> float:
+    """Angle in degrees of the rotation matrix ``r`` (0..180)."""
+    c = (np.trace(r) - 1.0) / 2.0
+    return math.degrees(math.acos(float(np.clip(c, -1.0, 1.0))))
+
+
+# --------------------------------------------------------------------------- camera model
+@dataclass(frozen=True)
+class CameraModel:
+    """Intrinsics of the seed's camera model: pinhole + two radial terms.
+
+    A point with camera coordinates ``(X, Y, Z)`` (mm, +Z forward, +X right,
+    +Y down) has normalised coordinates ``x = X/Z, y = Y/Z``; with
+    ``r2 = x*x + y*y`` and ``s = 1 + d1*r2 + d2*r2*r2`` its pixel is
+    ``u = f*x*s + cu``, ``v = f*y*s + cv``.
+
+    Attributes
+    ----------
+    f : float, px
+        Focal length.
+    cu, cv : float, px
+        Principal point.
+    d1, d2 : float
+        Radial distortion coefficients (dimensionless, on normalised coords).
+    width, height : int, px
+        Image size.
+    """
+
+    f: float
+    cu: float
+    cv: float
+    d1: float = 0.0
+    d2: float = 0.0
+    width: int = 0
+    height: int = 0
+
+    @property
+    def K(self) -> np.ndarray:  # noqa: N802 - the usual name of the matrix
+        """(3, 3) float64 pinhole matrix (no distortion)."""
+        return np.array([[self.f, 0.0, self.cu], [0.0, self.f, self.cv], [0.0, 0.0, 1.0]])
+
+    @property
+    def dist_coeffs(self) -> np.ndarray:
+        """OpenCV distortion vector ``(k1, k2, p1, p2, k3)`` of this model."""
+        return np.array([self.d1, self.d2, 0.0, 0.0, 0.0])
+
+    def distort(self, xy: np.ndarray) -> np.ndarray:
+        """Normalised undistorted ``(N, 2)`` coords to pixels ``(N, 2)``."""
+        xy = np.asarray(xy, dtype=float)
+        r2 = np.sum(xy * xy, axis=-1, keepdims=True)
+        s = 1.0 + self.d1 * r2 + self.d2 * r2 * r2
+        return xy * s * self.f + np.array([self.cu, self.cv])
+
+    def undistort_points(self, uv: np.ndarray, iterations: int = 20) -> np.ndarray:
+        """Pixels ``(N, 2)`` to normalised undistorted coords ``(N, 2)``.
+
+        Fixed-point inversion of the radial model; converges to < 1e-9 for the
+        distortion of real lenses (|d1 r2| well below 0.5 at the image corners).
+        """
+        uv = np.asarray(uv, dtype=float)
+        xd = (uv - np.array([self.cu, self.cv])) / self.f
+        xy = xd.copy()
+        for _ in range(iterations):
+            r2 = np.sum(xy * xy, axis=-1, keepdims=True)
+            xy = xd / (1.0 + self.d1 * r2 + self.d2 * r2 * r2)
+        return xy
+
+    def project_camera_points(self, points_cam: np.ndarray) -> np.ndarray:
+        """Camera-frame points ``(N, 3)`` mm to pixels ``(N, 2)``; NaN behind the camera."""
+        p = np.asarray(points_cam, dtype=float)
+        z = p[..., 2:3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xy = np.where(z > 0, p[..., :2] / z, np.nan)
+        return self.distort(xy)
+
+    def unproject(self, uv: np.ndarray) -> np.ndarray:
+        """Pixels ``(N, 2)`` to unit ray directions ``(N, 3)`` in the camera frame."""
+        xy = self.undistort_points(uv)
+        rays = np.concatenate([xy, np.ones(xy.shape[:-1] + (1,))], axis=-1)
+        return rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+
+    def scaled(self, factor: float) -> CameraModel:
+        """The same lens seen on an image resized by ``factor`` (pixel centres kept)."""
+        return CameraModel(
+            f=self.f * factor,
+            cu=(self.cu + 0.5) * factor - 0.5,
+            cv=(self.cv + 0.5) * factor - 0.5,
+            d1=self.d1,
+            d2=self.d2,
+            width=round(self.width * factor),
+            height=round(self.height * factor),
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        return {k: (float(v) if isinstance(v, float) else int(v)) for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> CameraModel:
+        return cls(**{k: d[k] for k in ("f", "cu", "cv", "d1", "d2", "width", "height") if k in d})
+
+
+@dataclass(frozen=True)
+class Pose:
+    """Rigid transform from the world (turntable) frame to a camera frame.
+
+    ``x_cam = R @ X_world + t``.
+
+    Attributes
+    ----------
+    R : (3, 3) float64 array, rotation world -> camera
+    t : (3,) float64 array, mm
+    """
+
+    R: np.ndarray
+    t: np.ndarray
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "R", np.asarray(self.R, dtype=float).reshape(3, 3))
+        object.__setattr__(self, "t", np.asarray(self.t, dtype=float).reshape(3))
+
+    @property
+    def centre(self) -> np.ndarray:
+        """(3,) camera centre in the world frame, mm."""
+        return -self.R.T @ self.t
+
+    def apply(self, points_world: np.ndarray) -> np.ndarray:
+        """World points ``(N, 3)`` to camera-frame points ``(N, 3)``."""
+        return np.asarray(points_world, dtype=float) @ self.R.T + self.t
+
+    def compose_world(self, m: np.ndarray) -> Pose:
+        """Pose of the same camera after the world moved by rotation ``m`` about the origin.
+
+        The returned pose maps ``X`` to ``R @ (m @ X) + t``.
+        """
+        return Pose(self.R @ m, self.t)
+
+    @classmethod
+    def look_at(cls, centre: Sequence[float], target: Sequence[float], up=(0.0, 0.0, 1.0)) -> Pose:
+        """Camera at ``centre`` looking at ``target`` with image-up towards ``up``."""
+        c = np.asarray(centre, dtype=float)
+        z = np.asarray(target, dtype=float) - c
+        z /= np.linalg.norm(z)
+        x = np.cross(z, np.asarray(up, dtype=float))
+        if np.linalg.norm(x) < 1e-9:
+            raise ValueError("look_at: viewing direction is parallel to 'up'")
+        x /= np.linalg.norm(x)
+        y = np.cross(z, x)
+        r = np.stack([x, y, z])
+        return cls(r, -r @ c)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"R": self.R.tolist(), "t": self.t.tolist()}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Pose:
+        return cls(np.array(d["R"], dtype=float), np.array(d["t"], dtype=float))
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A posed camera: intrinsics plus world -> camera pose."""
+
+    model: CameraModel
+    pose: Pose
+
+    def project(self, points_world: np.ndarray) -> np.ndarray:
+        """World points ``(N, 3)`` mm -> pixels ``(N, 2)``; NaN for points behind the camera."""
+        return self.model.project_camera_points(self.pose.apply(points_world))
+
+    def depth(self, points_world: np.ndarray) -> np.ndarray:
+        """(N,) depth along the optical axis, mm."""
+        return self.pose.apply(points_world)[..., 2]
+
+    def rays(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Ray origins ``(N, 3)`` and unit directions ``(N, 3)`` in the world frame."""
+        d_cam = self.model.unproject(uv)
+        d = d_cam @ self.pose.R
+        o = np.broadcast_to(self.pose.centre, d.shape)
+        return o, d
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"model": self.model.to_dict(), "pose": self.pose.to_dict()}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Camera:
+        return cls(CameraModel.from_dict(d["model"]), Pose.from_dict(d["pose"]))
+
+
+# --------------------------------------------------------------------------- scans
+@dataclass(frozen=True)
+class ViewRecord:
+    """One finished image of a scan (one line of ``views.jsonl``).
+
+    Attributes
+    ----------
+    index : int
+        Position in capture order, 0-based.
+    role : {"calibration", "background", "plant"}
+    camera : str
+        Camera name from the recipe.
+    tilt_index : int
+        Index into the protocol's tilt list.
+    tilt_deg : float, deg
+        Commanded tilt of the camera arm.
+    angle_index : int
+        Index of the turntable stop within the revolution.
+    commanded_angle_deg : float, deg
+        Turntable angle asked for.
+    measured_angle_deg : float or None, deg
+        Turntable angle read back from the axis (None when it cannot tell).
+    file : str
+        Image path relative to the scan folder, POSIX separators.
+    captured_at : str
+        ISO 8601 time stamp.
+    """
+
+    index: int
+    role: str
+    camera: str
+    tilt_index: int
+    tilt_deg: float
+    angle_index: int
+    commanded_angle_deg: float
+    measured_angle_deg: float | None
+    file: str
+    captured_at: str = ""
+
+    @property
+    def angle_deg(self) -> float:
+        """Best known turntable angle: measured when available, else commanded."""
+        if self.measured_angle_deg is None:
+            return self.commanded_angle_deg
+        return self.measured_angle_deg
+
+    @property
+    def key(self) -> tuple[str, str, int, int]:
+        """(role, camera, tilt_index, angle_index): what identifies a view in a protocol."""
+        return (self.role, self.camera, self.tilt_index, self.angle_index)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> ViewRecord:
+        return cls(
+            index=int(d["index"]),
+            role=str(d["role"]),
+            camera=str(d["camera"]),
+            tilt_index=int(d["tilt_index"]),
+            tilt_deg=float(d["tilt_deg"]),
+            angle_index=int(d["angle_index"]),
+            commanded_angle_deg=float(d["commanded_angle_deg"]),
+            measured_angle_deg=(
+                None if d.get("measured_angle_deg") is None else float(d["measured_angle_deg"])
+            ),
+            file=str(d["file"]),
+            captured_at=str(d.get("captured_at", "")),
+        )
+
+
+# --------------------------------------------------------------------------- calibration
+@dataclass
+class TiltAxis:
+    """The camera arm's tilt axis, in the world frame at turntable angle 0.
+
+    A camera calibrated at ``reference_tilt_deg`` is moved to tilt ``phi`` by a
+    rotation of ``phi - reference_tilt_deg`` about the line through ``origin``
+    along ``direction``.
+    """
+
+    origin: np.ndarray
+    direction: np.ndarray
+    reference_tilt_index: int = 0
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "origin": np.asarray(self.origin, dtype=float).tolist(),
+            "direction": np.asarray(self.direction, dtype=float).tolist(),
+            "reference_tilt_index": int(self.reference_tilt_index),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> TiltAxis:
+        return cls(np.array(d["origin"], float), np.array(d["direction"], float),
+                   int(d.get("reference_tilt_index", 0)))
+
+
+@dataclass
+class Calibration:
+    """Cameras of a turntable rig: the camera of any (camera, tilt, turntable angle).
+
+    Attributes
+    ----------
+    models : dict camera name -> CameraModel
+    poses : dict (camera name, tilt index) -> Pose
+        World -> camera at turntable angle 0.
+    tilts_deg : dict tilt index -> float, deg
+        Commanded tilt of each calibrated tilt index.
+    angle_scale : float
+        Real turntable angle per commanded degree (gear ratio error), ~1.
+    tilt_axis : TiltAxis or None
+        When known, cameras at tilts that were never calibrated are available.
+    quality : dict
+        Free-form quality report of the calibrator (residuals, rejections...).
+    """
+
+    models: dict[str, CameraModel]
+    poses: dict[tuple[str, int], Pose]
+    tilts_deg: dict[int, float] = field(default_factory=dict)
+    angle_scale: float = 1.0
+    tilt_axis: TiltAxis | None = None
+    quality: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def camera_names(self) -> list[str]:
+        return sorted(self.models)
+
+    def camera_at(self, camera: str, tilt_index: int, angle_deg: float) -> Camera:
+        """The posed camera ``camera`` at calibrated tilt ``tilt_index`` and turntable angle.
+
+        Turning the plate by ``+angle_deg`` (counter-clockwise seen from above)
+        rotates every world point by ``Rz(angle)`` in the lab, so the camera
+        maps ``X`` to ``R @ Rz(angle) @ X + t``.
+        """
+        try:
+            model = self.models[camera]
+        except KeyError:
+            raise KeyError(
+                f"camera {camera!r} is not in the calibration (has {self.camera_names})"
+            ) from None
+        key = (camera, int(tilt_index))
+        if key not in self.poses:
+            if self.tilt_axis is not None and tilt_index in self.tilts_deg:
+                return self.camera_at_tilt(camera, self.tilts_deg[tilt_index], angle_deg)
+            raise KeyError(f"no pose for camera {camera!r} at tilt index {tilt_index}")
+        pose = self.poses[key]
+        return Camera(model, pose.compose_world(rotation_z(angle_deg * self.angle_scale)))
+
+    def camera_for_view(self, view: ViewRecord) -> Camera:
+        """The camera that took ``view`` (its measured angle when known)."""
+        if (view.camera, view.tilt_index) not in self.poses and self.tilt_axis is not None:
+            return self.camera_at_tilt(view.camera, view.tilt_deg, view.angle_deg)
+        return self.camera_at(view.camera, view.tilt_index, view.angle_deg)
+
+    def camera_at_tilt(self, camera: str, tilt_deg: float, angle_deg: float) -> Camera:
+        """Camera at any tilt angle, through the tilt-arm axis model."""
+        if self.tilt_axis is None:
+            raise KeyError("this calibration has no tilt-axis model; only calibrated tilts exist")
+        ref = self.tilt_axis.reference_tilt_index
+        base = self.poses[(camera, ref)]
+        dphi = tilt_deg - self.tilts_deg.get(ref, 0.0)
+        q = rotation_about_axis(self.tilt_axis.direction, dphi)
+        o = np.asarray(self.tilt_axis.origin, dtype=float)
+        # Arm rotation by q about the axis moves the camera: x_cam = R q^T (X - o) + R o + t.
+        r = base.R @ q.T
+        t = base.R @ (o - q.T @ o) + base.t
+        return Camera(self.models[camera], Pose(r, t).compose_world(
+            rotation_z(angle_deg * self.angle_scale)))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "format": "plantscan-calibration/1",
+            "units": {"length": "mm", "angle": "deg", "image": "px"},
+            "models": {k: v.to_dict() for k, v in sorted(self.models.items())},
+            "poses": [
+                {"camera": c, "tilt_index": ti, **p.to_dict()}
+                for (c, ti), p in sorted(self.poses.items())
+            ],
+            "tilts_deg": {int(k): float(v) for k, v in sorted(self.tilts_deg.items())},
+            "angle_scale": float(self.angle_scale),
+            "tilt_axis": None if self.tilt_axis is None else self.tilt_axis.to_dict(),
+            "quality": _plain(self.quality),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Calibration:
+        return cls(
+            models={k: CameraModel.from_dict(v) for k, v in d["models"].items()},
+            poses={(p["camera"], int(p["tilt_index"])): Pose.from_dict(p) for p in d["poses"]},
+            tilts_deg={int(k): float(v) for k, v in (d.get("tilts_deg") or {}).items()},
+            angle_scale=float(d.get("angle_scale", 1.0)),
+            tilt_axis=None if not d.get("tilt_axis") else TiltAxis.from_dict(d["tilt_axis"]),
+            quality=d.get("quality") or {},
+        )
+
+    def save(self, path: Path) -> None:
+        """Write plain YAML (no OpenCV tags)."""
+        import yaml
+
+        from plantscan_core.scanfolder import atomic_write_text
+
+        atomic_write_text(Path(path), yaml.safe_dump(self.to_dict(), sort_keys=False))
+
+    @classmethod
+    def load(cls, path: Path) -> Calibration:
+        import yaml
+
+        from plantscan_core.errors import DataError
+
+        try:
+            return cls.from_dict(yaml.safe_load(Path(path).read_text()))
+        except FileNotFoundError:
+            raise DataError(f"{path}: calibration file not found") from None
+        except (KeyError, TypeError, ValueError, yaml.YAMLError) as exc:
+            raise DataError(f"{path}: not a plantscan calibration ({exc})") from exc
+
+
+def _plain(obj: Any) -> Any:
+    """Turn numpy scalars/arrays nested in dicts/lists into plain Python for YAML/JSON."""
+    if isinstance(obj, dict):
+        return {str(k): _plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj
+
+
+plain = _plain
+
+
+# --------------------------------------------------------------------------- silhouettes
+@dataclass
+class Silhouette:
+    """A plant mask of one view.
+
+    Attributes
+    ----------
+    view : ViewRecord
+    mask : (H, W) bool array, True = plant (or pot), in the *distorted* image
+        as the camera took it.
+    """
+
+    view: ViewRecord
+    mask: np.ndarray
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.mask.shape[:2]
+
+
+@dataclass
+class Silhouettes:
+    """All plant silhouettes of a scan, in view order."""
+
+    items: list[Silhouette]
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def __iter__(self):
+        return iter(self.items)
+
+    def __getitem__(self, i: int) -> Silhouette:
+        return self.items[i]
+
+
+# --------------------------------------------------------------------------- volumes and meshes
+@dataclass
+class Volume:
+    """A reconstructed occupancy field on a regular grid.
+
+    Attributes
+    ----------
+    field : (NX, NY, NZ) float32 array
+        Continuous inside/outside field: > 0 inside the plant, < 0 outside,
+        the surface is the 0 level set (e.g. signed distance in voxels).
+    origin : (3,) float64 array, mm, turntable frame
+        Centre of voxel (0, 0, 0).
+    voxel_size : float, mm
+    stats : dict
+        Work counts of the reconstructor (voxel-view tests, cells...).
+    """
+
+    field: np.ndarray
+    origin: np.ndarray
+    voxel_size: float
+    stats: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return tuple(self.field.shape)  # type: ignore[return-value]
+
+    @property
+    def occupancy(self) -> np.ndarray:
+        """(NX, NY, NZ) bool array, True inside."""
+        return self.field > 0
+
+    def voxel_centres(self, idx: np.ndarray) -> np.ndarray:
+        """Integer voxel indices ``(N, 3)`` -> centres ``(N, 3)`` mm."""
+        return np.asarray(self.origin) + np.asarray(idx, dtype=float) * self.voxel_size
+
+    def save(self, path: Path) -> None:
+        np.savez_compressed(Path(path), field=self.field, origin=np.asarray(self.origin),
+                            voxel_size=self.voxel_size)
+
+    @classmethod
+    def load(cls, path: Path) -> Volume:
+        with np.load(Path(path)) as z:
+            return cls(z["field"], z["origin"], float(z["voxel_size"]))
+
+
+@dataclass
+class Mesh:
+    """A triangle mesh.
+
+    Attributes
+    ----------
+    vertices : (V, 3) float64 array, mm, turntable frame
+    faces : (F, 3) int64 array, counter-clockwise seen from outside
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.vertices = np.asarray(self.vertices, dtype=np.float64).reshape(-1, 3)
+        self.faces = np.asarray(self.faces, dtype=np.int64).reshape(-1, 3)
+
+    @property
+    def is_empty(self) -> bool:
+        return len(self.faces) == 0
+
+    def face_areas(self) -> np.ndarray:
+        """(F,) float64 triangle areas, mm²."""
+        v = self.vertices[self.faces]
+        return 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+
+    def area(self) -> float:
+        """Total surface area, mm²."""
+        return float(self.face_areas().sum())
+
+    def to_open3d(self):
+        import open3d as o3d
+
+        m = o3d.geometry.TriangleMesh()
+        m.vertices = o3d.utility.Vector3dVector(self.vertices)
+        m.triangles = o3d.utility.Vector3iVector(self.faces.astype(np.int32))
+        return m
+
+    @classmethod
+    def from_open3d(cls, m) -> Mesh:
+        return cls(np.asarray(m.vertices), np.asarray(m.triangles))
+
+    def save(self, path: Path) -> None:
+        np.savez_compressed(Path(path), vertices=self.vertices, faces=self.faces)
+
+    @classmethod
+    def load(cls, path: Path) -> Mesh:
+        with np.load(Path(path)) as z:
+            return cls(z["vertices"], z["faces"])
+
+
+@dataclass
+class LabelledMesh:
+    """A mesh with a label per face.
+
+    Attributes
+    ----------
+    mesh : Mesh
+    face_labels : (F,) int32 array
+        ``-1`` unassigned; otherwise a key of ``kinds``.
+    kinds : dict label -> str
+        What each label is: ``"leaf"``, ``"stem"`` or ``"pot"``.
+    """
+
+    mesh: Mesh
+    face_labels: np.ndarray
+    kinds: dict[int, str] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.face_labels = np.asarray(self.face_labels, dtype=np.int32).reshape(-1)
+        if len(self.face_labels) != len(self.mesh.faces):
+            raise ValueError(
+                f"face_labels has {len(self.face_labels)} entries for {len(self.mesh.faces)} faces"
+            )
+
+    @property
+    def leaf_labels(self) -> list[int]:
+        return sorted(k for k, v in self.kinds.items() if v == "leaf")
+
+    def submesh(self, label: int) -> Mesh:
+        """The faces of one label, with only the vertices they use."""
+        faces = self.mesh.faces[self.face_labels == label]
+        used, inverse = np.unique(faces, return_inverse=True)
+        return Mesh(self.mesh.vertices[used], inverse.reshape(-1, 3))
+
+    def save(self, path: Path) -> None:
+        kinds = np.array([[k, ("leaf", "stem", "pot").index(v)] for k, v in self.kinds.items()],
+                         dtype=np.int64).reshape(-1, 2)
+        np.savez_compressed(Path(path), vertices=self.mesh.vertices, faces=self.mesh.faces,
+                            face_labels=self.face_labels, kinds=kinds)
+
+    @classmethod
+    def load(cls, path: Path) -> LabelledMesh:
+        with np.load(Path(path)) as z:
+            kinds = {int(k): ("leaf", "stem", "pot")[int(v)] for k, v in z["kinds"]}
+            return cls(Mesh(z["vertices"], z["faces"]), z["face_labels"], kinds)
+
+
+# --------------------------------------------------------------------------- traits
+LEAF_TRAIT_COLUMNS = ("leaf_id", "length_mm", "width_mm", "area_mm2", "perimeter_mm")
+TRAIT_NAMES = ("length", "width", "area", "perimeter")
+
+
+@dataclass
+class LeafTraits:
+    """Flat-leaf measurements of one leaf (as if dissected onto a flatbed)."""
+
+    leaf_id: int
+    length_mm: float
+    width_mm: float
+    area_mm2: float
+    perimeter_mm: float
+
+    def trait(self, name: str) -> float:
+        """Value of ``name`` in ``TRAIT_NAMES`` (length, width, area, perimeter)."""
+        column = {"length": "length_mm", "width": "width_mm", "area": "area_mm2",
+                  "perimeter": "perimeter_mm"}
+        if name not in column:
+            raise ValueError(f"unknown trait {name!r}; valid: {', '.join(TRAIT_NAMES)}")
+        return float(getattr(self, column[name]))
+
+
+@dataclass
+class Traits:
+    """The traits table of one plant: one row per leaf plus plant-level values.
+
+    ``plant`` keys (when measured): ``height_mm``, ``total_leaf_area_mm2``,
+    ``leaf_count``, ``convex_hull_volume_mm3``, ``projected_area_mm2``.
+    """
+
+    leaves: list[LeafTraits] = field(default_factory=list)
+    plant: dict[str, float] = field(default_factory=dict)
+
+    def to_csv(self) -> str:
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow(LEAF_TRAIT_COLUMNS)
+        for leaf in self.leaves:
+            w.writerow([leaf.leaf_id] + [f"{getattr(leaf, c):.4f}" for c in LEAF_TRAIT_COLUMNS[1:]])
+        return buf.getvalue()
+
+    def save(self, path: Path, plant_path: Path | None = None) -> None:
+        from plantscan_core.scanfolder import atomic_write_text
+
+        atomic_write_text(Path(path), self.to_csv())
+        if plant_path is not None:
+            import json
+
+            atomic_write_text(Path(plant_path), json.dumps(_plain(self.plant), indent=2))
+
+    @classmethod
+    def from_csv(cls, text: str) -> Traits:
+        rows = list(csv.DictReader(io.StringIO(text)))
+        leaves = [
+            LeafTraits(int(r["leaf_id"]), float(r["length_mm"]), float(r["width_mm"]),
+                       float(r["area_mm2"]), float(r["perimeter_mm"]))
+            for r in rows
+        ]
+        return cls(leaves)
+
+    @classmethod
+    def load(cls, path: Path, plant_path: Path | None = None) -> Traits:
+        t = cls.from_csv(Path(path).read_text())
+        if plant_path is not None and Path(plant_path).exists():
+            import json
+
+            t.plant = json.loads(Path(plant_path).read_text())
+        return t
+
+
+def mean_relative_error(truth: Iterable[float], measured: Iterable[float]) -> float:
+    """The seed's ε = mean(|truth − measurement| / truth)."""
+    t = np.asarray(list(truth), dtype=float)
+    m = np.asarray(list(measured), dtype=float)
+    if t.size == 0:
+        return float("nan")
+    return float(np.mean(np.abs(t - m) / t))

@@ -1,0 +1,330 @@
+"""Recipes: one YAML per species / scan protocol, validated in full before anything runs.
+
+A recipe names the plugin and parameters of every stage and the scan
+protocol.  ``load_recipe`` reports *every* error at once as ``path: message``
+(``segment.params.alpha: Input should be greater than or equal to 0``); plugin
+names resolve only through the registry, never as import paths.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from plantscan_core.data import ROLES
+from plantscan_core.errors import PluginError, RecipeError
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class StageSpec(_Model):
+    """Which plugin runs a stage, with its parameters (checked by the plugin's ``Params``)."""
+
+    plugin: str
+    params: dict[str, Any] = Field(default_factory=dict)
+
+
+class CameraSpec(StageSpec):
+    """A camera of the rig: its name (used in views and calibration) and its plugin."""
+
+    name: str
+
+
+class RoleSpec(_Model):
+    """How one role of the protocol is captured; unset fields fall back to the scan's."""
+
+    enabled: bool = True
+    tilts_deg: list[float] | None = None
+    images_per_revolution: int | None = Field(default=None, ge=1, le=3600)
+
+
+def _default_roles() -> dict[str, RoleSpec]:
+    return {
+        "calibration": RoleSpec(),
+        "background": RoleSpec(images_per_revolution=1),
+        "plant": RoleSpec(),
+    }
+
+
+class ScanSpec(_Model):
+    """The rig and the scan protocol."""
+
+    protocol: str = "custom"
+    cameras: list[CameraSpec] = Field(min_length=1)
+    turntable: StageSpec
+    tilt_arm: StageSpec | None = None
+    scene: StageSpec | None = None
+    tilts_deg: list[float] = Field(default_factory=lambda: [0.0], min_length=1)
+    images_per_revolution: int = Field(default=36, ge=1, le=3600)
+    image_size: tuple[int, int] = (1200, 800)
+    image_format: Literal["png", "jpg"] = "png"
+    jpeg_quality: int = Field(default=95, ge=1, le=100)
+    roles: dict[str, RoleSpec] = Field(default_factory=_default_roles)
+
+    @field_validator("image_size")
+    @classmethod
+    def _positive_size(cls, v: tuple[int, int]) -> tuple[int, int]:
+        if v[0] < 16 or v[1] < 16:
+            raise ValueError("image size must be at least 16 x 16 px")
+        return v
+
+    @field_validator("roles")
+    @classmethod
+    def _known_roles(cls, v: dict[str, RoleSpec]) -> dict[str, RoleSpec]:
+        bad = sorted(set(v) - set(ROLES))
+        if bad:
+            raise ValueError(f"unknown role(s) {bad}; valid: {', '.join(ROLES)}")
+        return v
+
+    @field_validator("cameras")
+    @classmethod
+    def _unique_camera_names(cls, v: list[CameraSpec]) -> list[CameraSpec]:
+        names = [c.name for c in v]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ValueError(f"camera names must be unique; repeated: {dup}")
+        return v
+
+    def role_tilts(self, role: str) -> list[float]:
+        spec = self.roles.get(role)
+        return list(spec.tilts_deg) if spec and spec.tilts_deg is not None else list(self.tilts_deg)
+
+    def role_angles(self, role: str) -> list[float]:
+        """Commanded turntable angles (deg) of ``role``: evenly spaced over a revolution."""
+        spec = self.roles.get(role)
+        n = spec.images_per_revolution if spec and spec.images_per_revolution else None
+        n = n or self.images_per_revolution
+        return [i * 360.0 / n for i in range(n)]
+
+    def enabled_roles(self) -> list[str]:
+        return [r for r in ROLES if r in self.roles and self.roles[r].enabled]
+
+
+class PlantSpec(_Model):
+    id: str = "plant"
+    species: str = ""
+
+
+class Recipe(_Model):
+    """A whole recipe.  Processing stages are optional (a recipe may only scan)."""
+
+    name: str = "recipe"
+    description: str = ""
+    plant: PlantSpec = Field(default_factory=PlantSpec)
+    scan: ScanSpec
+    calibrate: StageSpec | None = None
+    segment: StageSpec | None = None
+    reconstruct: StageSpec | None = None
+    mesh: StageSpec | None = None
+    segment_mesh: StageSpec | None = None
+    measure: StageSpec | None = None
+    export: list[StageSpec] = Field(default_factory=list)
+
+
+PROCESSING_SECTIONS: dict[str, str] = {
+    "calibrate": "calibrator",
+    "segment": "segmenter",
+    "reconstruct": "reconstructor",
+    "mesh": "mesher",
+    "segment_mesh": "mesh_segmenter",
+    "measure": "measurer",
+}
+"""Recipe section -> stage kind, in pipeline order."""
+
+
+# --------------------------------------------------------------------------- overrides
+def parse_override(text: str) -> tuple[list[str], Any]:
+    """``"scan.image_size=[1200,800]"`` -> (["scan", "image_size"], [1200, 800])."""
+    if "=" not in text:
+        raise RecipeError([("--set", f"{text!r}: expected PATH=VALUE")])
+    path, _, value = text.partition("=")
+    keys = [k for k in path.strip().split(".") if k]
+    if not keys:
+        raise RecipeError([("--set", f"{text!r}: empty path")])
+    try:
+        parsed = yaml.safe_load(value) if value.strip() else ""
+    except yaml.YAMLError as exc:
+        raise RecipeError([(path, f"--set value {value!r} is not valid YAML: {exc}")]) from exc
+    return keys, parsed
+
+
+def apply_overrides(raw: dict[str, Any], overrides: list[str]) -> dict[str, Any]:
+    """Apply ``--set PATH=VALUE`` overrides to a raw recipe dict (list items by index)."""
+    errors: list[tuple[str, str]] = []
+    for text in overrides:
+        keys, value = parse_override(text)
+        node: Any = raw
+        for i, key in enumerate(keys):
+            last = i == len(keys) - 1
+            where = ".".join(keys[: i + 1])
+            if isinstance(node, list):
+                if not key.isdigit() or int(key) >= len(node):
+                    errors.append((where, f"no list item {key} (list has {len(node)})"))
+                    break
+                if last:
+                    node[int(key)] = value
+                else:
+                    node = node[int(key)]
+            elif isinstance(node, dict):
+                if last:
+                    node[key] = value
+                else:
+                    if node.get(key) is None:
+                        node[key] = {}
+                    node = node[key]
+            else:
+                errors.append((where, f"cannot set inside a {type(node).__name__}"))
+                break
+    if errors:
+        raise RecipeError(errors, "--set")
+    return raw
+
+
+# --------------------------------------------------------------------------- validation
+def _loc(parts: tuple[Any, ...]) -> str:
+    return ".".join(str(p) for p in parts)
+
+
+def _stage_specs(recipe: Recipe) -> list[tuple[str, str, StageSpec]]:
+    """(recipe path, stage kind, spec) of every stage the recipe names."""
+    out: list[tuple[str, str, StageSpec]] = []
+    for i, cam in enumerate(recipe.scan.cameras):
+        out.append((f"scan.cameras.{i}", "camera", cam))
+    out.append(("scan.turntable", "axis", recipe.scan.turntable))
+    if recipe.scan.tilt_arm is not None:
+        out.append(("scan.tilt_arm", "axis", recipe.scan.tilt_arm))
+    if recipe.scan.scene is not None:
+        out.append(("scan.scene", "scene", recipe.scan.scene))
+    for section, stage in PROCESSING_SECTIONS.items():
+        spec = getattr(recipe, section)
+        if spec is not None:
+            out.append((section, stage, spec))
+    for i, spec in enumerate(recipe.export):
+        out.append((f"export.{i}", "exporter", spec))
+    return out
+
+
+def validate_recipe(raw: Any, registry=None, source: str = "recipe") -> Recipe:
+    """Validate a raw recipe dict in full; raise ``RecipeError`` with every error.
+
+    With a ``registry`` (``plantscan_core.plugins.StageRegistry``) plugin names
+    and each plugin's parameters are checked too.
+    """
+    if not isinstance(raw, dict):
+        raise RecipeError([("", "a recipe must be a YAML mapping")], source)
+    try:
+        recipe = Recipe.model_validate(raw)
+    except ValidationError as exc:
+        errors = [(_loc(e["loc"]), e["msg"]) for e in exc.errors()]
+        # Still check the plugin sections that parsed, so all errors come out together.
+        errors += _check_plugins_raw(raw, registry)
+        raise RecipeError(errors, source) from None
+    errors = check_plugins(recipe, registry) if registry is not None else []
+    errors += _check_protocol(recipe)
+    if errors:
+        raise RecipeError(errors, source)
+    return recipe
+
+
+def _check_protocol(recipe: Recipe) -> list[tuple[str, str]]:
+    errors: list[tuple[str, str]] = []
+    scan = recipe.scan
+    if len(scan.tilts_deg) > 1 and scan.tilt_arm is None:
+        errors.append(("scan.tilt_arm", f"{len(scan.tilts_deg)} tilts need a tilt_arm axis"))
+    for t in scan.tilts_deg:
+        if not -90.0 <= t <= 90.0:
+            errors.append(("scan.tilts_deg", f"tilt {t} outside [-90, 90] deg"))
+    if "plant" in scan.roles and scan.roles["plant"].enabled and "background" in scan.roles:
+        bg, pl = set(scan.role_tilts("background")), set(scan.role_tilts("plant"))
+        if scan.roles["background"].enabled and not pl <= bg:
+            errors.append(("scan.roles.background.tilts_deg",
+                           f"plant tilts {sorted(pl - bg)} have no background plate"))
+    return errors
+
+
+def check_plugins(recipe: Recipe, registry) -> list[tuple[str, str]]:
+    errors: list[tuple[str, str]] = []
+    for path, stage, spec in _stage_specs(recipe):
+        errors += _check_one(path, stage, spec.plugin, spec.params, registry)
+    return errors
+
+
+def _check_one(path: str, stage: str, plugin: str, params: Any, registry) -> list[tuple[str, str]]:
+    if registry is None:
+        return []
+    try:
+        reg = registry.get(stage, plugin)
+    except PluginError as exc:
+        return [(f"{path}.plugin", str(exc))]
+    if not isinstance(params, dict):
+        return [(f"{path}.params", "must be a mapping")]
+    try:
+        reg.cls.Params.model_validate(params)
+    except ValidationError as exc:
+        return [(f"{path}.params.{_loc(e['loc'])}".rstrip("."), e["msg"]) for e in exc.errors()]
+    return []
+
+
+def _check_plugins_raw(raw: dict[str, Any], registry) -> list[tuple[str, str]]:
+    """Plugin checks on a recipe that failed structural validation (best effort)."""
+    if registry is None:
+        return []
+    errors: list[tuple[str, str]] = []
+    candidates: list[tuple[str, str, Any]] = []
+    scan = raw.get("scan") if isinstance(raw.get("scan"), dict) else {}
+    for i, cam in enumerate(scan.get("cameras") or [] if isinstance(scan, dict) else []):
+        candidates.append((f"scan.cameras.{i}", "camera", cam))
+    for key, stage in (("turntable", "axis"), ("tilt_arm", "axis"), ("scene", "scene")):
+        candidates.append((f"scan.{key}", stage, scan.get(key)))
+    for section, stage in PROCESSING_SECTIONS.items():
+        candidates.append((section, stage, raw.get(section)))
+    for i, spec in enumerate(raw.get("export") or [] if isinstance(raw.get("export"), list) else []):
+        candidates.append((f"export.{i}", "exporter", spec))
+    for path, stage, spec in candidates:
+        if isinstance(spec, dict) and isinstance(spec.get("plugin"), str):
+            errors += _check_one(path, stage, spec["plugin"], spec.get("params") or {}, registry)
+    return errors
+
+
+def read_recipe_file(path: Path) -> dict[str, Any]:
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise RecipeError([("", "file not found")], str(path)) from None
+    except OSError as exc:
+        raise RecipeError([("", f"cannot read: {exc}")], str(path)) from exc
+    try:
+        raw = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise RecipeError([("", f"not valid YAML: {exc}")], str(path)) from exc
+    return raw if raw is not None else {}
+
+
+RECIPES_DIR = Path(__file__).resolve().parent.parent / "recipes"
+
+
+def resolve_recipe_path(name_or_path: str | Path) -> Path:
+    """A recipe file path, or a bare name of a file in the shipped ``recipes/`` folder."""
+    p = Path(name_or_path)
+    if p.exists() or p.suffix in (".yaml", ".yml") or "/" in str(name_or_path):
+        return p
+    shipped = RECIPES_DIR / f"{name_or_path}.yaml"
+    return shipped if shipped.exists() else p
+
+
+def load_recipe(path: str | Path, overrides: list[str] | None = None, registry=None) -> Recipe:
+    """Read, override (``--set``) and validate a recipe file."""
+    path = resolve_recipe_path(path)
+    raw = apply_overrides(read_recipe_file(path), list(overrides or []))
+    return validate_recipe(raw, registry, str(path))
+
+
+def recipe_json_schema() -> dict[str, Any]:
+    """JSON Schema of recipes (plugin parameters are checked by each plugin's Params)."""
+    return Recipe.model_json_schema()

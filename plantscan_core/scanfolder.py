@@ -1,0 +1,257 @@
+"""The on-disk scan folder: what acquisition writes and processing reads.
+
+::
+
+    SCAN/
+      scan.yaml          plant id, species, recipe, rig, time
+      views.jsonl        one line per finished image, appended in capture order
+      images/...         the photos
+      ground_truth/...   only from the virtual scanner
+
+An image line is appended to ``views.jsonl`` only after the image is
+completely on disk (temporary name, fsync, rename), so an interrupted scan can
+be resumed and never lists a half-written image.  A torn last line (a crash
+during the append itself) is ignored on reading and overwritten on resume.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import os
+import tempfile
+from collections.abc import Callable, Iterator
+from pathlib import Path, PurePosixPath
+from typing import Any
+
+import numpy as np
+import yaml
+
+from plantscan_core.data import ROLES, ViewRecord
+from plantscan_core.errors import DataError, ScanFolderError
+
+SCAN_YAML = "scan.yaml"
+VIEWS_JSONL = "views.jsonl"
+IMAGES_DIR = "images"
+GROUND_TRUTH_DIR = "ground_truth"
+FORMAT = "plantscan-scan/1"
+
+
+def _fsync_dir(path: Path) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` via a temporary file, fsync and rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    _fsync_dir(path.parent)
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    """Text version of ``atomic_write_bytes`` (UTF-8)."""
+    atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def now_iso() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+class ScanFolder:
+    """A scan folder on disk.  Use ``ScanFolder.create`` or ``ScanFolder.open``."""
+
+    def __init__(self, root: Path, info: dict[str, Any], views: list[ViewRecord]):
+        self.root = Path(root)
+        self.info = info
+        self._views = views
+
+    # ------------------------------------------------------------------ creation / opening
+    @classmethod
+    def create(cls, root: Path, info: dict[str, Any]) -> ScanFolder:
+        """Start a new scan at ``root`` (must not already hold a scan)."""
+        root = Path(root)
+        if (root / SCAN_YAML).exists():
+            raise ScanFolderError(
+                f"{root}: already holds a scan; use --resume to continue it or choose another --out"
+            )
+        try:
+            (root / IMAGES_DIR).mkdir(parents=True, exist_ok=True)
+            probe = root / ".write-test"
+            probe.write_bytes(b"")
+            probe.unlink()
+        except OSError as exc:
+            raise ScanFolderError(f"{root}: cannot write the scan folder ({exc.strerror})") from exc
+        info = {"format": FORMAT, "created": now_iso(), **info}
+        atomic_write_text(root / SCAN_YAML, yaml.safe_dump(info, sort_keys=False))
+        (root / VIEWS_JSONL).touch()
+        return cls(root, info, [])
+
+    @classmethod
+    def open(cls, root: Path) -> ScanFolder:
+        """Open an existing scan; malformed files raise ``ScanFolderError`` naming them."""
+        root = Path(root)
+        meta = root / SCAN_YAML
+        if not root.is_dir():
+            raise ScanFolderError(f"{root}: no such scan folder")
+        if not meta.exists():
+            raise ScanFolderError(f"{meta}: missing; {root} is not a plantscan scan folder")
+        try:
+            info = yaml.safe_load(meta.read_text()) or {}
+        except yaml.YAMLError as exc:
+            raise ScanFolderError(f"{meta}: not valid YAML ({exc})") from exc
+        if not isinstance(info, dict):
+            raise ScanFolderError(f"{meta}: must be a mapping")
+        scan = cls(root, info, [])
+        scan._views = scan._read_views()
+        return scan
+
+    def _read_views(self) -> list[ViewRecord]:
+        path = self.root / VIEWS_JSONL
+        if not path.exists():
+            return []
+        data = path.read_bytes()
+        lines = data.split(b"\n")
+        torn = lines[-1] != b""  # last line without newline: a crash during the append
+        views: list[ViewRecord] = []
+        for n, line in enumerate(lines[:-1] if not torn else lines[:-1], start=1):
+            if not line.strip():
+                continue
+            try:
+                d = json.loads(line)
+                view = ViewRecord.from_dict(d)
+            except (ValueError, KeyError, TypeError) as exc:
+                raise ScanFolderError(f"{path}:{n}: malformed view line ({exc})") from exc
+            if view.role not in ROLES:
+                raise ScanFolderError(f"{path}:{n}: unknown role {view.role!r}")
+            self._check_relative(view.file, f"{path}:{n}")
+            views.append(view)
+        return views
+
+    # ------------------------------------------------------------------ reading
+    @property
+    def views(self) -> list[ViewRecord]:
+        return list(self._views)
+
+    def views_by_role(self, role: str) -> list[ViewRecord]:
+        if role not in ROLES:
+            raise ValueError(f"unknown role {role!r}; valid: {', '.join(ROLES)}")
+        return [v for v in self._views if v.role == role]
+
+    @property
+    def ground_truth_dir(self) -> Path:
+        return self.root / GROUND_TRUTH_DIR
+
+    @property
+    def recipe_dict(self) -> dict[str, Any]:
+        return self.info.get("recipe") or {}
+
+    def _check_relative(self, rel: str, where: str) -> PurePosixPath:
+        p = PurePosixPath(rel)
+        if p.is_absolute() or ".." in p.parts or not p.parts:
+            raise ScanFolderError(f"{where}: image path {rel!r} escapes the scan folder")
+        return p
+
+    def path_of(self, view: ViewRecord) -> Path:
+        """Absolute path of a view's image; rejects paths escaping the folder and missing files."""
+        rel = self._check_relative(view.file, f"{self.root / VIEWS_JSONL} (view {view.index})")
+        path = (self.root / rel).resolve()
+        if not path.is_relative_to(self.root.resolve()):
+            raise ScanFolderError(f"view {view.index}: image path {view.file!r} escapes the scan "
+                                  "folder (through a link)")
+        if not path.exists():
+            raise DataError(f"{path}: image of view {view.index} ({view.role}, camera "
+                            f"{view.camera}, tilt {view.tilt_index}, angle "
+                            f"{view.commanded_angle_deg:g}) is missing")
+        return path
+
+    def read_image(self, view: ViewRecord, reduce: int = 1) -> np.ndarray:
+        """Decode a view's image as ``(H, W, 3) uint8`` BGR (``reduce`` in 1, 2, 4, 8)."""
+        return read_image(self.path_of(view), reduce=reduce)
+
+    # ------------------------------------------------------------------ writing
+    def append_view(self, view: ViewRecord, write_image: Callable[[Path], Any]) -> ViewRecord:
+        """Write one image atomically, then append its line to ``views.jsonl``.
+
+        ``write_image(tmp_path)`` writes the image to a temporary path inside
+        the folder; it is fsynced and renamed to ``view.file`` before the line
+        is appended (and the line is fsynced too).
+        """
+        rel = self._check_relative(view.file, "new view")
+        final = self.root / rel
+        final.parent.mkdir(parents=True, exist_ok=True)
+        tmp = final.with_name(f".{final.stem}.partial{final.suffix}")
+        try:
+            write_image(tmp)
+            if not tmp.exists():
+                raise DataError(f"{tmp}: the camera reported success but wrote no file")
+            with open(tmp, "rb+") as f:
+                os.fsync(f.fileno())
+            os.replace(tmp, final)
+            _fsync_dir(final.parent)
+        finally:
+            if tmp.exists():
+                tmp.unlink()
+        self._append_line(view)
+        self._views.append(view)
+        return view
+
+    def _append_line(self, view: ViewRecord) -> None:
+        path = self.root / VIEWS_JSONL
+        data = path.read_bytes() if path.exists() else b""
+        if data and not data.endswith(b"\n"):
+            # Drop a torn last line left by a crash during an append.
+            with open(path, "r+b") as f:
+                f.truncate(data.rfind(b"\n") + 1)
+        with open(path, "ab") as f:
+            f.write((json.dumps(view.to_dict(), sort_keys=True) + "\n").encode())
+            f.flush()
+            os.fsync(f.fileno())
+
+    def done_keys(self) -> set[tuple[str, str, int, int]]:
+        """Keys (role, camera, tilt_index, angle_index) of the images already captured."""
+        return {v.key for v in self._views}
+
+    def __iter__(self) -> Iterator[ViewRecord]:
+        return iter(self._views)
+
+    def __repr__(self) -> str:
+        return f"ScanFolder({str(self.root)!r}, {len(self._views)} views)"
+
+
+def read_image(path: Path, reduce: int = 1) -> np.ndarray:
+    """Decode an image file as ``(H, W, 3) uint8`` BGR; ``DataError`` naming the file."""
+    import cv2
+
+    from plantscan_core import iostats
+
+    flags = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
+             8: cv2.IMREAD_REDUCED_COLOR_8}
+    if reduce not in flags:
+        raise ValueError(f"reduce must be one of {sorted(flags)}, got {reduce}")
+    path = Path(path)
+    if not path.exists():
+        raise DataError(f"{path}: image file not found")
+    img = cv2.imread(str(path), flags[reduce])
+    iostats.count_decode(path)
+    if img is None:
+        raise DataError(f"{path}: cannot decode image (corrupt or unsupported format)")
+    return img
