@@ -1,24 +1,76 @@
 """Acquisition orchestrator behind ``plantscan scan``: the same code for real and virtual rigs.
 
 For each role of the protocol (calibration target, background plates, plant),
-for each tilt, for each turntable angle: move, then trigger every camera.
-Each image is appended to ``views.jsonl`` as soon as it is on disk, so an
-interrupted scan is resumed with ``resume=True`` and finishes with exactly the
-protocol's images, none rewritten.
+for each tilt, for each turntable angle (a *stop*): move, then trigger every
+camera at once.  Each image is appended to ``views.jsonl`` as soon as it is on
+disk, so an interrupted scan is resumed with ``resume=True`` and finishes with
+exactly the protocol's images, none rewritten.
+
+Timeline of one stop ``k`` (cameras A and B)::
+
+    main thread   | move k ........ | commit k-1 | trigger A+B (wait) | move k+1 ...
+    camera A      | download k-1 ...|            | expose k           | download k ...
+    camera B      | download k-1 .....|          | expose k           | download k ...
+
+The move to stop ``k`` overlaps the downloads of stop ``k-1``; the rig only
+moves once every shutter of the stop has closed.  A camera that splits its
+work into ``trigger(request) -> finish`` (expose now, return a callable that
+downloads) gets this overlap; a camera with only ``capture(request)`` does all
+its work during the trigger phase and still runs concurrently with the others.
+Each camera's calls run on its own worker thread, one call at a time, so a
+backend never sees two calls at once.
+
+Crash safety
+------------
+* a camera writes to a hidden temporary name (``.NAME.capture.EXT``); the scan
+  folder fsyncs and renames it into place, then appends and fsyncs its line;
+* ``KeyboardInterrupt`` (Ctrl-C, and SIGTERM while a scan runs) stops the axes
+  (``stop()`` when the axis has one), keeps the images already exposed,
+  removes temporaries, closes every device and re-raises;
+* a device that fails for good ends the scan with :class:`AcquisitionError`
+  (a ``HardwareError``) naming the device and view; every image captured
+  before it, and those of the same stop from the other cameras, are kept;
+* temporaries left by a killed process are removed when the scan is resumed.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import concurrent.futures as cf
+import dataclasses
+import os
+import signal
+import threading
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from plantscan_core.data import ViewRecord
 from plantscan_core.errors import HardwareError, PlantScanError, ScanFolderError
 from plantscan_core.plugins import PluginManager
 from plantscan_core.recipe import Recipe
-from plantscan_core.scanfolder import ScanFolder, now_iso
-from plantscan_core.stages import CaptureRequest, StageContext
+from plantscan_core.scanfolder import IMAGES_DIR, ScanFolder, now_iso
+from plantscan_core.stages import CameraBackend, CaptureRequest, MotionAxis, StageContext
+
+CAPTURE_TMP_MARK = ".capture"
+"""Infix of the temporary name a camera writes to (``.NAME.capture.EXT``)."""
+
+
+class AcquisitionError(HardwareError):
+    """A device failed for good during a scan; what was captured before is intact.
+
+    Attributes
+    ----------
+    device : str
+        ``camera NAME``, ``turntable`` or ``tilt_arm``.
+    captured : int
+        Number of images listed in ``views.jsonl`` when the scan stopped.
+    """
+
+    def __init__(self, message: str, *, device: str, captured: int) -> None:
+        self.device = device
+        self.captured = captured
+        super().__init__(message)
 
 
 @dataclass(frozen=True)
@@ -49,7 +101,7 @@ def all_tilts(recipe: Recipe) -> list[float]:
 
 
 def plan(recipe: Recipe) -> list[PlannedView]:
-    """Every view of the protocol in capture order."""
+    """Every view of the protocol in capture order (cameras innermost)."""
     tilts = all_tilts(recipe)
     out: list[PlannedView] = []
     for role in recipe.scan.enabled_roles():
@@ -62,6 +114,20 @@ def plan(recipe: Recipe) -> list[PlannedView]:
 
 def image_relpath(v: PlannedView, ext: str) -> str:
     return f"images/{v.role}/{v.camera}_t{v.tilt_index:02d}_a{v.angle_index:03d}.{ext}"
+
+
+def stops(views: list[PlannedView]) -> Iterator[list[PlannedView]]:
+    """Group consecutive views taken at the same rig position (one group = one stop)."""
+    group: list[PlannedView] = []
+    for v in views:
+        if group and (v.role, v.tilt_index, v.angle_index) != (
+            group[0].role, group[0].tilt_index, group[0].angle_index
+        ):
+            yield group
+            group = []
+        group.append(v)
+    if group:
+        yield group
 
 
 def _scan_info(recipe: Recipe, raw_recipe: dict) -> dict:
@@ -79,6 +145,118 @@ def _scan_info(recipe: Recipe, raw_recipe: dict) -> dict:
     }
 
 
+def remove_stale_temporaries(scan: ScanFolder) -> list[Path]:
+    """Delete half-written images left by a killed scan (hidden ``.capture``/``.partial`` files).
+
+    They are never listed in ``views.jsonl``; their views are captured again.
+    """
+    removed = []
+    images = scan.root / IMAGES_DIR
+    if not images.is_dir():
+        return removed
+    for p in images.rglob(".*"):
+        if p.is_file() and (CAPTURE_TMP_MARK in p.name or ".partial" in p.name):
+            p.unlink(missing_ok=True)
+            removed.append(p)
+    return removed
+
+
+# --------------------------------------------------------------------------- devices
+def _camera_trigger(camera: CameraBackend, request: CaptureRequest) -> Callable[[], Any]:
+    """Expose now; return the callable that finishes (downloads) the image.
+
+    Cameras may implement ``trigger(request) -> finish`` to let downloads overlap
+    the next move; otherwise ``capture`` does everything here.
+    """
+    trigger = getattr(camera, "trigger", None)
+    if callable(trigger):
+        finish = trigger(request)
+        if callable(finish):
+            return finish
+        return _nothing
+    camera.capture(request)
+    return _nothing
+
+
+def _nothing() -> None:
+    return None
+
+
+@dataclass
+class _Pending:
+    """One image of a stop: its trigger, then its download, then its commit."""
+
+    view: ViewRecord
+    tmp: Path
+    worker: cf.ThreadPoolExecutor
+    trigger: cf.Future
+    download: cf.Future | None = None
+
+    def wait(self) -> None:
+        """Block until the image is complete in ``tmp``; raise the device's error."""
+        if self.download is None:
+            finish = self.trigger.result()
+            self.download = self.worker.submit(finish)
+        self.download.result()
+
+
+class _Rig:
+    """The built devices of one acquisition and the per-camera worker threads."""
+
+    def __init__(self, cameras: dict[str, CameraBackend], turntable: MotionAxis,
+                 tilt_arm: MotionAxis | None) -> None:
+        self.cameras = cameras
+        self.turntable = turntable
+        self.tilt_arm = tilt_arm
+        self.workers = {
+            name: cf.ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"camera-{name}")
+            for name in cameras
+        }
+        self.opened: list[Any] = []
+
+    def axes(self) -> list[tuple[str, MotionAxis]]:
+        out = [("turntable", self.turntable)]
+        if self.tilt_arm is not None:
+            out.append(("tilt_arm", self.tilt_arm))
+        return out
+
+    def open(self) -> None:
+        for name, cam in self.cameras.items():
+            self._open_one(f"camera {name!r}", cam)
+        for name, axis in self.axes():
+            self._open_one(name, axis)
+
+    def _open_one(self, what: str, device: Any) -> None:
+        try:
+            device.open()
+        except PlantScanError:
+            raise
+        except Exception as exc:
+            raise HardwareError(f"{what}: cannot open the device: {exc}") from exc
+        self.opened.append(device)
+
+    def stop_axes(self) -> None:
+        """Emergency stop: every axis with a ``stop()`` stops now (errors ignored)."""
+        for _, axis in self.axes():
+            stop = getattr(axis, "stop", None)
+            if callable(stop):
+                try:
+                    stop()
+                except Exception:  # noqa: BLE001 - stopping must try every axis
+                    pass
+
+    def close(self, wait: bool = True) -> None:
+        for ex in self.workers.values():
+            ex.shutdown(wait=wait, cancel_futures=True)
+        for d in reversed(self.opened):
+            try:
+                d.close()
+            except Exception:  # noqa: BLE001 - closing must not hide the original error
+                pass
+        self.opened.clear()
+
+
+# --------------------------------------------------------------------------- orchestrator
 def acquire(
     recipe: Recipe,
     out: Path,
@@ -96,10 +274,23 @@ def acquire(
     ----------
     recipe : Recipe, already validated in full (nothing has moved yet).
     out : Path, the scan folder.
-    resume : continue a scan already in ``out`` (its recipe must match).
-    stop_after : stop after this many *new* images (tests of interruption).
-    on_role_start : called with the role name before its first image
-        (real rigs: ask the user to mount the target or remove the plant).
+    manager : PluginManager that builds the cameras, axes and scene.
+    raw_recipe : the recipe as read (stored in ``scan.yaml``); defaults to ``recipe`` dumped.
+    resume : continue a scan already in ``out`` (its protocol and rig must match);
+        finished images are never rewritten.
+    stop_after : capture at most this many *new* images, then return (tests of interruption).
+    on_role_start : called with the role name before its first image, once every
+        earlier image is committed (real rigs: ask the user to mount the target
+        or remove the plant).
+    progress : show a progress bar.
+
+    Raises
+    ------
+    AcquisitionError
+        A camera or axis failed for good; the images captured so far are kept
+        and listed (continue with ``resume=True``).
+    KeyboardInterrupt
+        Ctrl-C or SIGTERM: axes stopped, exposed images kept, devices closed.
     """
     raw_recipe = raw_recipe if raw_recipe is not None else recipe.model_dump(mode="json")
     out = Path(out)
@@ -111,6 +302,7 @@ def acquire(
                 f"{out}: cannot resume, the scan was started with a different protocol or rig "
                 "(compare scan.yaml's recipe.scan with this recipe)"
             )
+        remove_stale_temporaries(scan)
     else:
         scan = ScanFolder.create(out, _scan_info(recipe, raw_recipe))
 
@@ -136,75 +328,201 @@ def acquire(
 
     done = scan.done_keys()
     todo = [v for v in plan(recipe) if v.key not in done]
-    devices = [*cameras.values(), turntable] + ([tilt_arm] if tilt_arm is not None else [])
-    opened = []
-    new_images = 0
-    ext = recipe.scan.image_format
-    try:
-        for d in devices:
-            d.open()
-            opened.append(d)
-        if todo:
-            turntable.home()
-            if tilt_arm is not None:
-                tilt_arm.home()
-        current_role = current_tilt = current_angle = None
-        measured = None
-        bar = _progress(progress, len(todo))
-        for v in todo:
-            if stop_after is not None and new_images >= stop_after:
-                break
-            if v.role != current_role:
-                if on_role_start is not None:
-                    on_role_start(v.role)
-                current_role, current_angle = v.role, None
-            if v.tilt_deg != current_tilt:
-                if tilt_arm is not None:
-                    tilt_arm.move_to(v.tilt_deg)
-                elif v.tilt_deg != 0.0:
-                    raise HardwareError(f"tilt {v.tilt_deg} deg asked but the recipe has no "
-                                        "scan.tilt_arm")
-                current_tilt, current_angle = v.tilt_deg, None
-            if v.angle_deg != current_angle:
-                measured = turntable.move_to(v.angle_deg)
-                current_angle = v.angle_deg
-            view = ViewRecord(
-                index=len(scan.views), role=v.role, camera=v.camera, tilt_index=v.tilt_index,
-                tilt_deg=v.tilt_deg, angle_index=v.angle_index, commanded_angle_deg=v.angle_deg,
-                measured_angle_deg=measured, file=image_relpath(v, ext), captured_at=now_iso(),
-            )
-
-            def _write(tmp: Path, v=v, view=view) -> None:
-                req = CaptureRequest(
-                    out_path=tmp, role=v.role, camera=v.camera, tilt_index=v.tilt_index,
-                    tilt_deg=v.tilt_deg, angle_index=v.angle_index,
-                    commanded_angle_deg=v.angle_deg, measured_angle_deg=view.measured_angle_deg,
-                    image_size=tuple(recipe.scan.image_size), image_format=ext,
-                )
-                try:
-                    cameras[v.camera].capture(req)
-                except PlantScanError:
-                    raise
-                except Exception as exc:
-                    raise HardwareError(
-                        f"camera {v.camera!r} failed on {v.role} view tilt {v.tilt_index} angle "
-                        f"{v.angle_deg:g}: {exc}; the {len(scan.views)} images already "
-                        "captured are kept (continue with --resume)"
-                    ) from exc
-
-            scan.append_view(view, _write)
-            new_images += 1
-            if bar is not None:
-                bar[0].advance(bar[1])
-        if bar is not None:
-            bar[0].stop()
-    finally:
-        for d in reversed(opened):
-            try:
-                d.close()
-            except Exception:  # noqa: BLE001 - closing must not hide the original error
-                pass
+    if stop_after is not None:
+        todo = todo[: max(0, stop_after)]
+    run = _Run(recipe, scan, _Rig(cameras, turntable, tilt_arm), on_role_start)
+    with _sigterm_as_interrupt():
+        run.execute(todo, progress)
     return scan
+
+
+class _Run:
+    """State of one ``acquire`` call: where the rig is, what is exposed but not committed."""
+
+    def __init__(self, recipe: Recipe, scan: ScanFolder, rig: _Rig,
+                 on_role_start: Callable[[str], None] | None) -> None:
+        self.recipe = recipe
+        self.scan = scan
+        self.rig = rig
+        self.on_role_start = on_role_start
+        self.ext = recipe.scan.image_format
+        self.pending: list[_Pending] = []
+        self.tilt: float | None = None
+        self.angle: float | None = None
+        self.measured: float | None = None
+        self.bar = None
+
+    def execute(self, todo: list[PlannedView], progress: bool) -> None:
+        rig = self.rig
+        interrupted = False
+        try:
+            rig.open()
+            if todo:
+                self._axis_call("turntable", rig.turntable.home)
+                if rig.tilt_arm is not None:
+                    self._axis_call("tilt_arm", rig.tilt_arm.home)
+            self.bar = _progress(progress, len(todo))
+            role = None
+            for group in stops(todo):
+                if group[0].role != role:
+                    self.commit()  # the user is asked to change the set-up: nothing in flight
+                    role = group[0].role
+                    if self.on_role_start is not None:
+                        self.on_role_start(role)
+                    self.angle = None
+                self.move(group[0])
+                self.commit()  # downloads of the previous stop ran during the move
+                self.expose(group)
+            self.commit()
+        except BaseException as exc:
+            interrupted = isinstance(exc, KeyboardInterrupt)
+            if interrupted:
+                rig.stop_axes()
+            try:
+                self._commit_quietly()
+            except KeyboardInterrupt:  # a second Ctrl-C: stop waiting for downloads
+                interrupted = True
+            raise
+        finally:
+            if self.bar is not None:
+                self.bar[0].stop()
+            rig.close(wait=not interrupted)
+            for p in self.pending:
+                p.tmp.unlink(missing_ok=True)
+
+    # -- motion ------------------------------------------------------------------------
+    def _axis_call(self, which: str, fn: Callable, *args):
+        try:
+            return fn(*args)
+        except PlantScanError as exc:
+            if isinstance(exc, AcquisitionError):
+                raise
+            raise AcquisitionError(
+                f"{which}: {exc}; {self._kept()}", device=which, captured=len(self.scan.views)
+            ) from exc
+        except Exception as exc:
+            raise AcquisitionError(
+                f"{which} failed ({type(exc).__name__}: {exc}); {self._kept()}",
+                device=which, captured=len(self.scan.views),
+            ) from exc
+
+    def move(self, v: PlannedView) -> None:
+        rig = self.rig
+        if v.tilt_deg != self.tilt:
+            if rig.tilt_arm is not None:
+                self._axis_call("tilt_arm", rig.tilt_arm.move_to, v.tilt_deg)
+            elif v.tilt_deg != 0.0:
+                raise HardwareError(f"tilt {v.tilt_deg} deg asked but the recipe has no "
+                                    "scan.tilt_arm")
+            self.tilt, self.angle = v.tilt_deg, None
+        if v.angle_deg != self.angle:
+            self.measured = self._axis_call("turntable", rig.turntable.move_to, v.angle_deg)
+            self.angle = v.angle_deg
+
+    # -- cameras -----------------------------------------------------------------------
+    def expose(self, group: list[PlannedView]) -> None:
+        """Trigger every camera of the stop at once; queue their downloads."""
+        size = tuple(self.recipe.scan.image_size)
+        start = len(self.pending)
+        for v in group:
+            rel = image_relpath(v, self.ext)
+            final = self.scan.root / rel
+            final.parent.mkdir(parents=True, exist_ok=True)
+            tmp = final.with_name(f".{final.stem}{CAPTURE_TMP_MARK}{final.suffix}")
+            view = ViewRecord(
+                index=-1, role=v.role, camera=v.camera, tilt_index=v.tilt_index,
+                tilt_deg=v.tilt_deg, angle_index=v.angle_index, commanded_angle_deg=v.angle_deg,
+                measured_angle_deg=self.measured, file=rel, captured_at=now_iso(),
+            )
+            req = CaptureRequest(
+                out_path=tmp, role=v.role, camera=v.camera, tilt_index=v.tilt_index,
+                tilt_deg=v.tilt_deg, angle_index=v.angle_index, commanded_angle_deg=v.angle_deg,
+                measured_angle_deg=self.measured, image_size=size, image_format=self.ext,
+            )
+            worker = self.rig.workers[v.camera]
+            cam = self.rig.cameras[v.camera]
+            self.pending.append(_Pending(view, tmp, worker,
+                                         worker.submit(_camera_trigger, cam, req)))
+        failed = False
+        for p in self.pending[start:]:
+            try:
+                finish = p.trigger.result()  # the shutter has closed: the rig may move after this
+            except Exception:  # noqa: BLE001 - reported by commit, in capture order
+                failed = True
+                continue
+            p.download = p.worker.submit(finish)
+        if failed:
+            self.commit()  # keeps the other cameras' images of this stop, then raises
+
+    def commit(self) -> None:
+        """Wait for the pending downloads and list them in order; raise the first failure."""
+        pending, self.pending = self.pending, []
+        first: tuple[_Pending, BaseException] | None = None
+        for i, p in enumerate(pending):
+            try:
+                try:
+                    p.wait()
+                    if not p.tmp.exists():
+                        raise HardwareError(f"{p.tmp}: the camera reported success but wrote "
+                                            "no file")
+                except Exception as exc:  # noqa: BLE001 - the others are still committed
+                    p.tmp.unlink(missing_ok=True)
+                    if first is None:
+                        first = (p, exc)
+                    continue
+                view = dataclasses.replace(p.view, index=len(self.scan.views))
+                self.scan.append_view(view, lambda tmp, src=p.tmp: os.replace(src, tmp))
+                if self.bar is not None:
+                    self.bar[0].advance(self.bar[1])
+            except BaseException:
+                self.pending = pending[i + 1:]  # still to be committed or cleaned up
+                raise
+        if first is not None:
+            p, exc = first
+            self._raise_camera_error(p.view, exc)
+
+    def _commit_quietly(self) -> None:
+        """On the way out of an error: keep whatever is complete, swallow further errors."""
+        while self.pending:
+            try:
+                self.commit()
+            except Exception:  # noqa: BLE001 - the original error is the one reported
+                continue
+
+    def _raise_camera_error(self, view: ViewRecord, exc: BaseException) -> None:
+        where = (f"{view.role} view tilt {view.tilt_index} angle {view.commanded_angle_deg:g} "
+                 f"({view.file})")
+        msg = str(exc) if isinstance(exc, PlantScanError) else f"{type(exc).__name__}: {exc}"
+        raise AcquisitionError(
+            f"camera {view.camera!r} failed on {where}: {msg}; {self._kept()}",
+            device=f"camera {view.camera}", captured=len(self.scan.views),
+        ) from exc
+
+    def _kept(self) -> str:
+        return (f"the {len(self.scan.views)} images already captured in {self.scan.root} are "
+                "kept (fix the device, then continue with --resume)")
+
+
+class _sigterm_as_interrupt:
+    """While a scan runs in the main thread, SIGTERM behaves like Ctrl-C (motors stop)."""
+
+    def __enter__(self):
+        self.old = None
+        if threading.current_thread() is threading.main_thread():
+            try:
+                self.old = signal.signal(signal.SIGTERM, _raise_interrupt)
+            except ValueError:
+                self.old = None
+        return self
+
+    def __exit__(self, *exc):
+        if self.old is not None:
+            signal.signal(signal.SIGTERM, self.old)
+        return False
+
+
+def _raise_interrupt(signum, frame):
+    raise KeyboardInterrupt(f"signal {signum}")
 
 
 def _protocol_of(raw: dict) -> dict:

@@ -1,0 +1,20 @@
+"""Local work-around: ``plantscan_core.testing`` skips items whose *keywords* contain
+"hardware", and the folder name ``tests/hardware`` is one of every item's keywords, so
+it skips every test here.  Only tests that carry the ``hardware`` *marker* need a
+device; un-skip the others (remove once testing.py uses ``get_closest_marker``)."""
+
+from __future__ import annotations
+
+import pytest
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_collection_modifyitems(config, items):
+    if config.getoption("--hardware", default=False):
+        return
+    for item in items:
+        if item.get_closest_marker("hardware") is None:
+            item.own_markers[:] = [
+                m for m in item.own_markers
+                if not (m.name == "skip" and "real device" in str(m.kwargs.get("reason", "")))
+            ]
