@@ -220,8 +220,10 @@ def load_plugins(strict: bool | None = None) -> PluginManager:
                 raise PluginError(
                     f"plugin {ep.name!r} ({ep.value}, from {dist}) failed to load: {detail}"
                 ) from exc
-            print(f"plantscan: warning: plugin {ep.name!r} ({ep.value}) failed to load: {detail}",
-                  file=sys.stderr)
+    if manager.failed and not os.environ.get("PLANTSCAN_QUIET_PLUGINS"):
+        names = ", ".join(f.name for f in manager.failed)
+        print(f"plantscan: warning: {len(manager.failed)} plugin(s) failed to load ({names}); "
+              "see `plantscan plugins`", file=sys.stderr)
     return manager
 
 

@@ -1,0 +1,324 @@
+"""The ``plantscan`` command.
+
+Every error meant for the user prints as ``path: message`` on stderr with a
+non-zero exit status; tracebacks only with ``PLANTSCAN_DEBUG=1``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+from plantscan_core import __version__
+from plantscan_core.errors import PlantScanError, RecipeError
+from plantscan_core.plugins import PluginManager, get_manager
+from plantscan_core.recipe import (
+    apply_overrides,
+    read_recipe_file,
+    recipe_json_schema,
+    resolve_recipe_path,
+    validate_recipe,
+)
+from plantscan_core.stages import STAGE_BASES
+
+EXIT_USER_ERROR = 2
+
+
+def _add_recipe_args(p: argparse.ArgumentParser, required: bool = True) -> None:
+    p.add_argument("--recipe", required=required,
+                   help="recipe YAML file, or the name of a shipped recipe (e.g. plastic-dicot)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="PATH=VALUE",
+                   help="override a recipe value (YAML), repeatable: --set scan.image_size=[600,400]")
+
+
+def _load(args, manager: PluginManager):
+    path = resolve_recipe_path(args.recipe)
+    raw = apply_overrides(read_recipe_file(path), list(args.overrides))
+    recipe = validate_recipe(raw, manager.registry, str(path))
+    return recipe, raw
+
+
+# --------------------------------------------------------------------------- commands
+def cmd_plugins(args) -> int:
+    manager = get_manager()
+    if args.json:
+        print(json.dumps({
+            "stages": [{"stage": r.stage, "name": r.name, "plugin": r.plugin,
+                        "distribution": r.distribution, "version": r.version}
+                       for r in manager.registry],
+            "failed": [f.__dict__ for f in manager.failed],
+        }, indent=2))
+        return 1 if manager.failed else 0
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console()
+    table = Table(title="plantscan stages")
+    for col in ("stage", "name", "plugin", "distribution", "version"):
+        table.add_column(col)
+    for stage in STAGE_BASES:
+        for r in manager.registry:
+            if r.stage == stage:
+                table.add_row(stage, r.name, r.plugin, r.distribution, r.version)
+    console.print(table)
+    if manager.failed:
+        ft = Table(title="plugins that failed to load", style="red")
+        for col in ("plugin", "entry point", "distribution", "error"):
+            ft.add_column(col)
+        for f in manager.failed:
+            ft.add_row(f.name, f.value, f.distribution, f.error)
+        console.print(ft)
+        return 1
+    return 0
+
+
+def cmd_recipe_check(args) -> int:
+    manager = get_manager()
+    recipe, _ = _load(args, manager)
+    print(f"{args.recipe}: OK ({recipe.name}: {len(recipe.scan.cameras)} camera(s), "
+          f"{len(recipe.scan.tilts_deg)} tilt(s), {recipe.scan.images_per_revolution} "
+          "angles per revolution)")
+    return 0
+
+
+def cmd_schema(args) -> int:
+    print(json.dumps(recipe_json_schema(), indent=2))
+    return 0
+
+
+def cmd_scan(args) -> int:
+    from plantscan_core.acquire import acquire, plan
+
+    manager = get_manager()
+    recipe, raw = _load(args, manager)
+    if args.dry_run:
+        try:
+            from plantscan_core.timing import estimate_scan_time
+        except ImportError:
+            print(f"{len(plan(recipe))} images planned")
+            return 0
+        print(estimate_scan_time(recipe))
+        return 0
+    if args.out is None:
+        raise PlantScanError("--out: required (the scan folder to write)")
+    interactive = recipe.scan.scene is None and sys.stdin.isatty()
+
+    def on_role_start(role: str) -> None:
+        if interactive:
+            what = {"calibration": "mount the calibration target on the turntable",
+                    "background": "remove the plant (background plates)",
+                    "plant": "place the plant on the turntable"}[role]
+            input(f"{role}: {what}, then press Enter ")
+
+    scan = acquire(recipe, Path(args.out), manager, raw_recipe=raw, resume=args.resume,
+                   on_role_start=on_role_start, progress=sys.stderr.isatty())
+    print(f"{scan.root}: {len(scan.views)} images")
+    return 0
+
+
+def _recipe_from_scan_or_args(args, manager):
+    from plantscan_core.scanfolder import ScanFolder
+
+    if args.recipe:
+        return _load(args, manager)
+    scan = ScanFolder.open(Path(args.scan))
+    raw = apply_overrides(dict(scan.recipe_dict), list(args.overrides))
+    return validate_recipe(raw, manager.registry, f"{args.scan}/scan.yaml recipe"), raw
+
+
+def cmd_calibrate(args) -> int:
+    from plantscan_core.scanfolder import ScanFolder
+
+    manager = get_manager()
+    recipe, _ = _recipe_from_scan_or_args(args, manager)
+    if recipe.calibrate is None:
+        raise RecipeError([("calibrate", "the recipe names no calibrator")])
+    scan = ScanFolder.open(Path(args.scan))
+    from plantscan_core.stages import StageContext
+
+    calibrator = manager.build("calibrator", recipe.calibrate.plugin, recipe.calibrate.params,
+                               StageContext(recipe=recipe, scan=scan))
+    calibration = calibrator.calibrate(scan)
+    out = Path(args.output) if args.output else scan.root / "calibration.yaml"
+    calibration.save(out)
+    print(f"{out}: calibration of {', '.join(calibration.camera_names)}")
+    q = calibration.quality
+    if q.get("rms_px") is not None:
+        print(f"  RMS reprojection {q['rms_px']:.4f} px")
+    return 0
+
+
+def cmd_process(args) -> int:
+    from plantscan_core.pipeline import process
+
+    manager = get_manager()
+    recipe, raw = _recipe_from_scan_or_args(args, manager)
+    out = Path(args.out) if args.out else Path(args.scan).with_name(Path(args.scan).name + "-run")
+    result = process(Path(args.scan), recipe, out, manager, raw_recipe=raw,
+                     overrides=args.overrides, progress=sys.stderr.isatty(),
+                     calibration_path=Path(args.calibration) if args.calibration else None)
+    if args.profile:
+        print(profile_table(result.info))
+    stopped = result.info.get("stopped_before")
+    if stopped:
+        print(f"{out}: stopped before '{stopped}' (the recipe names no plugin for it)")
+    if result.traits is not None:
+        print(f"{out}: {len(result.traits.leaves)} leaves measured -> {out / 'traits.csv'}")
+    else:
+        print(f"{out}: run written")
+    return 0
+
+
+def profile_table(info: dict[str, Any]) -> str:
+    """Seconds per stage of a run (from run.json's info), as a text table."""
+    lines = [f"{'stage':<16}{'seconds':>10}  cached"]
+    for stage, sec in info.get("timings_s", {}).items():
+        if stage == "total":
+            continue
+        cached = info.get("stages", {}).get(stage, {}).get("cached", False)
+        lines.append(f"{stage:<16}{sec:>10.3f}  {'yes' if cached else ''}")
+    lines.append(f"{'total':<16}{info.get('timings_s', {}).get('total', 0.0):>10.3f}")
+    return "\n".join(lines)
+
+
+def cmd_evaluate(args) -> int:
+    run_dir = Path(args.run)
+    if not (run_dir / "run.json").exists():
+        raise PlantScanError(f"{run_dir}: not a run folder (no run.json)")
+    truth = Path(args.truth) if args.truth else None
+    if truth is None:
+        info = json.loads((run_dir / "run.json").read_text())
+        truth = Path(info["scan"]) / "ground_truth"
+    if (truth / "ground_truth").is_dir():
+        truth = truth / "ground_truth"
+    if not truth.is_dir():
+        raise PlantScanError(f"{truth}: truth folder not found (pass --truth SCAN/ground_truth)")
+    metrics = evaluate(run_dir, truth)
+    print(json.dumps(metrics, indent=2, sort_keys=True))
+    return 0
+
+
+def evaluate(run_dir: Path, truth_dir: Path) -> dict[str, Any]:
+    """Merged metrics of every plugin's ``plantscan_evaluate`` hook."""
+    return get_manager().evaluate(Path(run_dir), Path(truth_dir))
+
+
+def cmd_demo(args) -> int:
+    from plantscan_core.demo import run_demo
+
+    return run_demo(Path(args.out), list(args.overrides), recipe_name=args.recipe)
+
+
+def cmd_batch(args) -> int:
+    try:
+        from plantscan_core.batch import run_batch
+    except ImportError as exc:
+        raise PlantScanError(f"batch: not available ({exc})") from exc
+    summary = run_batch([Path(s) for s in args.scans], resolve_recipe_path(args.recipe),
+                        Path(args.out), overrides=args.overrides, scheduler=args.scheduler,
+                        workers=args.workers, progress=sys.stderr.isatty())
+    print(summary)
+    return 1 if getattr(summary, "failed", 0) else 0
+
+
+# --------------------------------------------------------------------------- parser
+def build_parser(manager: PluginManager | None = None) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="plantscan",
+        description="Turntable 3D scanning and leaf measurement for plant phenotyping.")
+    parser.add_argument("--version", action="version", version=f"plantscan {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    p = sub.add_parser("plugins", help="list loaded and failed plugins by stage")
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.set_defaults(func=cmd_plugins)
+
+    p = sub.add_parser("recipe", help="recipe tools")
+    rsub = p.add_subparsers(dest="recipe_command", metavar="ACTION")
+    pc = rsub.add_parser("check", help="validate a recipe in full (every error at once)")
+    pc.add_argument("recipe", help="recipe YAML file or shipped recipe name")
+    pc.add_argument("--set", dest="overrides", action="append", default=[], metavar="PATH=VALUE")
+    pc.set_defaults(func=cmd_recipe_check)
+    p.set_defaults(func=lambda a: (p.print_help(), EXIT_USER_ERROR)[1])
+
+    p = sub.add_parser("schema", help="print the JSON Schema of recipes")
+    p.set_defaults(func=cmd_schema)
+
+    p = sub.add_parser("scan", help="acquire a scan with the recipe's rig (real or virtual)")
+    _add_recipe_args(p)
+    p.add_argument("--out", help="scan folder to write")
+    p.add_argument("--resume", action="store_true", help="continue an interrupted scan in --out")
+    p.add_argument("--dry-run", action="store_true",
+                   help="check the recipe and print the timing model; move nothing")
+    p.set_defaults(func=cmd_scan)
+
+    p = sub.add_parser("calibrate", help="calibrate the rig from a scan's calibration views")
+    p.add_argument("scan", help="scan folder")
+    _add_recipe_args(p, required=False)
+    p.add_argument("-o", "--output", help="calibration YAML (default SCAN/calibration.yaml)")
+    p.set_defaults(func=cmd_calibrate)
+
+    p = sub.add_parser("process", help="images -> calibration, masks, hull, mesh, leaves, traits")
+    p.add_argument("scan", help="scan folder")
+    _add_recipe_args(p, required=False)
+    p.add_argument("--calibration", help="use this calibration YAML instead of calibrating")
+    p.add_argument("--out", help="run folder (default SCAN-run beside the scan)")
+    p.add_argument("--profile", action="store_true", help="print seconds per stage")
+    p.set_defaults(func=cmd_process)
+
+    p = sub.add_parser("evaluate", help="compare a run with the virtual scanner's truth (JSON)")
+    p.add_argument("run", help="run folder")
+    p.add_argument("--truth", help="ground_truth folder (default: the run's scan/ground_truth)")
+    p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser("demo", help="virtual scan of a plant, full pipeline, report")
+    p.add_argument("--out", default="plantscan-demo", help="output folder")
+    p.add_argument("--recipe", default="plastic-dicot", help="shipped recipe name or file")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="PATH=VALUE")
+    p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("batch", help="process many scans in parallel on Dask")
+    p.add_argument("scans", nargs="+", help="scan folders")
+    _add_recipe_args(p)
+    p.add_argument("--out", default="plantscan-batch", help="output folder for runs + summary")
+    p.add_argument("--scheduler", help="address of a running Dask scheduler (default: local)")
+    p.add_argument("--workers", type=int, default=2, help="local workers (default 2)")
+    p.set_defaults(func=cmd_batch)
+
+    (manager or get_manager()).add_commands(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    try:
+        parser = build_parser()
+        args = parser.parse_args(argv)
+        if not getattr(args, "func", None):
+            parser.print_help()
+            return EXIT_USER_ERROR
+        return int(args.func(args) or 0)
+    except RecipeError as exc:
+        for path, msg in exc.errors:
+            print(f"{path}: {msg}" if path else f"{exc.source}: {msg}", file=sys.stderr)
+        print(f"{exc.source}: {len(exc.errors)} error(s)", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except PlantScanError as exc:
+        if os.environ.get("PLANTSCAN_DEBUG"):
+            raise
+        print(f"plantscan: error: {exc}", file=sys.stderr)
+        cause = exc.__cause__
+        if cause is not None and not isinstance(cause, PlantScanError):
+            print(f"  caused by {type(cause).__name__}: {cause}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("plantscan: interrupted; everything finished so far is kept", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

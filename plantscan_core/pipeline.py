@@ -1,0 +1,434 @@
+"""Processing orchestrator: runs a recipe's stages over a scan folder into a run folder.
+
+Each stage's result is cached in the run folder, keyed by the stage's plugin,
+version, parameters and the keys of its inputs: changing segmentation
+parameters recomputes segmentation and what follows, never calibration.
+Input files are fingerprinted by (path, size, modification time) — cheap on
+hundreds of 18 MP images — and the scan's ``views.jsonl`` by content.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from plantscan_core import __version__
+from plantscan_core.data import (
+    Calibration,
+    LabelledMesh,
+    Mesh,
+    Silhouette,
+    Silhouettes,
+    Traits,
+    ViewRecord,
+    Volume,
+    plain,
+)
+from plantscan_core.errors import DataError, PlantScanError, StageError
+from plantscan_core.plugins import PluginManager
+from plantscan_core.recipe import PROCESSING_SECTIONS, Recipe
+from plantscan_core.scanfolder import ScanFolder, atomic_write_bytes, atomic_write_text, now_iso
+from plantscan_core.stages import RunResult, Stage, StageContext
+
+CACHE_DIR = "cache"
+MASKS_DIR = "masks"
+
+
+# --------------------------------------------------------------------------- fingerprints
+def _sha(obj: Any) -> str:
+    return hashlib.sha256(json.dumps(plain(obj), sort_keys=True, default=str).encode()).hexdigest()
+
+
+def file_fingerprint(path: Path) -> str:
+    """Cheap identity of an input file: name, size and modification time (ns)."""
+    st = Path(path).stat()
+    return f"{Path(path).name}:{st.st_size}:{st.st_mtime_ns}"
+
+
+def views_fingerprint(scan: ScanFolder, views: list[ViewRecord]) -> str:
+    return _sha([[v.to_dict(), file_fingerprint(scan.path_of(v))] for v in views])
+
+
+# --------------------------------------------------------------------------- masks
+def write_mask(path: Path, mask: np.ndarray) -> None:
+    """Store a bool mask as an 8-bit 0/255 PNG (compact, lossless), atomically."""
+    import cv2
+
+    ok, buf = cv2.imencode(".png", mask.astype(np.uint8) * 255, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    if not ok:
+        raise DataError(f"{path}: could not encode mask")
+    atomic_write_bytes(path, buf.tobytes())
+
+
+def read_mask(path: Path) -> np.ndarray:
+    """Read a 0/255 (or 0/1) mask PNG as ``(H, W) bool``; ``DataError`` naming the file."""
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if img is None:
+        raise DataError(f"{path}: mask missing or unreadable")
+    return img > 0
+
+
+# --------------------------------------------------------------------------- the run
+class Run:
+    """One processing run (internal): stage execution, caching and run.json."""
+
+    def __init__(
+        self,
+        scan: ScanFolder,
+        recipe: Recipe,
+        run_dir: Path,
+        manager: PluginManager,
+        raw_recipe: dict | None,
+        overrides: list[str],
+        progress: bool,
+        workers: int | None,
+    ) -> None:
+        self.scan = scan
+        self.recipe = recipe
+        self.run_dir = Path(run_dir)
+        self.manager = manager
+        self.progress = progress
+        self.workers = workers or min(4, os.cpu_count() or 1)
+        self.context = StageContext(recipe=recipe, scan=scan, run_dir=self.run_dir)
+        self.result = RunResult(run_dir=self.run_dir, recipe=recipe, scan=scan)
+        self.info: dict[str, Any] = {
+            "format": "plantscan-run/1",
+            "plantscan_version": __version__,
+            "created": now_iso(),
+            "scan": str(scan.root.resolve()),
+            "plant_id": scan.info.get("plant_id", recipe.plant.id),
+            "recipe": raw_recipe if raw_recipe is not None else recipe.model_dump(mode="json"),
+            "overrides": list(overrides),
+            "stages": {},
+            "timings_s": {},
+            "input_hashes": {},
+        }
+        self.result.info = self.info
+
+    # ------------------------------------------------------------------ cache
+    def _cache_path(self, stage: str) -> Path:
+        return self.run_dir / CACHE_DIR / f"{stage}.json"
+
+    def _cached(self, stage: str, key: str, outputs: list[Path]) -> bool:
+        p = self._cache_path(stage)
+        if not p.exists() or not all(o.exists() for o in outputs):
+            return False
+        try:
+            return json.loads(p.read_text()).get("key") == key
+        except (OSError, ValueError):
+            return False
+
+    def _store_key(self, stage: str, key: str) -> None:
+        atomic_write_text(self._cache_path(stage), json.dumps({"key": key, "at": now_iso()}))
+
+    # ------------------------------------------------------------------ stage runner
+    def run_stage(
+        self,
+        section: str,
+        inputs_key: str,
+        outputs: list[Path],
+        compute: Callable[[Stage], Any],
+        load: Callable[[], Any],
+        spec=None,
+    ) -> tuple[Any, str]:
+        """Run (or load from cache) one stage; returns (result, cache key)."""
+        stage = PROCESSING_SECTIONS.get(section, section)
+        spec = spec if spec is not None else getattr(self.recipe, section)
+        plugin = self.manager.build(stage, spec.plugin, spec.params, self.context)
+        key = _sha({"stage": stage, "plugin": spec.plugin, "version": plugin.version(),
+                    "params": plugin.params.model_dump(mode="json"), "inputs": inputs_key})
+        self.info["stages"][section] = {"plugin": spec.plugin, "version": plugin.version(),
+                                        "params": plugin.params.model_dump(mode="json"),
+                                        "key": key}
+        cached = self._cached(section, key, outputs)
+        self.manager.before_stage(stage, plugin, self.context)
+        t0 = time.perf_counter()
+        try:
+            if cached:
+                value = load()
+            else:
+                self._cache_path(section).unlink(missing_ok=True)
+                value = compute(plugin)
+                self._store_key(section, key)
+        except BaseException as exc:
+            self.manager.on_stage_error(stage, plugin, self.context, exc)
+            self._write_info()
+            if isinstance(exc, (KeyboardInterrupt, SystemExit)):
+                raise
+            raise StageError(section, spec.plugin, str(exc) or type(exc).__name__) from exc
+        seconds = time.perf_counter() - t0
+        self.info["stages"][section]["cached"] = cached
+        self.info["timings_s"][section] = round(seconds, 4)
+        self.result.timings[section] = seconds
+        self.manager.after_stage(stage, plugin, self.context, seconds, cached)
+        self._write_info()
+        return value, key
+
+    def _write_info(self) -> None:
+        atomic_write_text(self.run_dir / "run.json", json.dumps(plain(self.info), indent=2))
+
+    # ------------------------------------------------------------------ stages
+    def calibrate(self, calibration_path: Path | None) -> str:
+        out = self.run_dir / "calibration.yaml"
+        if calibration_path is not None:
+            calibration = Calibration.load(calibration_path)
+            calibration.save(out)
+            key = _sha({"file": Path(calibration_path).read_bytes().hex()})
+            self.info["stages"]["calibrate"] = {"plugin": "--calibration",
+                                                "file": str(calibration_path), "key": key}
+            self.result.calibration = calibration
+            return key
+        views = self.scan.views_by_role("calibration")
+        inputs = views_fingerprint(self.scan, views)
+        self.info["input_hashes"]["calibration_views"] = inputs
+
+        def compute(plugin):
+            c = plugin.calibrate(self.scan)
+            c.save(out)
+            return c
+
+        self.result.calibration, key = self.run_stage(
+            "calibrate", inputs, [out], compute, lambda: Calibration.load(out))
+        return key
+
+    def segment(self) -> str:
+        views = self.scan.views_by_role("plant")
+        if not views:
+            raise DataError(f"{self.scan.root}: the scan has no plant views")
+        backgrounds = {(v.camera, v.tilt_index): v for v in
+                       reversed(self.scan.views_by_role("background"))}
+        used_bg = sorted({(v.camera, v.tilt_index) for v in views} & set(backgrounds))
+        inputs = _sha([views_fingerprint(self.scan, views),
+                       views_fingerprint(self.scan, [backgrounds[k] for k in used_bg])])
+        self.info["input_hashes"]["plant_views"] = inputs
+        mask_dir = self.run_dir / MASKS_DIR
+        paths = [mask_dir / f"{v.index:05d}.png" for v in views]
+
+        def compute(plugin):
+            bg_images: dict[tuple[str, int], np.ndarray | None] = {}
+            lock = threading.Lock()
+
+            def background_for(v: ViewRecord) -> np.ndarray | None:
+                k = (v.camera, v.tilt_index)
+                with lock:
+                    if k not in bg_images:
+                        bg_images[k] = (self.scan.read_image(backgrounds[k])
+                                        if k in backgrounds else None)
+                    return bg_images[k]
+
+            def one(i: int) -> Silhouette:
+                v = views[i]
+                image = self.scan.read_image(v)
+                bg = background_for(v)
+                if bg is not None and bg.shape != image.shape:
+                    raise DataError(
+                        f"{self.scan.path_of(v)}: image is {image.shape[1]}x{image.shape[0]} but "
+                        f"its background plate {backgrounds[(v.camera, v.tilt_index)].file} is "
+                        f"{bg.shape[1]}x{bg.shape[0]}")
+                try:
+                    mask = np.asarray(plugin.segment(image, bg, v), dtype=bool)
+                except PlantScanError:
+                    raise
+                except Exception as exc:
+                    raise DataError(f"view {v.index} ({v.file}): {exc}") from exc
+                if mask.shape != image.shape[:2]:
+                    raise DataError(f"view {v.index} ({v.file}): segmenter returned a mask of "
+                                    f"shape {mask.shape}, image is {image.shape[:2]}")
+                write_mask(paths[i], mask)
+                return Silhouette(v, mask)
+
+            mask_dir.mkdir(parents=True, exist_ok=True)
+            return Silhouettes(self._map(one, len(views), "segmenting"))
+
+        def load():
+            return Silhouettes([Silhouette(v, read_mask(p)) for v, p in zip(views, paths)])
+
+        self.result.silhouettes, key = self.run_stage("segment", inputs, paths, compute, load)
+        return key
+
+    def _map(self, fn: Callable[[int], Any], n: int, label: str) -> list[Any]:
+        """Run ``fn(i)`` for i < n on a thread pool (OpenCV releases the GIL), in order."""
+        results: list[Any] = [None] * n
+        bar = None
+        if self.progress:
+            from rich.progress import Progress
+
+            bar = Progress(transient=True)
+            task = bar.add_task(label, total=n)
+            bar.start()
+        try:
+            with ThreadPoolExecutor(max_workers=self.workers) as pool:
+                futures = {pool.submit(fn, i): i for i in range(n)}
+                for fut in futures:
+                    results[futures[fut]] = fut.result()
+                    if bar is not None:
+                        bar.advance(task)
+        finally:
+            if bar is not None:
+                bar.stop()
+        return results
+
+    def reconstruct(self, inputs: str) -> str:
+        out = self.run_dir / "volume.npz"
+
+        def compute(plugin):
+            v = plugin.reconstruct(self.result.silhouettes, self.result.calibration)
+            v.save(out)
+            self.info["reconstruct_stats"] = plain(v.stats)
+            return v
+
+        self.result.volume, key = self.run_stage("reconstruct", inputs, [out], compute,
+                                                 lambda: Volume.load(out))
+        return key
+
+    def mesh(self, inputs: str) -> str:
+        out, ply = self.run_dir / "mesh.npz", self.run_dir / "mesh.ply"
+
+        def compute(plugin):
+            m = plugin.mesh(self.result.volume)
+            m.save(out)
+            write_ply(ply, m)
+            return m
+
+        self.result.mesh, key = self.run_stage("mesh", inputs, [out], compute,
+                                               lambda: Mesh.load(out))
+        return key
+
+    def segment_mesh(self, inputs: str) -> str:
+        out, ply = self.run_dir / "labelled.npz", self.run_dir / "labelled.ply"
+
+        def compute(plugin):
+            lm = plugin.segment(self.result.mesh)
+            lm.save(out)
+            write_ply(ply, lm.mesh, lm.face_labels)
+            return lm
+
+        self.result.labelled, key = self.run_stage("segment_mesh", inputs, [out], compute,
+                                                   lambda: LabelledMesh.load(out))
+        return key
+
+    def measure(self, inputs: str) -> str:
+        out, plant = self.run_dir / "traits.csv", self.run_dir / "plant_traits.json"
+
+        def compute(plugin):
+            t = plugin.measure(self.result.labelled)
+            t.save(out, plant)
+            return t
+
+        self.result.traits, key = self.run_stage("measure", inputs, [out], compute,
+                                                 lambda: Traits.load(out, plant))
+        self.info["traits"] = {"leaf_count": len(self.result.traits.leaves),
+                               "plant": plain(self.result.traits.plant)}
+        return key
+
+    def export(self) -> None:
+        files: list[str] = []
+        for i, spec in enumerate(self.recipe.export):
+            def compute(plugin):
+                return plugin.export(self.result)
+
+            # Exporters are cheap and their inputs are the whole run: never cached.
+            self._cache_path(f"export.{i}").unlink(missing_ok=True)
+            written, _ = self.run_stage(f"export.{i}", now_iso(), [], compute, lambda: [],
+                                        spec=spec)
+            self.info["stages"][f"export.{i}"]["stage"] = "exporter"
+            files += [str(p) for p in written or []]
+        self.info["exports"] = files
+
+
+def process(
+    scan_dir: Path,
+    recipe: Recipe,
+    run_dir: Path,
+    manager: PluginManager,
+    *,
+    raw_recipe: dict | None = None,
+    overrides: list[str] | tuple[str, ...] = (),
+    calibration_path: Path | None = None,
+    progress: bool = False,
+    workers: int | None = None,
+) -> RunResult:
+    """Run the recipe's processing stages over ``scan_dir`` into ``run_dir``.
+
+    Stages run in order (calibrate, segment, reconstruct, mesh, segment_mesh,
+    measure, export); the run stops after the last stage the recipe names.
+    ``calibration_path`` replaces the calibrate stage with a saved calibration.
+
+    Returns
+    -------
+    RunResult : everything produced (fields of stages that did not run are None).
+    """
+    scan = ScanFolder.open(scan_dir)
+    run_dir = Path(run_dir)
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise PlantScanError(f"{run_dir}: cannot create the run folder ({exc.strerror})") from exc
+    run = Run(scan, recipe, run_dir, manager, raw_recipe, list(overrides), progress, workers)
+    t0 = time.perf_counter()
+    order = ["calibrate", "segment", "reconstruct", "mesh", "segment_mesh", "measure"]
+    keys: dict[str, str] = {}
+    for section in order:
+        if getattr(recipe, section) is None and not (section == "calibrate" and calibration_path):
+            run.info["stopped_before"] = section
+            break
+        if section == "calibrate":
+            keys[section] = run.calibrate(calibration_path)
+        elif section == "segment":
+            keys[section] = run.segment()
+        elif section == "reconstruct":
+            keys[section] = run.reconstruct(_sha([keys["calibrate"], keys["segment"]]))
+        elif section == "mesh":
+            keys[section] = run.mesh(keys["reconstruct"])
+        elif section == "segment_mesh":
+            keys[section] = run.segment_mesh(keys["mesh"])
+        elif section == "measure":
+            keys[section] = run.measure(keys["segment_mesh"])
+        if section == "segment" and "calibrate" not in keys:
+            break  # reconstruct needs a calibration
+    run.export()
+    run.info["timings_s"]["total"] = round(time.perf_counter() - t0, 4)
+    run._write_info()
+    return run.result
+
+
+# --------------------------------------------------------------------------- PLY
+def write_ply(path: Path, mesh: Mesh, face_labels: np.ndarray | None = None) -> None:
+    """Binary little-endian PLY; with ``face_labels`` a per-face ``int leaf_id`` property."""
+    v = mesh.vertices.astype("<f4")
+    f = mesh.faces.astype("<i4")
+    header = [
+        "ply",
+        "format binary_little_endian 1.0",
+        "comment plantscan mesh, units mm, turntable frame",
+        f"element vertex {len(v)}",
+        "property float x",
+        "property float y",
+        "property float z",
+        f"element face {len(f)}",
+        "property list uchar int vertex_indices",
+    ]
+    if face_labels is not None:
+        header.append("property int leaf_id")
+    header.append("end_header")
+    dt = [("n", "u1"), ("idx", "<i4", (3,))]
+    if face_labels is not None:
+        dt.append(("leaf_id", "<i4"))
+    faces = np.empty(len(f), dtype=dt)
+    faces["n"] = 3
+    faces["idx"] = f
+    if face_labels is not None:
+        faces["leaf_id"] = np.asarray(face_labels, dtype="<i4")
+    data = ("\n".join(header) + "\n").encode() + v.tobytes() + faces.tobytes()
+    atomic_write_bytes(Path(path), data)

@@ -1,0 +1,181 @@
+"""Processing orchestrator: caching keyed by inputs + params, run.json, errors, decode counts."""
+
+from __future__ import annotations
+
+import json
+import types
+
+import numpy as np
+import pytest
+
+from plantscan_core import iostats
+from plantscan_core.data import Calibration, Volume
+from plantscan_core.errors import StageError
+from plantscan_core.hookspecs import hookimpl
+from plantscan_core.pipeline import process, read_mask
+from plantscan_core.recipe import validate_recipe
+from plantscan_core.stages import Calibrator, Reconstructor, Segmenter, StageParams
+from plantscan_core.testing import (
+    TINY_SPHERE_CENTRE_MM,
+    TINY_SPHERE_RADIUS_MM,
+    tiny_camera,
+    tiny_recipe,
+)
+
+CALLS: dict[str, int] = {}
+
+
+class ExactCalibrator(Calibrator):
+    """The tiny rig's exact cameras (what a perfect calibrator would return)."""
+
+    name = "tiny-exact"
+
+    def calibrate(self, scan):
+        CALLS["calibrate"] = CALLS.get("calibrate", 0) + 1
+        size = tuple(scan.info["rig"]["image_size"])
+        models, poses = {}, {}
+        for name in scan.info["rig"]["cameras"]:
+            cam = tiny_camera(name, 0.0, 0.0, size)
+            models[name], poses[(name, 0)] = cam.model, cam.pose
+        return Calibration(models, poses, {0: 0.0})
+
+
+class DarkSegmenter(Segmenter):
+    name = "tiny-dark"
+
+    class Params(StageParams):
+        threshold: int = 100
+
+    def segment(self, image, background, view=None):
+        CALLS["segment"] = CALLS.get("segment", 0) + 1
+        assert background is not None and background.shape == image.shape
+        return image[..., 2] < self.params.threshold
+
+
+class CountingReconstructor(Reconstructor):
+    name = "tiny-count"
+
+    class Params(StageParams):
+        fail: bool = False
+
+    def reconstruct(self, silhouettes, calibration):
+        if self.params.fail:
+            raise ValueError("bounding box clips the plant")
+        area = float(np.mean([s.mask.mean() for s in silhouettes]))
+        return Volume(np.full((2, 2, 2), area, np.float32), np.zeros(3), 1.0)
+
+
+@pytest.fixture
+def manager(tiny_rig_manager):
+    mod = types.SimpleNamespace()
+
+    @hookimpl
+    def plantscan_register_stages(registry):
+        for cls in (ExactCalibrator, DarkSegmenter, CountingReconstructor):
+            registry.add(cls)
+
+    mod.plantscan_register_stages = plantscan_register_stages
+    tiny_rig_manager.register(mod, name="tiny-processing")
+    CALLS.clear()
+    return tiny_rig_manager
+
+
+def _recipe(manager, **seg_params):
+    raw = tiny_recipe()
+    raw["calibrate"] = {"plugin": "tiny-exact"}
+    raw["segment"] = {"plugin": "tiny-dark", "params": seg_params}
+    raw["reconstruct"] = {"plugin": "tiny-count"}
+    return validate_recipe(raw, manager.registry), raw
+
+
+def test_masks_are_right_and_cache_follows_parameters(tiny_scan, manager, tmp_path):
+    recipe, raw = _recipe(manager)
+    run = tmp_path / "run"
+    result = process(tiny_scan.root, recipe, run, manager, raw_recipe=raw)
+    plant_views = tiny_scan.views_by_role("plant")
+    assert CALLS == {"calibrate": 1, "segment": len(plant_views)}
+    # The dark sphere's mask matches its exact projection (a disc) within the rim pixels.
+    sil = result.silhouettes[0]
+    assert read_mask(run / "masks" / f"{sil.view.index:05d}.png").tolist() == sil.mask.tolist()
+    cam = tiny_camera(sil.view.camera, 0.0, sil.view.commanded_angle_deg, (96, 64))
+    r = cam.model.f * TINY_SPHERE_RADIUS_MM / cam.depth(np.array([TINY_SPHERE_CENTRE_MM]))[0]
+    # Within one ring of rim pixels (2 pi r) of the disc's exact area: pixels are all-or-nothing.
+    assert abs(sil.mask.sum() - np.pi * r * r) <= 2 * np.pi * r
+    info = json.loads((run / "run.json").read_text())
+    assert info["stages"]["segment"]["plugin"] == "tiny-dark"
+    assert info["stages"]["segment"]["params"] == {"threshold": 100}
+    assert set(info["timings_s"]) >= {"calibrate", "segment", "reconstruct", "total"}
+    assert "plant_views" in info["input_hashes"]
+
+    # Same recipe again: everything comes from the cache.
+    process(tiny_scan.root, recipe, run, manager, raw_recipe=raw)
+    assert CALLS == {"calibrate": 1, "segment": len(plant_views)}
+    info = json.loads((run / "run.json").read_text())
+    assert all(info["stages"][s]["cached"] for s in ("calibrate", "segment", "reconstruct"))
+
+    # New segmentation parameter: segmentation and what follows recompute, calibration does not.
+    recipe2, raw2 = _recipe(manager, threshold=60)
+    process(tiny_scan.root, recipe2, run, manager, raw_recipe=raw2)
+    assert CALLS == {"calibrate": 1, "segment": 2 * len(plant_views)}
+    info = json.loads((run / "run.json").read_text())
+    assert info["stages"]["calibrate"]["cached"] is True
+    assert info["stages"]["segment"]["cached"] is False
+    assert info["stages"]["reconstruct"]["cached"] is False
+
+
+def test_changed_input_image_invalidates_the_cache(tiny_scan, manager, tmp_path):
+    import os
+
+    recipe, raw = _recipe(manager)
+    process(tiny_scan.root, recipe, tmp_path / "run", manager, raw_recipe=raw)
+    v = tiny_scan.views_by_role("plant")[0]
+    path = tiny_scan.path_of(v)
+    st = path.stat()
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns + 10_000_000))
+    process(tiny_scan.root, recipe, tmp_path / "run", manager, raw_recipe=raw)
+    assert CALLS["calibrate"] == 1
+    assert CALLS["segment"] == 2 * len(tiny_scan.views_by_role("plant"))
+
+
+def test_each_image_is_decoded_once_per_run(tiny_scan, manager, tmp_path):
+    recipe, raw = _recipe(manager)
+    iostats.reset()
+    process(tiny_scan.root, recipe, tmp_path / "run", manager, raw_recipe=raw)
+    assert iostats.decodes, "nothing decoded"
+    assert max(iostats.decodes.values()) == 1, iostats.decodes.most_common(3)
+    plant_and_bg = [v for v in tiny_scan.views if v.role in ("plant", "background")]
+    assert len(iostats.decodes) == len(plant_and_bg)
+
+
+def test_stage_failure_is_wrapped_and_earlier_results_are_kept(tiny_scan, manager, tmp_path):
+    raw = tiny_recipe()
+    raw.update(calibrate={"plugin": "tiny-exact"}, segment={"plugin": "tiny-dark"},
+               reconstruct={"plugin": "tiny-count", "params": {"fail": True}})
+    recipe = validate_recipe(raw, manager.registry)
+    with pytest.raises(StageError, match=r"reconstruct \(tiny-count\): bounding box clips") as e:
+        process(tiny_scan.root, recipe, tmp_path / "run", manager, raw_recipe=raw)
+    assert isinstance(e.value.__cause__, ValueError)
+    assert (tmp_path / "run/calibration.yaml").exists()
+    assert len(list((tmp_path / "run/masks").glob("*.png"))) == len(
+        tiny_scan.views_by_role("plant"))
+    assert json.loads((tmp_path / "run/run.json").read_text())["stages"]["segment"]["cached"] \
+        is False
+
+
+def test_observer_hooks_see_every_stage(tiny_scan, manager, tmp_path):
+    seen = []
+    obs = types.SimpleNamespace()
+
+    @hookimpl
+    def plantscan_after_stage(stage, plugin, context, seconds, cached):
+        seen.append((stage, plugin.name, cached))
+
+    obs.plantscan_after_stage = plantscan_after_stage
+    manager.register(obs, name="observer")
+    try:
+        recipe, raw = _recipe(manager)
+        process(tiny_scan.root, recipe, tmp_path / "run", manager, raw_recipe=raw)
+    finally:
+        manager.unregister(obs)
+    assert seen == [("calibrator", "tiny-exact", False), ("segmenter", "tiny-dark", False),
+                    ("reconstructor", "tiny-count", False)]
