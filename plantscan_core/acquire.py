@@ -525,8 +525,29 @@ def _raise_interrupt(signum, frame):
     raise KeyboardInterrupt(f"signal {signum}")
 
 
+RESUME_IGNORED_PARAMS = frozenset({
+    "port", "serial", "device", "url", "baudrate", "hub_port", "retries", "retry_backoff_s",
+    "timeout_s", "reconnect_attempts",
+})
+"""Device parameters that may change between an interrupted scan and its resume
+(a camera re-plugged on another USB port, more patience with a flaky device)."""
+
+
 def _protocol_of(raw: dict) -> dict:
+    """The part of a raw recipe a resumed scan must share with the original."""
     scan = dict(raw.get("scan") or {})
+    for key in ("cameras", "turntable", "tilt_arm"):
+        specs = scan.get(key)
+        if specs is None:
+            continue
+        many = isinstance(specs, list)
+        cleaned = []
+        for spec in specs if many else [specs]:
+            spec = dict(spec or {})
+            spec["params"] = {k: v for k, v in (spec.get("params") or {}).items()
+                              if k not in RESUME_IGNORED_PARAMS}
+            cleaned.append(spec)
+        scan[key] = cleaned if many else cleaned[0]
     return scan
 
 

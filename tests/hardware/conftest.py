@@ -5,7 +5,20 @@ device; un-skip the others (remove once testing.py uses ``get_closest_marker``).
 
 from __future__ import annotations
 
+import importlib.util
+import os
+import sys
+from pathlib import Path
+
 import pytest
+
+# An editable install made before plugins/plantscan_<name>/ existed does not map it;
+# make the backends importable here (and in subprocesses) until the next `pip install -e .`.
+PLUGINS_DIR = str(Path(__file__).resolve().parents[2] / "plugins")
+if importlib.util.find_spec("plantscan_gphoto") is None:
+    sys.path.insert(0, PLUGINS_DIR)
+    os.environ["PYTHONPATH"] = os.pathsep.join(
+        p for p in (PLUGINS_DIR, os.environ.get("PYTHONPATH", "")) if p)
 
 
 @pytest.hookimpl(trylast=True)

@@ -1,0 +1,162 @@
+"""The ``gphoto2`` camera against libgphoto2's virtual camera (real capture/download code).
+
+libgphoto2's ``vcamera`` driver emulates a PTP camera on a virtual USB bus and
+serves the images of the folder ``VCAMERADIR`` as its captures; python-gphoto2
+selects it when that variable is set before import, so each scan runs in a
+subprocess (``gphoto_runner.py``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from hwfakes import fake_recipe
+
+from plantscan_gphoto.camera import jpeg_size
+
+HERE = Path(__file__).resolve().parent
+SIZE = (64, 48)
+
+
+@pytest.fixture
+def vcamdir(tmp_path):
+    """Synthetic 'photos' the virtual camera hands out (distinct checkerboards)."""
+    d = tmp_path / "vcam"
+    d.mkdir()
+    for i in range(3):
+        yy, xx = np.mgrid[: SIZE[1], : SIZE[0]]
+        img = (((xx // (4 + 2 * i)) + (yy // (4 + 2 * i))) % 2 * 200 + 20).astype(np.uint8)
+        cv2.imwrite(str(d / f"photo{i}.jpg"), cv2.merge([img, img // 2, 255 - img]))
+    return d
+
+
+def _recipe(plugin="gphoto2", params=None, size=SIZE, fmt="jpg", n_angles=3):
+    raw = fake_recipe(cameras=("cam0",), n_angles=n_angles, size=size)
+    raw["scan"]["cameras"][0].update(plugin=plugin, params={"retry_backoff_s": 0.01,
+                                                             **(params or {})})
+    raw["scan"]["image_format"] = fmt
+    return raw
+
+
+def _run(raw, out, vcamdir, faults=None, resume=False):
+    rfile = out.parent / f"{out.name}.recipe.json"
+    rfile.write_text(json.dumps(raw))
+    env = {**os.environ, "VCAMERADIR": str(vcamdir), "GPHOTO_FAULTS": json.dumps(faults or {})}
+    args = [sys.executable, str(HERE / "gphoto_runner.py"), str(rfile), str(out)]
+    res = subprocess.run(args + (["resume"] if resume else []), env=env, capture_output=True,
+                         text=True, timeout=60)
+    assert res.returncode == 0, res.stderr
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def _sources(vcamdir):
+    return {p.read_bytes() for p in vcamdir.iterdir()}
+
+
+def test_scan_with_the_virtual_camera_writes_its_jpegs_untouched(tmp_path, vcamdir):
+    out = tmp_path / "scan"
+    summary = _run(_recipe(), out, vcamdir)
+    assert summary["error"] is None
+    assert len(summary["views"]) == 2 + 3  # calibration 2 stops + plant 3 stops, one camera
+    sources = _sources(vcamdir)
+    for v in summary["views"]:
+        data = (out / v["file"]).read_bytes()
+        assert data in sources, f"{v['file']} is not the camera's file byte for byte"
+        assert v["measured_angle_deg"] is not None
+
+
+def test_png_scan_decodes_to_the_camera_pixels(tmp_path, vcamdir):
+    out = tmp_path / "scan"
+    summary = _run(_recipe(fmt="png"), out, vcamdir)
+    assert summary["error"] is None
+    decoded = [cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_COLOR)
+               for b in _sources(vcamdir)]
+    for v in summary["views"]:
+        img = cv2.imread(str(out / v["file"]))
+        assert v["file"].endswith(".png")
+        assert any(np.array_equal(img, d) for d in decoded)  # PNG is lossless: exact pixels
+
+
+def test_transient_errors_are_retried_and_the_scan_completes(tmp_path, vcamdir):
+    out = tmp_path / "scan"
+    faults = {"init": [-53, -53], "capture": [-110, 0, -10, -60, 0, -110], "file_get": [-10, 0, -53]}
+    summary = _run(_recipe("gphoto2-faulty"), out, vcamdir, faults)
+    assert summary["error"] is None
+    assert len(summary["views"]) == 5
+    assert summary["retries"] == 2 + 4 + 2  # every injected fault was retried once
+
+
+def test_camera_held_by_another_program_gives_an_actionable_error(tmp_path, vcamdir):
+    out = tmp_path / "scan"
+    summary = _run(_recipe("gphoto2-faulty", {"retries": 3}), out, vcamdir,
+                   {"init": [-53] * 50})
+    err = summary["error"]
+    assert err is not None and err["type"] == "GPhotoError"
+    assert "after 4 tries" in err["message"] and "gvfs" in err["message"]
+    assert "-53" in err["message"] and "cam0" in err["message"]
+    assert summary["views"] == []
+
+
+def test_camera_busy_for_good_mid_scan_keeps_images_and_resume_completes(tmp_path, vcamdir):
+    out = tmp_path / "scan"
+    faults = {"capture": [0, 0, 0] + [-110] * 20}
+    summary = _run(_recipe("gphoto2-faulty", {"retries": 2}), out, vcamdir, faults)
+    err = summary["error"]
+    assert err["type"] == "AcquisitionError"
+    assert "camera 'cam0'" in err["message"] and "--resume" in err["message"]
+    assert len(summary["views"]) == 3
+    kept = {v["file"]: os.stat(out / v["file"]).st_ino for v in summary["views"]}
+    summary = _run(_recipe("gphoto2-faulty"), out, vcamdir, resume=True)
+    assert summary["error"] is None and len(summary["views"]) == 5
+    assert all(os.stat(out / f).st_ino == ino for f, ino in kept.items()), "image rewritten"
+
+
+def test_unknown_setting_lists_what_the_camera_offers(tmp_path, vcamdir):
+    summary = _run(_recipe(params={"settings": {"whitebalance": "Daylight"}}),
+                   tmp_path / "scan", vcamdir)
+    assert "'whitebalance'" in summary["error"]["message"]
+    assert "offers:" in summary["error"]["message"]
+
+
+def test_image_size_mismatch_names_both_sizes(tmp_path, vcamdir):
+    summary = _run(_recipe(size=(640, 480)), tmp_path / "scan", vcamdir)
+    msg = summary["error"]["message"]
+    assert "64x48" in msg and "scan.image_size = [640, 480]" in msg
+
+
+def test_jpeg_size_reads_the_header():
+    ok, buf = cv2.imencode(".jpg", np.zeros((37, 53, 3), np.uint8))
+    assert jpeg_size(buf.tobytes()) == (53, 37)
+    assert jpeg_size(b"\x89PNG....") is None
+
+
+@pytest.mark.hardware
+def test_real_camera_captures_one_image(tmp_path, request):
+    """With a real camera attached: one capture lands as a decodable JPEG."""
+    if not request.config.getoption("--hardware", default=False):
+        pytest.skip("needs a camera: run with --hardware")
+    import gphoto2 as gp
+
+    if os.environ.get("VCAMERADIR"):
+        pytest.skip("VCAMERADIR is set: that is the virtual camera, not a real one")
+    cams = list(gp.Camera.autodetect())
+    if not cams:
+        pytest.fail("--hardware given but no camera detected by libgphoto2")
+    from plantscan_core.stages import CaptureRequest
+    from plantscan_gphoto.camera import GPhotoCamera
+
+    cam = GPhotoCamera(GPhotoCamera.Params(check_image_size=False))
+    cam.open()
+    try:
+        out = tmp_path / "one.jpg"
+        cam.capture(CaptureRequest(out, "plant", "cam0", 0, 0.0, 0, 0.0, None, (1, 1), "jpg"))
+        assert cv2.imread(str(out)) is not None
+    finally:
+        cam.close()
