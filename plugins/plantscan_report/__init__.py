@@ -1,0 +1,1 @@
+"""plantscan exporters: HTML report, PLY/OBJ/GLB meshes, CSV/Parquet traits, COLMAP cameras."""

@@ -1,0 +1,401 @@
+"""Exporter ``html-report``: one self-contained, offline ``report.html`` per run.
+
+What a technician checks at a glance that a scan worked: the 3D plant with its
+leaves coloured (plotly ``Mesh3d``), the traits table, the calibration and its
+residual plots, a strip of silhouettes over their images, timings per stage,
+and, when the scan has ground truth (virtual scanner), measured-vs-truth plots
+per trait.  Every section is present only when its stage ran.
+
+plotly.js is embedded once, inline (no CDN: the report opens on an offline lab
+PC); images are small JPEG thumbnails embedded as base64.  All user-supplied
+text (plant id, recipe name, file names, quality keys) is HTML-escaped, and the
+figure JSON is escaped against ``</script>``.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import math
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import Field
+
+from plantscan_core.data import TRAIT_NAMES, LabelledMesh, Mesh, Traits, mean_relative_error
+from plantscan_core.errors import PlantScanError
+from plantscan_core.scanfolder import atomic_write_text, now_iso
+from plantscan_core.stages import Exporter, RunResult, StageParams
+from plantscan_report import quality as quality_plots
+from plantscan_report.colours import PLAIN_RGB, hex_colour, label_colours
+from plantscan_report.tables import plant_id_of
+from plantscan_report.truth import match_leaves, read_truth_traits
+
+REPORT_NAME = "report.html"
+_TRAIT_UNITS = {"length": "mm", "width": "mm", "area": "mm²", "perimeter": "mm"}
+
+_CSS = """
+body{font-family:system-ui,-apple-system,'Segoe UI',Roboto,sans-serif;margin:0;color:#222;
+background:#fafafa}
+header{background:#2f5d3a;color:#fff;padding:14px 24px}
+header h1{margin:0;font-size:1.5em} header p{margin:4px 0 0;opacity:.9}
+main{padding:8px 24px 40px;max-width:1400px}
+section{background:#fff;border:1px solid #ddd;border-radius:6px;margin:16px 0;padding:8px 16px}
+h2{font-size:1.2em;margin:8px 0} h3{font-size:1em;margin:10px 0 4px}
+table{border-collapse:collapse;margin:6px 0;font-size:.9em}
+td,th{border:1px solid #ddd;padding:3px 8px;text-align:right}
+th{background:#f0f0f0} td.l,th.l{text-align:left}
+.swatch{display:inline-block;width:12px;height:12px;border-radius:2px;margin-right:6px;
+vertical-align:middle;border:1px solid #888}
+.strip{display:flex;flex-wrap:wrap;gap:8px}
+figure{margin:0;font-size:.8em;text-align:center} figure img{display:block;width:220px;height:auto}
+.grid{display:flex;flex-wrap:wrap;gap:12px} .grid>div{flex:1 1 420px;min-width:320px}
+.note{color:#666;font-size:.85em} .bad{color:#a00}
+"""
+
+
+def _esc(text: Any) -> str:
+    return html.escape(str(text), quote=True)
+
+
+def _script_json(obj: Any) -> str:
+    """JSON safe inside a ``<script>`` element (no ``</script>``/``<!--`` break-out)."""
+    return obj.replace("</", "<\\/").replace("<!--", "<\\!--")
+
+
+class _Figures:
+    """Numbers the figure divs and renders each figure as a div + Plotly.newPlot call."""
+
+    def __init__(self) -> None:
+        self.count = 0
+
+    def html(self, fig: Any, height: int | None = None) -> str:
+        self.count += 1
+        div = f"fig{self.count}"
+        fig.update_layout(template="plotly_white")
+        if height is not None:
+            fig.update_layout(height=height)
+        payload = _script_json(fig.to_json())
+        style = f"height:{height}px" if height else ""
+        # Drawn once the whole page is laid out, so each plot gets its final width.
+        return (f'<div id="{div}" class="plot" style="{style}"></div>\n'
+                f"<script>(function(){{var f={payload};"
+                f'document.addEventListener("DOMContentLoaded",function(){{Plotly.newPlot('
+                f'"{div}",f.data,f.layout,{{responsive:true,displaylogo:false}});}});'
+                f"}})();</script>")
+
+
+def _table(header: list[str], rows: list[list[str]], left: int = 1) -> str:
+    """HTML table; cells are already-escaped HTML; the first ``left`` columns left-aligned."""
+    head = "".join(f'<th class="{"l" if i < left else ""}">{h}</th>' for i, h in enumerate(header))
+    body = "".join(
+        "<tr>" + "".join(f'<td class="{"l" if i < left else ""}">{c}</td>' for i, c in enumerate(r))
+        + "</tr>" for r in rows)
+    return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
+
+
+def _fmt(value: Any, digits: int = 4) -> str:
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
+        return _esc(value)
+    if isinstance(value, (int, np.integer)):
+        return str(int(value))
+    return "nan" if not math.isfinite(float(value)) else f"{float(value):.{digits}g}"
+
+
+# --------------------------------------------------------------------------- sections
+def _decimate(mesh: Mesh, target_faces: int) -> Mesh:
+    """Open3D quadric decimation to about ``target_faces`` (the report only, never the data)."""
+    if len(mesh.faces) <= target_faces:
+        return mesh
+    simplified = mesh.to_open3d().simplify_quadric_decimation(max(int(target_faces), 4))
+    return Mesh.from_open3d(simplified)
+
+
+def _mesh_traces(run: RunResult, max_faces: int) -> list[Any]:
+    """One Mesh3d trace per label (leaf, stem, pot, unassigned) or one for a plain mesh."""
+    import plotly.graph_objects as go
+
+    parts: list[tuple[str, Mesh, str]] = []
+    if run.labelled is not None and not run.labelled.mesh.is_empty:
+        labelled: LabelledMesh = run.labelled
+        colours = label_colours(labelled)
+        total = len(labelled.mesh.faces)
+        labels = sorted(set(np.unique(labelled.face_labels).tolist()))
+        for label in labels:
+            kind = labelled.kinds.get(label, "unassigned") if label >= 0 else "unassigned"
+            name = f"leaf {label}" if kind == "leaf" else kind
+            colour = hex_colour(colours[label]) if label in colours else "#bfbfbf"
+            sub = labelled.submesh(label)
+            # Each label keeps its share of the face budget, so small leaves stay visible.
+            budget = max(64, int(max_faces * len(sub.faces) / total))
+            parts.append((name, _decimate(sub, budget), colour))
+    elif run.mesh is not None and not run.mesh.is_empty:
+        parts.append(("plant", _decimate(run.mesh, max_faces), hex_colour(PLAIN_RGB)))
+    traces = []
+    for name, mesh, colour in parts:
+        v = np.round(mesh.vertices, 3).astype(np.float32)
+        f = mesh.faces.astype(np.int32)
+        traces.append(go.Mesh3d(
+            x=v[:, 0], y=v[:, 1], z=v[:, 2], i=f[:, 0], j=f[:, 1], k=f[:, 2], color=colour,
+            name=name, showlegend=True, flatshading=False, hoverinfo="name",
+            lighting=dict(ambient=0.45, diffuse=0.8, specular=0.1, roughness=0.8),
+        ))
+    return traces
+
+
+def _mesh_section(run: RunResult, figs: _Figures, max_faces: int) -> str:
+    import plotly.graph_objects as go
+
+    traces = _mesh_traces(run, max_faces)
+    if not traces:
+        return ""
+    fig = go.Figure(traces)
+    fig.update_layout(
+        scene=dict(aspectmode="data", xaxis_title="x (mm)", yaxis_title="y (mm)",
+                   zaxis_title="z (mm)", camera=dict(eye=dict(x=1.7, y=1.7, z=1.0))),
+        margin=dict(l=0, r=0, t=0, b=0), legend=dict(itemsizing="constant"),
+    )
+    mesh = run.labelled.mesh if run.labelled is not None else run.mesh
+    note = (f"{len(mesh.vertices)} vertices, {len(mesh.faces)} faces, "
+            f"surface {mesh.area():.0f} mm²; drag to rotate, scroll to zoom, click a legend "
+            "entry to hide a part.")
+    return (f'<section id="plant3d"><h2>3D plant</h2>{figs.html(fig, 620)}'
+            f'<p class="note">{_esc(note)}</p></section>')
+
+
+def _traits_section(run: RunResult) -> str:
+    traits: Traits | None = run.traits
+    if traits is None:
+        return ""
+    colours = label_colours(run.labelled) if run.labelled is not None else {}
+    rows = []
+    for leaf in traits.leaves:
+        swatch = (f'<span class="swatch" style="background:{hex_colour(colours[leaf.leaf_id])}">'
+                  "</span>" if leaf.leaf_id in colours else "")
+        rows.append([f"{swatch}{leaf.leaf_id}", _fmt(leaf.length_mm), _fmt(leaf.width_mm),
+                     _fmt(leaf.area_mm2), _fmt(leaf.perimeter_mm)])
+    leaf_table = _table(["leaf", "length (mm)", "width (mm)", "area (mm²)", "perimeter (mm)"],
+                        rows) if rows else '<p class="note">No leaf was found.</p>'
+    plant_rows = [[_esc(k), _fmt(v)] for k, v in sorted(traits.plant.items())]
+    plant_table = _table(["plant trait", "value"], plant_rows) if plant_rows else ""
+    return (f'<section id="traits"><h2>Traits</h2><div class="grid"><div>{leaf_table}</div>'
+            f"<div>{plant_table}</div></div></section>")
+
+
+def _calibration_section(run: RunResult, figs: _Figures) -> str:
+    cal = run.calibration
+    if cal is None:
+        return ""
+    model_rows = [[_esc(name), _fmt(m.f, 6), _fmt(m.cu, 6), _fmt(m.cv, 6), _fmt(m.d1),
+                   _fmt(m.d2), f"{m.width} × {m.height}"] for name, m in sorted(cal.models.items())]
+    out = ['<section id="calibration"><h2>Calibration</h2>',
+           _table(["camera", "f (px)", "cu (px)", "cv (px)", "d1", "d2", "image (px)"],
+                  model_rows),
+           f'<p class="note">{len(cal.poses)} calibrated (camera, tilt) poses; tilts '
+           f"{_esc(', '.join(f'{k}: {v:g}°' for k, v in sorted(cal.tilts_deg.items())))}; "
+           f"turntable angle scale {cal.angle_scale:.6f}"
+           f"{'; tilt axis modelled' if cal.tilt_axis is not None else ''}.</p>"]
+    if cal.quality:
+        plots = quality_plots.quality_figures(cal.quality)
+        if plots:
+            out.append('<div class="grid">')
+            for title, fig in plots:
+                out.append(f"<div><h3>{_esc(title)}</h3>{figs.html(fig, 320)}</div>")
+            out.append("</div>")
+        rows = [[_esc(k), _esc(v)] for k, v in quality_plots.quality_rows(cal.quality)]
+        if rows:
+            out.append("<h3>Calibrator's quality report</h3>" + _table(["item", "value"], rows, 2))
+    else:
+        out.append('<p class="note">The calibrator reported no quality figures.</p>')
+    out.append("</section>")
+    return "".join(out)
+
+
+def _thumbnail_b64(image: np.ndarray, mask: np.ndarray | None, max_width: int) -> str:
+    """JPEG (base64) of a BGR image with the silhouette outlined and the outside dimmed."""
+    import cv2
+
+    img = image.copy()
+    if mask is not None:
+        m = cv2.resize(mask.astype(np.uint8), (img.shape[1], img.shape[0]),
+                       interpolation=cv2.INTER_NEAREST).astype(bool)
+        img[~m] = (img[~m] * 0.45).astype(np.uint8)
+        contours, _ = cv2.findContours(m.astype(np.uint8), cv2.RETR_EXTERNAL,
+                                       cv2.CHAIN_APPROX_SIMPLE)
+        cv2.drawContours(img, contours, -1, (255, 0, 255), 1, lineType=cv2.LINE_AA)
+    if img.shape[1] > max_width:
+        scale = max_width / img.shape[1]
+        img = cv2.resize(img, (max_width, max(1, round(img.shape[0] * scale))),
+                         interpolation=cv2.INTER_AREA)
+    ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 80])
+    if not ok:
+        raise PlantScanError("could not encode a report thumbnail as JPEG")
+    return base64.b64encode(buf.tobytes()).decode("ascii")
+
+
+def _silhouette_section(run: RunResult, count: int, reduce: int) -> str:
+    if run.silhouettes is None or len(run.silhouettes) == 0 or count == 0 or run.scan is None:
+        return ""
+    items = list(run.silhouettes)
+    picks = sorted({round(i) for i in np.linspace(0, len(items) - 1, min(count, len(items)))})
+    figures = []
+    for i in picks:
+        sil = items[i]
+        view = sil.view
+        caption = (f"view {view.index} · {view.camera} · tilt {view.tilt_deg:g}° · "
+                   f"{view.angle_deg:g}° · {100 * sil.mask.mean():.1f}% plant")
+        try:
+            image = run.scan.read_image(view, reduce=reduce)
+            b64 = _thumbnail_b64(image, sil.mask, 240)
+            figures.append(f'<figure><img alt="{_esc(view.file)}" '
+                           f'src="data:image/jpeg;base64,{b64}"><figcaption>{_esc(caption)}'
+                           "</figcaption></figure>")
+        except PlantScanError as exc:  # a missing image must not cost the whole report
+            figures.append(f'<figure><p class="bad">{_esc(exc)}</p>'
+                           f"<figcaption>{_esc(caption)}</figcaption></figure>")
+    return (f'<section id="silhouettes"><h2>Silhouettes</h2><p class="note">{len(picks)} of '
+            f"{len(items)} plant views; outside of the silhouette dimmed, outline in magenta."
+            f'</p><div class="strip">{"".join(figures)}</div></section>')
+
+
+def _timings_section(run: RunResult, figs: _Figures) -> str:
+    import plotly.graph_objects as go
+
+    timings = {str(k): float(v) for k, v in (run.timings or {}).items()
+               if isinstance(v, (int, float))}
+    if not timings:
+        return ""
+    total = sum(timings.values())
+    rows = [[_esc(k), f"{v:.2f}", f"{100 * v / total:.0f}%" if total > 0 else "-"]
+            for k, v in timings.items()]
+    rows.append(["<b>total</b>", f"<b>{total:.2f}</b>", ""])
+    fig = go.Figure(go.Bar(x=list(timings.values()), y=list(timings), orientation="h",
+                           marker_color="#2f5d3a"))
+    fig.update_layout(margin=dict(l=120, r=20, t=10, b=40), yaxis=dict(autorange="reversed"))
+    fig.update_xaxes(title_text="seconds")
+    height = 80 + 28 * len(timings)
+    return (f'<section id="timings"><h2>Timings per stage</h2><div class="grid"><div>'
+            f'{_table(["stage", "seconds", "share"], rows)}</div><div>{figs.html(fig, height)}'
+            "</div></div></section>")
+
+
+def _truth_section(run: RunResult, figs: _Figures) -> str:
+    import plotly.graph_objects as go
+    from plotly.subplots import make_subplots
+
+    if run.traits is None or run.scan is None:
+        return ""
+    truth_dir = run.scan.ground_truth_dir
+    truth = read_truth_traits(truth_dir)
+    if truth is None:
+        return ""
+    match = match_leaves(run.traits, truth, run.labelled, truth_dir)
+    out = ['<section id="truth"><h2>Measured vs. truth</h2>',
+           f'<p class="note">{len(match.pairs)} leaves paired ({_esc(match.method)}); '
+           f"{match.unmatched_measured} measured and {match.unmatched_truth} truth leaves "
+           "unpaired. ε = mean(|truth − measured| / truth), the seed's error measure.</p>"]
+    if match.pairs:
+        errors = {}
+        fig = make_subplots(rows=1, cols=len(TRAIT_NAMES), horizontal_spacing=0.07,
+                            subplot_titles=[f"{t} ({_TRAIT_UNITS[t]})" for t in TRAIT_NAMES])
+        for c, trait in enumerate(TRAIT_NAMES, start=1):
+            t = np.array([p[1].trait(trait) for p in match.pairs])
+            m = np.array([p[0].trait(trait) for p in match.pairs])
+            errors[trait] = mean_relative_error(t, m)
+            lo, hi = float(min(t.min(), m.min())), float(max(t.max(), m.max()))
+            pad = 0.05 * (hi - lo or 1.0)
+            fig.add_trace(go.Scatter(x=[lo - pad, hi + pad], y=[lo - pad, hi + pad], mode="lines",
+                                     line=dict(color="#999", dash="dash"), showlegend=False,
+                                     hoverinfo="skip"), row=1, col=c)
+            fig.add_trace(go.Scatter(
+                x=t, y=m, mode="markers", marker=dict(size=8, color="#2f5d3a"), showlegend=False,
+                text=[f"leaf {p[0].leaf_id} ↔ truth {p[1].leaf_id}" for p in match.pairs],
+                hovertemplate="%{text}<br>truth %{x:.2f}<br>measured %{y:.2f}<extra></extra>"),
+                row=1, col=c)
+            fig.update_xaxes(title_text="truth", row=1, col=c)
+            fig.update_yaxes(title_text="measured" if c == 1 else None, row=1, col=c)
+        fig.update_layout(margin=dict(l=50, r=20, t=40, b=50))
+        out.append(figs.html(fig, 340))
+        out.append(_table(["trait", "ε (mean relative error)", "pairs"],
+                          [[t, f"{100 * e:.1f}%", str(len(match.pairs))]
+                           for t, e in errors.items()]))
+    plant_rows = []
+    for key, value in sorted(truth.plant.items()):
+        measured = run.traits.plant.get(key)
+        if _is_num(value) and _is_num(measured) and float(value) != 0:
+            rel = (float(measured) - float(value)) / abs(float(value))
+            plant_rows.append([_esc(key), _fmt(value), _fmt(measured), f"{100 * rel:+.1f}%"])
+    if plant_rows:
+        out.append(_table(["plant trait", "truth", "measured", "error"], plant_rows))
+    out.append("</section>")
+    return "".join(out)
+
+
+def _is_num(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _run_section(run: RunResult) -> str:
+    rows = [["scan", _esc(run.scan.root if run.scan is not None else "-")],
+            ["run folder", _esc(run.run_dir)], ["report written", _esc(now_iso())]]
+    for key, value in (run.info or {}).items():
+        if isinstance(value, (str, int, float, bool)):
+            rows.append([_esc(key), _esc(value)])
+    return f'<section id="run"><h2>Run</h2>{_table(["item", "value"], rows, 2)}</section>'
+
+
+def render_report(run: RunResult, thumbnails: int = 6, thumbnail_reduce: int = 4,
+                  max_faces: int = 150_000) -> str:
+    """The whole report as one HTML string (see the module docstring)."""
+    from plotly.offline import get_plotlyjs
+
+    figs = _Figures()
+    plant_id = plant_id_of(run)
+    recipe_name = run.recipe.name if run.recipe is not None else ""
+    species = run.recipe.plant.species if run.recipe is not None else ""
+    species = (run.scan.info.get("species") if run.scan is not None else None) or species
+    body = [
+        _mesh_section(run, figs, max_faces),
+        _traits_section(run),
+        _truth_section(run, figs),
+        _calibration_section(run, figs),
+        _silhouette_section(run, thumbnails, thumbnail_reduce),
+        _timings_section(run, figs),
+        _run_section(run),
+    ]
+    subtitle = " · ".join(x for x in (f"species {species}" if species else "",
+                                      f"recipe {recipe_name}" if recipe_name else "") if x)
+    return "".join([
+        "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">",
+        '<meta name="viewport" content="width=device-width, initial-scale=1">',
+        f"<title>plantscan report: {_esc(plant_id)}</title><style>{_CSS}</style>",
+        # plotly.js inline (MIT); its source contains no "</script>" (checked in the tests).
+        f'<script type="text/javascript">{get_plotlyjs()}</script></head><body>',
+        f"<header><h1>plantscan report: {_esc(plant_id)}</h1><p>{_esc(subtitle)}</p></header>",
+        "<main>", *[b for b in body if b], "</main></body></html>\n",
+    ])
+
+
+class HtmlReportExporter(Exporter):
+    """``report.html``: interactive, self-contained, offline report of one run."""
+
+    name = "html-report"
+
+    class Params(StageParams):
+        thumbnails: int = Field(default=6, ge=0, le=72)
+        """Number of silhouettes shown over their images (evenly spread over the views)."""
+        thumbnail_reduce: Literal[1, 2, 4, 8] = 4
+        """Decode the images at 1/reduce of their size for the thumbnails (fast, small)."""
+        max_faces: int = Field(default=150_000, ge=1_000)
+        """Face budget of the 3D view (decimated above it; the exported meshes are not)."""
+
+    def export(self, run: RunResult) -> list[Path]:
+        text = render_report(run, self.params.thumbnails, self.params.thumbnail_reduce,
+                             self.params.max_faces)
+        path = Path(run.run_dir) / REPORT_NAME
+        atomic_write_text(path, text)
+        return [path]
+
+
+__all__ = ["HtmlReportExporter", "render_report", "REPORT_NAME"]

@@ -1,0 +1,73 @@
+"""Exporter ``csv``: the traits table (``traits.csv``, ``plant_traits.json``, ``traits.parquet``).
+
+``traits.csv`` and ``plant_traits.json`` follow docs/formats.md (the same files
+the measure stage writes, so the exporter also works on a run rebuilt from
+disk).  ``traits.parquet`` is added when pyarrow is importable: one row per
+leaf with the plant id and recipe name as columns, and the plant-level traits as
+columns repeated on every row, so many plants' files concatenate into one table.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import io
+from pathlib import Path
+
+from plantscan_core.data import LEAF_TRAIT_COLUMNS, Traits
+from plantscan_core.scanfolder import atomic_write_bytes
+from plantscan_core.stages import Exporter, RunResult, StageParams
+
+
+def plant_id_of(run: RunResult) -> str:
+    """The plant id of a run: the scan's ``plant_id``, else the recipe's ``plant.id``."""
+    scan_id = run.scan.info.get("plant_id") if run.scan is not None else None
+    if scan_id:
+        return str(scan_id)
+    return str(run.recipe.plant.id) if run.recipe is not None else ""
+
+
+def parquet_available() -> bool:
+    return importlib.util.find_spec("pyarrow") is not None
+
+
+def traits_parquet_bytes(traits: Traits, plant_id: str, recipe_name: str) -> bytes:
+    """Parquet file (bytes) of the per-leaf table with plant id, recipe and plant-level columns."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    n = len(traits.leaves)
+    columns: dict[str, list] = {"plant_id": [plant_id] * n, "recipe": [recipe_name] * n}
+    for name in LEAF_TRAIT_COLUMNS:
+        columns[name] = [getattr(leaf, name) for leaf in traits.leaves]
+    for key, value in sorted(traits.plant.items()):
+        if isinstance(value, (int, float)):
+            columns[f"plant_{key}"] = [float(value)] * n
+    table = pa.table(columns)
+    buf = io.BytesIO()
+    pq.write_table(table, buf)
+    return buf.getvalue()
+
+
+class CsvExporter(Exporter):
+    """``traits.csv`` + ``plant_traits.json`` (+ ``traits.parquet`` with pyarrow)."""
+
+    name = "csv"
+
+    class Params(StageParams):
+        parquet: bool = True
+        """Also write ``traits.parquet`` when pyarrow is importable."""
+
+    def export(self, run: RunResult) -> list[Path]:
+        if run.traits is None:
+            return []
+        run_dir = Path(run.run_dir)
+        csv_path, json_path = run_dir / "traits.csv", run_dir / "plant_traits.json"
+        run.traits.save(csv_path, json_path)
+        written = [csv_path, json_path]
+        if self.params.parquet and parquet_available():
+            path = run_dir / "traits.parquet"
+            recipe_name = run.recipe.name if run.recipe is not None else ""
+            atomic_write_bytes(path, traits_parquet_bytes(run.traits, plant_id_of(run),
+                                                          recipe_name))
+            written.append(path)
+        return written
