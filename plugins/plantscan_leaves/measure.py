@@ -1,0 +1,488 @@
+"""Flat-leaf measurement of visual-hull leaves (length, width, area, perimeter).
+
+A leaf from a visual hull is a thin *closed slab* (a few voxels thick, lens
+or stadium shaped in cross-section), not a sheet.  The flat-leaf traits are
+those of its **mid-surface**, measured without building it:
+
+* **sheet axis** ``N``: the leaf's local normal direction, the principal
+  axis of the area-weighted normal tensor ``sum n n^T`` over cells of
+  ``sheet_scale_mm`` (sign-free, so both sides of the slab agree; cells are
+  then oriented consistently by a walk over neighbouring cells).  The two
+  *sides* of the slab are where ``n . N > 0`` and ``< 0``; the *rim crest*
+  (the leaf outline) is where ``n . N = 0``.
+* **area** = ``1/2 sum_f A_f |n_f . N_f|``: each side of the slab projected
+  on the local leaf plane covers the leaf once, so half of the projected
+  area of the whole closed surface is the planform area; it is exact for a
+  flat slab of any thickness and edge profile, and exact to first order in
+  ``thickness / bend radius`` for a bent one.
+* **perimeter** = length of the ``n . N = 0`` iso-line (marching triangles on
+  a lightly smoothed surface), plus half the length of open borders (where
+  the leaf was cut from the stem: the cut spans both sides).
+* **length**: base (where the leaf meets the stem, or one end of the leaf's
+  geodesic diameter when there is no stem) to tip (the geodesically
+  farthest point): the shortest path over each side of the slab, smoothed
+  of its zig-zag along the mesh, averaged over the two sides (a bent slab's
+  inner side is shorter and its outer side longer than the mid-surface, by
+  the same amount to first order).
+* **width**: at the stations along the midrib where the leaf is widest
+  (largest sum of geodesic distances to the midrib on its left and right),
+  the same two-side shortest path from the left rim to the right rim; the
+  largest is the width.
+
+Paths over a side run from crest to crest over the rounded rim, a little
+longer than the mid-surface would be (``(pi/2 - 1) r`` per end for a
+semicircular rim of radius ``r``); with ``rim_correction`` that amount is
+removed with ``r`` half the measured slab thickness.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from pydantic import Field
+from scipy import sparse
+from scipy.sparse.csgraph import dijkstra
+
+from plantscan_core.data import LabelledMesh, LeafTraits, Mesh, Traits
+from plantscan_core.stages import StageParams
+
+from plantscan_leaves import geometry as geo
+
+log = logging.getLogger(__name__)
+
+
+class LeafGeometryParams(StageParams):
+    """Parameters of ``leaf-geometry`` (defaults: broad leaves, 0.3–1 mm voxels)."""
+
+    sheet_scale_mm: float = Field(
+        6.0, gt=0,
+        description="size of the cells over which the leaf plane is estimated, mm: well above "
+                    "the slab thickness, well below the leaf's bend radius",
+    )
+    smoothing_mm: float = Field(0.8, ge=0, description="surface smoothing before measuring, mm")
+    path_smoothing_mm: float = Field(
+        3.0, ge=0, description="smoothing of midrib/width paths (removes mesh zig-zag), mm")
+    width_stations: int = Field(5, ge=1, description="widest stations whose width is traced")
+    graph_spacing_mm: float = Field(
+        1.0, gt=0, description="spacing of the points geodesic paths run through, mm")
+    rim_correction: bool = Field(
+        False, description="remove the rounded-rim excess of over-the-side paths (see docs)")
+    min_leaf_faces: int = Field(20, ge=1, description="leaves with fewer faces are skipped")
+
+
+@dataclass
+class LeafMeasurement:
+    traits: LeafTraits
+    thickness_mm: float
+    base: np.ndarray
+    tip: np.ndarray
+    midrib: np.ndarray
+    info: dict = field(default_factory=dict)
+
+
+def _cell_sheet_axes(points: np.ndarray, normals: np.ndarray, weights: np.ndarray,
+                     cell: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Oriented sheet axis per occupied cell.
+
+    Returns ``keys`` (C,) sorted cell keys, ``axes`` (C, 3) unit vectors and
+    the grid description ``(lo, dims)`` packed as an array of 6 floats.
+    """
+    lo = points.min(axis=0) - cell
+    ijk = np.floor((points - lo) / cell).astype(np.int64)
+    dims = ijk.max(axis=0) + 3
+    key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
+    keys, inv = np.unique(key, return_inverse=True)
+    nc = len(keys)
+    comps = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
+    t = np.stack([np.bincount(inv, weights * normals[:, a] * normals[:, b], nc)
+                  for a, b in comps], axis=1)
+    # add the 26 neighbouring cells (a 3x3x3 box filter on the sparse grid)
+    ci = np.stack([keys // (dims[1] * dims[2]), (keys // dims[2]) % dims[1], keys % dims[2]], 1)
+    acc = np.zeros_like(t)
+    nbr_of = []
+    for d in np.array(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1])).reshape(3, -1).T:
+        q = ci + d
+        qk = (q[:, 0] * dims[1] + q[:, 1]) * dims[2] + q[:, 2]
+        pos = np.clip(np.searchsorted(keys, qk), 0, nc - 1)
+        hit = keys[pos] == qk
+        acc[hit] += t[pos[hit]]
+        if np.any(d != 0):
+            nbr_of.append(np.where(hit, pos, -1))
+    m = np.zeros((nc, 3, 3))
+    for c, (a, b) in enumerate(comps):
+        m[:, a, b] = m[:, b, a] = acc[:, c]
+    _, vec = np.linalg.eigh(m)
+    axes = vec[:, :, 2].copy()
+    # orient: breadth-first over neighbouring cells, each cell agreeing with its parent
+    nbrs = np.stack(nbr_of, axis=1)
+    seen = np.zeros(nc, bool)
+    for start in range(nc):
+        if seen[start]:
+            continue
+        seen[start] = True
+        frontier = [start]
+        while frontier:
+            nxt = []
+            for c in frontier:
+                for n in nbrs[c]:
+                    if n >= 0 and not seen[n]:
+                        seen[n] = True
+                        if axes[n] @ axes[c] < 0:
+                            axes[n] = -axes[n]
+                        nxt.append(n)
+            frontier = nxt
+    grid = np.concatenate([lo, dims.astype(float)])
+    return keys, axes, grid
+
+
+def _axes_at(points: np.ndarray, keys: np.ndarray, axes: np.ndarray, grid: np.ndarray,
+             cell: float) -> np.ndarray:
+    """Trilinear interpolation of the oriented cell axes at ``points`` (unit vectors)."""
+    lo, dims = grid[:3], grid[3:].astype(np.int64)
+    u = (points - lo) / cell - 0.5
+    base = np.floor(u).astype(np.int64)
+    frac = u - base
+    out = np.zeros_like(points)
+    for corner in np.array(np.meshgrid([0, 1], [0, 1], [0, 1])).reshape(3, -1).T:
+        q = base + corner
+        w = np.prod(np.where(corner == 1, frac, 1.0 - frac), axis=1)
+        qk = (q[:, 0] * dims[1] + q[:, 1]) * dims[2] + q[:, 2]
+        pos = np.clip(np.searchsorted(keys, qk), 0, len(keys) - 1)
+        hit = keys[pos] == qk
+        out[hit] += w[hit, None] * axes[pos[hit]]
+    norm = np.linalg.norm(out, axis=1)
+    missing = norm < 1e-9
+    if missing.any():  # fall back to the nearest cell's own axis
+        ijk = np.floor((points[missing] - lo) / cell).astype(np.int64)
+        qk = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
+        pos = np.clip(np.searchsorted(keys, qk), 0, len(keys) - 1)
+        out[missing] = axes[pos]
+        norm[missing] = 1.0
+    return out / norm[:, None]
+
+
+def _path(pred: np.ndarray, target: int) -> list[int]:
+    out = [target]
+    while pred[out[-1]] >= 0:
+        out.append(int(pred[out[-1]]))
+    return out[::-1]
+
+
+def _two_side_length(graphs: list[sparse.csr_matrix], vertices: np.ndarray, a: int, b: int,
+                     sigma: float) -> float:
+    """Mean over the slab's sides of the smoothed shortest-path length from ``a`` to ``b``."""
+    lengths = []
+    for g in graphs:
+        dist, pred = dijkstra(g, indices=a, return_predecessors=True)
+        if not np.isfinite(dist[b]):
+            continue
+        pts = vertices[_path(pred, b)]
+        lengths.append(geo.polyline_length(geo.smooth_polyline(pts, sigma)))
+    return float(np.mean(lengths)) if lengths else float("nan")
+
+
+def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
+                 base_hint: np.ndarray | None = None) -> LeafMeasurement | None:
+    """Flat-leaf traits of one leaf surface (a closed or nearly closed slab).
+
+    Parameters
+    ----------
+    mesh : Mesh
+        The faces of this leaf only (mm, turntable frame).
+    base_hint : (3,) mm, optional
+        Where the leaf attaches (e.g. the stem); the base is the leaf's
+        vertex nearest to it.  Without it the base is one end of the leaf's
+        geodesic diameter.
+    """
+    p = params
+    v0, f = mesh.vertices, mesh.faces
+    if len(f) < p.min_leaf_faces:
+        return None
+    topo = geo.topology(f)
+    edge_mm = float(np.mean(np.linalg.norm(v0[topo.edges[:, 0]] - v0[topo.edges[:, 1]], axis=1)))
+    vop = geo.vertex_adjacency_operator(len(v0), topo.edges)
+    v = geo.taubin(v0, vop, geo.diffusion_steps(p.smoothing_mm, edge_mm, 50))
+    fn, fa = geo.face_normals_areas(v, f)
+    fc = v[f].mean(axis=1)
+    cell = p.sheet_scale_mm
+    keys, axes, grid = _cell_sheet_axes(fc, fn, fa, cell)
+    face_axis = _axes_at(fc, keys, axes, grid, cell)
+    area = 0.5 * float(np.sum(fa * np.abs(np.einsum("ij,ij->i", fn, face_axis))))
+
+    vn = geo.vertex_normals(v, f)
+    vert_axis = _axes_at(v, keys, axes, grid, cell)
+    side = np.einsum("ij,ij->i", vn, vert_axis)
+    # rim crest: the zero iso-line of side, by marching triangles, chained into loops and
+    # smoothed (the raw iso-line wiggles at the voxel scale and is a few % too long)
+    rim_length = _iso_line_length(v, f, topo, side, p.path_smoothing_mm)
+    border = topo.edges[topo.edge_face_count == 1]
+    border_length = float(np.linalg.norm(v[border[:, 0]] - v[border[:, 1]], axis=1).sum())
+    perimeter = rim_length + 0.5 * border_length
+
+    # slab thickness: inward ray casting from side vertices (the rim is excluded)
+    thickness = _thickness(v, f, vn, np.abs(side) > 0.9)
+
+    # geodesic graphs on a resampled copy of each side: a shortest path along mesh edges
+    # of a marching-cubes grid is a staircase (up to ~40 % too long on a diagonal); joining
+    # every pair of points closer than 3 spacings makes the path directions dense enough
+    on_a = side > -0.35
+    on_b = side < 0.35
+    spacing = max(p.graph_spacing_mm, edge_mm)
+    # crest points are shared by both sides' graphs, so paths of both sides end on them
+    pts_c = _downsample(np.flatnonzero(on_a & on_b), v, spacing)
+    pts_a = _downsample(np.flatnonzero(on_a & ~on_b), v, spacing)
+    pts_b = _downsample(np.flatnonzero(on_b & ~on_a), v, spacing)
+    nodes = np.concatenate([pts_c, pts_a, pts_b])
+    q = v[nodes]
+    kind = np.repeat([0, 1, 2], [len(pts_c), len(pts_a), len(pts_b)])
+    g_all, g_a, g_b = _radius_graphs(q, kind, 3.0 * spacing)
+    crest = np.arange(len(pts_c))
+    if len(crest) == 0:
+        crest = np.arange(len(nodes))
+    if base_hint is not None:
+        base = int(np.argmin(np.linalg.norm(q - np.asarray(base_hint, float), axis=1)))
+    else:
+        d0 = dijkstra(g_all, indices=int(crest[0]))
+        base = int(crest[np.argmax(np.where(np.isfinite(d0[crest]), d0[crest], -1))])
+    dist_b, pred_b = dijkstra(g_all, indices=base, return_predecessors=True)
+    reach = np.where(np.isfinite(dist_b[crest]), dist_b[crest], -1)
+    tip = int(crest[np.argmax(reach)])
+    midrib_idx = np.array(_path(pred_b, tip))
+    sigma = p.path_smoothing_mm
+    rim_excess = (math.pi / 2 - 1) * thickness if p.rim_correction else 0.0
+    length = _two_side_length([g_a, g_b], q, base, tip, sigma) - rim_excess
+
+    # width: distance to the midrib on either side, widest stations traced rim to rim
+    d_mid, _, src = dijkstra(g_all, indices=midrib_idx, min_only=True,
+                             return_predecessors=True)  # with min_only: also the sources
+    mid_pts = geo.smooth_polyline(q[midrib_idx], sigma) if len(midrib_idx) > 2 else q[midrib_idx]
+    mid_axis = _axes_at(mid_pts, keys, axes, grid, cell)
+    tangent = np.gradient(mid_pts, axis=0) if len(mid_pts) > 1 else np.zeros((1, 3))
+    across = np.cross(tangent, mid_axis)
+    valid = np.flatnonzero(np.isfinite(d_mid) & (src >= 0))
+    # station of each node: its nearest point on the smoothed midrib
+    from scipy.spatial import cKDTree
+
+    _, k = cKDTree(mid_pts).query(q[valid])
+    left = np.einsum("ij,ij->i", q[valid] - mid_pts[k], across[k]) > 0
+    nbins = max(int(len(mid_pts) / 4), 1)
+    station = np.minimum((k * nbins) // len(mid_pts), nbins - 1)
+    dv = d_mid[valid]
+    best_l = np.full(nbins, -1.0)
+    best_r = np.full(nbins, -1.0)
+    np.maximum.at(best_l, station[left], dv[left])
+    np.maximum.at(best_r, station[~left], dv[~left])
+    total = np.where((best_l >= 0) & (best_r >= 0), best_l + best_r, -1.0)
+    width = 0.0
+    for st in np.argsort(-total)[: p.width_stations]:
+        if total[st] <= 0:
+            break
+        in_st = (station == st) & (kind[valid] == 0)  # widest points on the crest
+        if not (in_st & left).any() or not (in_st & ~left).any():
+            continue
+        li = valid[in_st & left][np.argmax(dv[in_st & left])]
+        ri = valid[in_st & ~left][np.argmax(dv[in_st & ~left])]
+        w = _two_side_length([g_a, g_b], q, int(li), int(ri), sigma)
+        if np.isfinite(w):
+            width = max(width, w - rim_excess)
+    midrib_idx = nodes[midrib_idx]
+    base, tip = nodes[base], nodes[tip]
+
+    traits = LeafTraits(leaf_id, float(length), float(width), area, perimeter)
+    return LeafMeasurement(traits, thickness, v[base], v[tip], v[midrib_idx],
+                           {"rim_length_mm": rim_length, "border_length_mm": border_length})
+
+
+def _iso_line_length(v: np.ndarray, f: np.ndarray, topo: geo.MeshTopology, value: np.ndarray,
+                     sigma: float) -> float:
+    """Total length (mm) of the zero iso-line of the vertex field ``value`` after smoothing.
+
+    Crossing points sit on mesh edges; each face with a sign change links two
+    of them.  Chains are walked into polylines (closed when they close) and
+    smoothed by ``sigma`` mm of arclength before measuring.
+    """
+    pos = value > 0
+    e = topo.edges
+    crossing = pos[e[:, 0]] != pos[e[:, 1]]
+    if not crossing.any():
+        return 0.0
+    ce = np.flatnonzero(crossing)
+    t = value[e[ce, 0]] / (value[e[ce, 0]] - value[e[ce, 1]])
+    point_of_edge = np.full(len(e), -1)
+    point_of_edge[ce] = np.arange(len(ce))
+    pts = v[e[ce, 0]] + t[:, None] * (v[e[ce, 1]] - v[e[ce, 0]])
+    fe = point_of_edge[topo.face_edges]  # (F, 3) crossing point on each side or -1
+    two = (fe >= 0).sum(axis=1) == 2
+    links = np.sort(fe[two], axis=1)[:, 1:]  # the two crossing points of each such face
+    n = len(pts)
+    nbr = [[] for _ in range(n)]
+    for a, b in links.tolist():
+        nbr[a].append(b)
+        nbr[b].append(a)
+    seen = np.zeros(n, bool)
+    total = 0.0
+    # start open chains at their ends first, then the closed loops
+    order = [i for i in range(n) if len(nbr[i]) == 1] + list(range(n))
+    for start in order:
+        if seen[start] or not nbr[start]:
+            continue
+        chain = [start]
+        seen[start] = True
+        prev, cur = -1, start
+        while True:
+            nxt = [x for x in nbr[cur] if x != prev and not seen[x]]
+            if not nxt:
+                break
+            prev, cur = cur, nxt[0]
+            seen[cur] = True
+            chain.append(cur)
+        closed = len(chain) > 2 and start in nbr[chain[-1]]
+        poly = pts[chain + ([start] if closed else [])]
+        total += geo.polyline_length(geo.smooth_polyline(poly, sigma, closed=closed)
+                                     if not closed else _closed_smooth(pts[chain], sigma))
+    return total
+
+
+def _closed_smooth(loop: np.ndarray, sigma: float) -> np.ndarray:
+    sm = geo.smooth_polyline(np.concatenate([loop, loop[:1]]), sigma, closed=True)
+    return np.concatenate([sm, sm[:1]])
+
+
+def _downsample(idx: np.ndarray, v: np.ndarray, spacing: float) -> np.ndarray:
+    """One vertex of ``idx`` per cubic cell of ``spacing`` mm."""
+    if len(idx) == 0:
+        return idx
+    cell = np.floor((v[idx] - v[idx].min(axis=0)) / spacing).astype(np.int64)
+    # per cell keep the vertex farthest from the leaf's centre: in rim cells that is the
+    # outermost crest vertex, so the base, tip and widest points are not pulled inwards
+    far = -np.linalg.norm(v[idx] - v[idx].mean(axis=0), axis=1)
+    order = np.lexsort((far, cell[:, 2], cell[:, 1], cell[:, 0]))
+    c = cell[order]
+    first = np.concatenate([[True], np.any(c[1:] != c[:-1], axis=1)])
+    return idx[np.sort(order[first])]
+
+
+def _radius_graphs(q: np.ndarray, kind: np.ndarray, radius: float
+                   ) -> tuple[sparse.csr_matrix, sparse.csr_matrix, sparse.csr_matrix]:
+    """Graphs joining points closer than ``radius``: all, side A + crest, side B + crest.
+
+    ``kind`` is 0 for crest points, 1 for side A, 2 for side B.
+    """
+    from scipy.spatial import cKDTree
+
+    pairs = cKDTree(q).query_pairs(radius, output_type="ndarray")
+    w = np.maximum(np.linalg.norm(q[pairs[:, 0]] - q[pairs[:, 1]], axis=1), 1e-9)
+    n = len(q)
+
+    def graph(sel: np.ndarray) -> sparse.csr_matrix:
+        a, b, ww = pairs[sel, 0], pairs[sel, 1], w[sel]
+        return sparse.csr_matrix((np.concatenate([ww, ww]),
+                                  (np.concatenate([a, b]), np.concatenate([b, a]))), shape=(n, n))
+
+    ka, kb = kind[pairs[:, 0]], kind[pairs[:, 1]]
+    side_a = (ka != 2) & (kb != 2)
+    side_b = (ka != 1) & (kb != 1)
+    return graph(np.ones(len(pairs), bool)), graph(side_a), graph(side_b)
+
+
+def _thickness(v: np.ndarray, f: np.ndarray, vn: np.ndarray, on_side: np.ndarray) -> float:
+    """Median slab thickness (mm): distance along -normal to the opposite side."""
+    import open3d as o3d
+
+    if not on_side.any():
+        return 0.0
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)),
+                        o3d.core.Tensor(f.astype(np.uint32)))
+    idx = np.flatnonzero(on_side)
+    if len(idx) > 20000:  # a median needs no more samples
+        idx = idx[:: len(idx) // 20000 + 1]
+    eps = 1e-3
+    rays = np.concatenate([v[idx] - eps * vn[idx], -vn[idx]], axis=1).astype(np.float32)
+    t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+    t = t[np.isfinite(t)]
+    return float(np.median(t)) + eps if len(t) else 0.0
+
+
+def plant_traits(mesh: Mesh, leaves: list[LeafTraits], pixel_mm: float = 0.5) -> dict[str, float]:
+    """Plant-level traits of the whole mesh (stem and leaves).
+
+    ``height_mm`` (vertical extent), ``total_leaf_area_mm2``, ``leaf_count``,
+    ``convex_hull_volume_mm3`` and ``projected_area_mm2`` (area of the top
+    view shadow, rasterised at ``pixel_mm``).
+    """
+    out: dict[str, float] = {
+        "height_mm": 0.0,
+        "total_leaf_area_mm2": float(sum(x.area_mm2 for x in leaves)),
+        "leaf_count": len(leaves),
+        "convex_hull_volume_mm3": 0.0,
+        "projected_area_mm2": 0.0,
+    }
+    if mesh.is_empty:
+        return out
+    v = mesh.vertices
+    out["height_mm"] = float(v[:, 2].max() - v[:, 2].min())
+    try:
+        from scipy.spatial import ConvexHull
+
+        out["convex_hull_volume_mm3"] = float(ConvexHull(v).volume)
+    except Exception as exc:  # flat or degenerate point sets have no hull volume
+        log.warning("convex hull volume not measured: %s", exc)
+    import cv2
+
+    lo = v[:, :2].min(axis=0) - 2 * pixel_mm
+    size = np.ceil((v[:, :2].max(axis=0) + 2 * pixel_mm - lo) / pixel_mm).astype(int) + 1
+    img = np.zeros((int(size[1]), int(size[0])), np.uint8)
+    tri = np.round((v[mesh.faces][:, :, :2] - lo) / pixel_mm * 16).astype(np.int32)
+    cv2.fillPoly(img, list(tri), 1, lineType=cv2.LINE_8, shift=4)
+    out["projected_area_mm2"] = float(img.sum()) * pixel_mm * pixel_mm
+    return out
+
+
+def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = None
+                  ) -> tuple[Traits, list[LeafMeasurement], dict]:
+    """Traits of every leaf of ``labelled`` and of the whole plant."""
+    p = params or LeafGeometryParams()
+    info: dict = {"warnings": []}
+    mesh = labelled.mesh
+    if mesh.is_empty:
+        msg = "mesh is empty: traits table left empty"
+        log.warning(msg)
+        info["warnings"].append(msg)
+        return Traits([], plant_traits(mesh, [])), [], info
+    leaf_labels = labelled.leaf_labels
+    if not leaf_labels:
+        msg = "no leaf in the labelled mesh: traits table left empty"
+        log.warning(msg)
+        info["warnings"].append(msg)
+    stem_labels = [k for k, kind in labelled.kinds.items() if kind == "stem"]
+    stem_faces = np.isin(labelled.face_labels, stem_labels)
+    stem_vertices = np.unique(mesh.faces[stem_faces])
+    tree = None
+    if len(stem_vertices):
+        from scipy.spatial import cKDTree
+
+        tree = cKDTree(mesh.vertices[stem_vertices])
+    measurements = []
+    for leaf_id in leaf_labels:
+        sub = labelled.submesh(leaf_id)
+        hint = None
+        if tree is not None:
+            d, _ = tree.query(sub.vertices)
+            hint = sub.vertices[int(np.argmin(d))]
+        try:
+            m = measure_leaf(sub, leaf_id, p, hint)
+        except Exception as exc:  # one odd leaf must not lose the others
+            msg = f"leaf {leaf_id}: not measured ({type(exc).__name__}: {exc})"
+            log.warning(msg)
+            info["warnings"].append(msg)
+            continue
+        if m is None:
+            info["warnings"].append(f"leaf {leaf_id}: fewer than {p.min_leaf_faces} faces, skipped")
+            continue
+        measurements.append(m)
+    leaves = [m.traits for m in measurements]
+    return Traits(leaves, plant_traits(mesh, leaves)), measurements, info

@@ -1,0 +1,249 @@
+"""Leaf/stem segmentation of a plant surface by curvature-constrained region growing.
+
+The plant surface from a visual hull is one closed mesh: a stem (a tube) with
+leaves (thin closed slabs) growing out of it.  Where a leaf meets the stem,
+or where two leaves touch, the union of the two solids has a *concave
+crease*; across a leaf (flat, bent, or over its convex rim) the surface is
+never sharply concave.  So (after Paproki et al. 2012, simplified):
+
+1. estimate the curvature of the surface at a scale of ``smoothing_mm``
+   (Taubin-smoothed vertices, diffused face normals, normal curvature across
+   every edge);
+2. faces sharper than ``concave_curvature_per_mm`` in the concave direction
+   are crease faces, everything else is a seed face;
+3. seed regions are the connected components of seed faces; regions
+   smaller than ``min_region_area_mm2`` are dropped back to unlabelled;
+4. labels grow from the regions into the crease bands, one ring of faces
+   per step, until every face of every connected part is labelled;
+5. each region is a leaf or stem: stem pieces are tubes (their normals
+   turn all round an axis that is also their long axis), leaves are
+   everything else with at least ``min_leaf_area_mm2`` (one side); smaller
+   non-tube pieces join the neighbour they share most edges with.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+from pydantic import Field
+from scipy import sparse
+from scipy.sparse.csgraph import connected_components
+
+from plantscan_core.data import LabelledMesh, Mesh
+from plantscan_core.stages import StageParams
+
+from plantscan_leaves import geometry as geo
+
+log = logging.getLogger(__name__)
+
+STEM_LABEL = 0
+
+
+class CurvatureRegionsParams(StageParams):
+    """Parameters of ``curvature-regions`` (defaults: broad dicot leaves, 0.3–1 mm voxels)."""
+
+    smoothing_mm: float = Field(1.5, gt=0, description="scale of the curvature estimate, mm")
+    concave_curvature_per_mm: float = Field(
+        0.12, gt=0,
+        description="faces more concave than this (1/mm) separate regions (leaf-stem and "
+                    "leaf-leaf creases); lower splits more",
+    )
+    min_region_area_mm2: float = Field(
+        20.0, ge=0, description="smaller seed regions are re-grown from their neighbours, mm²")
+    min_leaf_area_mm2: float = Field(
+        150.0, ge=0, description="smallest leaf (one side, i.e. half its surface), mm²")
+    stem_tube_ratio: float = Field(
+        0.35, gt=0, le=1,
+        description="a region whose normals spread around its long axis this much "
+                    "(2nd/1st eigenvalue of the normal tensor; 1 = cylinder, 0 = flat) is a stem",
+    )
+    stem_min_elongation: float = Field(
+        2.5, gt=0, description="a stem piece is at least this many times longer than thick")
+    max_faces: int = Field(
+        0, ge=0,
+        description="if > 0 and the mesh has more faces, curvature is estimated on a "
+                    "vertex-clustered copy of about this many faces (speed)",
+    )
+
+
+def _regions_of(nf: int, pairs: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """Connected components of the faces ``keep`` over ``pairs``; -1 elsewhere."""
+    sel = keep[pairs[:, 0]] & keep[pairs[:, 1]]
+    p = pairs[sel]
+    g = sparse.csr_matrix((np.ones(len(p), np.int8), (p[:, 0], p[:, 1])), shape=(nf, nf))
+    _, lab = connected_components(g, directed=False)
+    lab = lab.astype(np.int64)
+    lab[~keep] = -1
+    return lab
+
+
+def _grow(labels: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    """Spread labels into unlabelled (-1) faces ring by ring until nothing changes."""
+    labels = labels.copy()
+    a, b = pairs[:, 0], pairs[:, 1]
+    while True:
+        la, lb = labels[a], labels[b]
+        to_a = (la < 0) & (lb >= 0)
+        to_b = (lb < 0) & (la >= 0)
+        if not (to_a.any() or to_b.any()):
+            return labels
+        labels[a[to_a]] = lb[to_a]
+        labels[b[to_b]] = la[to_b]
+
+
+def _relabel(labels: np.ndarray) -> np.ndarray:
+    out = np.full_like(labels, -1)
+    ok = labels >= 0
+    _, out[ok] = np.unique(labels[ok], return_inverse=True)
+    return out
+
+
+def face_curvature(mesh: Mesh, topo: geo.MeshTopology, smoothing_mm: float) -> np.ndarray:
+    """(F,) smallest normal curvature across each face's edges, 1/mm (< 0 concave).
+
+    Curvature across the edge shared by faces i, j is
+    ``(n_j - n_i) . (c_j - c_i) / |c_j - c_i|^2`` with normals ``n`` and
+    centroids ``c`` of the surface smoothed at ``smoothing_mm``; outward
+    normals make convex edges positive.
+    """
+    v, f = mesh.vertices, mesh.faces
+    edge_mm = float(np.mean(np.linalg.norm(v[topo.edges[:, 0]] - v[topo.edges[:, 1]], axis=1)))
+    vop = geo.vertex_adjacency_operator(len(v), topo.edges)
+    vs = geo.taubin(v, vop, geo.diffusion_steps(smoothing_mm / 2, edge_mm, 30))
+    n, _ = geo.face_normals_areas(vs, f)
+    fop = geo.face_adjacency_operator(len(f), topo.face_pairs)
+    n = geo.smooth(fop, n, geo.diffusion_steps(smoothing_mm, edge_mm * 0.6))
+    n /= np.maximum(np.linalg.norm(n, axis=1), 1e-12)[:, None]
+    c = vs[f].mean(axis=1)
+    i, j = topo.face_pairs[:, 0], topo.face_pairs[:, 1]
+    dc = c[j] - c[i]
+    k = np.einsum("ij,ij->i", n[j] - n[i], dc) / np.maximum(np.einsum("ij,ij->i", dc, dc), 1e-12)
+    kf = np.full(len(f), np.inf)
+    np.minimum.at(kf, i, k)
+    np.minimum.at(kf, j, k)
+    kf[~np.isfinite(kf)] = 0.0
+    return kf
+
+
+def _region_shape(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray,
+                  areas: np.ndarray, labels: np.ndarray, nlab: int) -> dict[str, np.ndarray]:
+    """Per-region area, normal-tensor spread, long axis alignment, elongation."""
+    c = vertices[faces].mean(axis=1)
+    w = areas
+    tot = np.bincount(labels, w, nlab)
+    safe = np.maximum(tot, 1e-12)
+    mean = np.stack([np.bincount(labels, w * c[:, k], nlab) for k in range(3)], 1) / safe[:, None]
+    d = c - mean[labels]
+    cov = np.zeros((nlab, 3, 3))
+    nt = np.zeros((nlab, 3, 3))
+    for a in range(3):
+        for b in range(a, 3):
+            cov[:, a, b] = cov[:, b, a] = np.bincount(labels, w * d[:, a] * d[:, b], nlab) / safe
+            nt[:, a, b] = nt[:, b, a] = np.bincount(labels, w * normals[:, a] * normals[:, b],
+                                                    nlab) / safe
+    ev_c, vec_c = np.linalg.eigh(cov)  # ascending
+    ev_n, vec_n = np.linalg.eigh(nt)
+    long_axis = vec_c[:, :, 2]
+    null_normal = vec_n[:, :, 0]  # direction the normals never point to (tube axis)
+    return {
+        "area": tot,
+        "spread": ev_n[:, 1] / np.maximum(ev_n[:, 2], 1e-12),
+        "axis_alignment": np.abs(np.einsum("ij,ij->i", long_axis, null_normal)),
+        "elongation": np.sqrt(ev_c[:, 2] / np.maximum(ev_c[:, 1], 1e-12)),
+    }
+
+
+def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
+                   ) -> tuple[LabelledMesh, dict]:
+    """Label every face of ``mesh`` as one leaf or the stem.
+
+    Returns
+    -------
+    labelled : LabelledMesh
+        ``face_labels`` 0 = stem (kind ``"stem"``), 1..n = leaves
+        (kind ``"leaf"``), every face labelled.  An empty mesh gives an
+        empty labelled mesh.
+    info : dict
+        Work counts and warnings (``regions``, ``crease_faces``, ``warnings``).
+    """
+    p = params or CurvatureRegionsParams()
+    info: dict = {"warnings": []}
+    if mesh.is_empty:
+        msg = "mesh is empty: no leaf to segment"
+        log.warning(msg)
+        info["warnings"].append(msg)
+        return LabelledMesh(mesh, np.zeros(0, np.int32), {}), info
+    v, f = mesh.vertices, mesh.faces
+    nf = len(f)
+    topo = geo.topology(f)
+    if topo.non_manifold_edges:
+        msg = (f"mesh has {topo.non_manifold_edges} non-manifold edges (used by more than two "
+               "faces); they are treated as ordinary connections")
+        log.warning(msg)
+        info["warnings"].append(msg)
+    normals, areas = geo.face_normals_areas(v, f)
+    kf = face_curvature(mesh, topo, p.smoothing_mm)
+    crease = kf < -p.concave_curvature_per_mm
+    info["crease_faces"] = int(crease.sum())
+
+    seeds = _regions_of(nf, topo.face_pairs, ~crease)
+    seed_area = np.bincount(seeds[seeds >= 0], areas[seeds >= 0])
+    small = seed_area < p.min_region_area_mm2
+    seeds[(seeds >= 0) & small[np.maximum(seeds, 0)]] = -1
+    labels = _grow(_relabel(seeds), topo.face_pairs)
+    # parts of the mesh with no seed at all (crumbs, all-crease bits) are their own region
+    if (labels < 0).any():
+        rest = _regions_of(nf, topo.face_pairs, labels < 0)
+        labels[labels < 0] = labels.max() + 1 + rest[labels < 0]
+    labels = _relabel(labels)
+    nlab = int(labels.max()) + 1
+    info["regions"] = nlab
+
+    shape = _region_shape(v, f, normals, areas, labels, nlab)
+    tube = ((shape["spread"] > p.stem_tube_ratio) & (shape["axis_alignment"] > 0.8)
+            & (shape["elongation"] > p.stem_min_elongation))
+    leafy = ~tube & (shape["area"] / 2.0 >= p.min_leaf_area_mm2)
+    crumbs = ~tube & ~leafy
+    # small non-tube pieces join the region they share most edges with
+    if crumbs.any():
+        labels = _merge_crumbs(labels, crumbs, topo.face_pairs, nlab)
+    region_kind = np.where(tube, "stem", "leaf")
+    leaf_regions = [r for r in range(nlab) if leafy[r]]
+    out = np.full(nf, STEM_LABEL, np.int32)
+    kinds: dict[int, str] = {}
+    if (np.isin(labels, np.flatnonzero(region_kind == "stem"))).any() or not leaf_regions:
+        kinds[STEM_LABEL] = "stem"
+    for new, r in enumerate(leaf_regions, start=1):
+        out[labels == r] = new
+        kinds[new] = "leaf"
+    if STEM_LABEL not in kinds and (out == STEM_LABEL).any():
+        kinds[STEM_LABEL] = "stem"
+    if not leaf_regions:
+        msg = "no leaf-like region found on the mesh (everything looks like stem or crumbs)"
+        log.warning(msg)
+        info["warnings"].append(msg)
+    info["leaves"] = len(leaf_regions)
+    info["stem_pieces"] = int(tube.sum())
+    return LabelledMesh(mesh, out, kinds), info
+
+
+def _merge_crumbs(labels: np.ndarray, crumbs: np.ndarray, pairs: np.ndarray, nlab: int
+                  ) -> np.ndarray:
+    """Give each crumb region the label of the non-crumb region it shares most edges with."""
+    la, lb = labels[pairs[:, 0]], labels[pairs[:, 1]]
+    cross = la != lb
+    la, lb = la[cross], lb[cross]
+    both = np.concatenate([np.stack([la, lb], 1), np.stack([lb, la], 1)])
+    both = both[crumbs[both[:, 0]] & ~crumbs[both[:, 1]]]
+    if len(both) == 0:
+        return labels
+    key = both[:, 0] * nlab + both[:, 1]
+    uk, cnt = np.unique(key, return_counts=True)
+    src, dst = uk // nlab, uk % nlab
+    order = np.lexsort((-cnt, src))
+    src, dst = src[order], dst[order]
+    first = np.concatenate([[True], src[1:] != src[:-1]])
+    mapping = np.arange(nlab)
+    mapping[src[first]] = dst[first]
+    return mapping[labels]
