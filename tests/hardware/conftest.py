@@ -15,7 +15,8 @@ import pytest
 # An editable install made before plugins/plantscan_<name>/ existed does not map it;
 # make the backends importable here (and in subprocesses) until the next `pip install -e .`.
 PLUGINS_DIR = str(Path(__file__).resolve().parents[2] / "plugins")
-if importlib.util.find_spec("plantscan_gphoto") is None:
+if any(importlib.util.find_spec(p) is None for p in (
+        "plantscan_gphoto", "plantscan_serial", "plantscan_phidget", "plantscan_opencvcam")):
     sys.path.insert(0, PLUGINS_DIR)
     os.environ["PYTHONPATH"] = os.pathsep.join(
         p for p in (PLUGINS_DIR, os.environ.get("PYTHONPATH", "")) if p)
