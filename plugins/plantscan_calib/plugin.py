@@ -1,0 +1,193 @@
+"""The `turntable` and `fixed` calibrators and the calibration evaluator."""
+
+from __future__ import annotations
+
+from collections import Counter, defaultdict
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any, Literal
+
+import cv2
+import numpy as np
+from pydantic import Field
+
+from plantscan_core.data import Calibration, ViewRecord
+from plantscan_core.errors import DataError
+from plantscan_core.hookspecs import hookimpl
+from plantscan_core.stages import Calibrator, StageParams
+from plantscan_calib.detect import BoardSpec, detect_charuco, detect_chessboard
+from plantscan_calib.solver import CalibrationError, Detection, SolveOptions, calibrate_turntable
+
+__all__ = ["TurntableCalibrator", "FixedCalibrator", "CalibrationError", "detect_views"]
+
+
+class TurntableCalibrator(Calibrator):
+    """Calibrate a turntable rig from the scan's ``calibration`` views.
+
+    Detects the board in every calibration image (chessboard through an image
+    pyramid, or ChArUco), initialises as the seed (mono calibration, plane +
+    circle fit of the corner orbits), refines everything jointly with Ceres
+    (Cauchy loss, outlier rejection, plain solve) and fits the tilt-arm axis.
+    """
+
+    name = "turntable"
+
+    class Params(StageParams):
+        board: Literal["chessboard", "charuco"] = "chessboard"
+        cols: int = Field(9, ge=2, description="inner corners along the board's rows")
+        rows: int = Field(6, ge=2, description="inner corners along the board's columns")
+        square_mm: float = Field(25.0, gt=0)
+        marker_mm: float = Field(0.0, ge=0, description="ChArUco marker side, mm")
+        dictionary: str = "DICT_5X5_100"
+        detect_max_side_px: int = Field(1024, ge=256,
+                                        description="pyramid top size for chessboard detection")
+        min_views: int = Field(3, ge=1, description="fewest board detections per camera and tilt")
+        fix_principal_point: bool = False
+        fix_distortion: bool = False
+        fit_angle_scale: bool = False
+        angle_jitter_deg: float | None = Field(None, gt=0)
+        outlier_sigma: float = Field(4.0, gt=1)
+        cauchy_scale_px: float = Field(1.0, gt=0)
+        max_rms_px: float = Field(2.0, gt=0)
+        max_rejected_fraction: float = Field(0.05, ge=0, le=1)
+        lowest_corner_height_mm: float = 0.0
+        cross_validate: bool = True
+        workers: int = Field(2, ge=1)
+
+    def board_spec(self) -> BoardSpec:
+        p = self.params
+        try:
+            return BoardSpec(p.board, p.cols, p.rows, p.square_mm, p.marker_mm, p.dictionary)
+        except ValueError as exc:
+            raise CalibrationError(f"calibrate.params: {exc}") from None
+
+    def solve_options(self) -> SolveOptions:
+        p = self.params
+        return SolveOptions(fix_principal_point=p.fix_principal_point,
+                            fix_distortion=p.fix_distortion, fit_angle_scale=p.fit_angle_scale,
+                            angle_jitter_deg=p.angle_jitter_deg, outlier_sigma=p.outlier_sigma,
+                            cauchy_scale_px=p.cauchy_scale_px, min_views=p.min_views,
+                            max_rms_px=p.max_rms_px,
+                            max_rejected_fraction=p.max_rejected_fraction,
+                            lowest_corner_height_mm=p.lowest_corner_height_mm,
+                            cross_validate=p.cross_validate)
+
+    def calibrate(self, scan) -> Calibration:
+        views = scan.views_by_role("calibration")
+        if not views:
+            raise DataError(f"{scan.root}: the scan has no calibration views (role "
+                            "'calibration' in views.jsonl)")
+        spec = self.board_spec()
+        dets, sizes, found = detect_views(scan, views, spec, self.params.detect_max_side_px,
+                                          self.params.workers)
+        _check_detections(views, found, spec, self.params.min_views, scan.root)
+        boards = {0: spec.object_points()}
+        tilts = {v.tilt_index: v.tilt_deg for v in views}
+        cal = calibrate_turntable(dets, boards, sizes, tilts, self.solve_options(),
+                                  symmetric_boards=spec.symmetric)
+        per_ct = Counter((v.camera, v.tilt_index) for v in views)
+        cal.quality["board_found"] = {
+            f"{c}/t{t}": {"found": found.get((c, t), 0), "views": n}
+            for (c, t), n in sorted(per_ct.items())}
+        cal.quality["board"] = spec.__dict__ | {}
+        return cal
+
+
+def detect_views(scan, views: list[ViewRecord], spec: BoardSpec, max_side_px: int = 1024,
+                 workers: int = 2) -> tuple[list[Detection], dict[str, tuple[int, int]],
+                                            dict[tuple[str, int], int]]:
+    """Detect the board in each view (threads: OpenCV releases the GIL).
+
+    Returns the detections, the image size of each camera and the number of
+    views with a board per (camera, tilt).  Images of one camera with
+    different sizes raise ``DataError`` naming them.
+    """
+    def one(view: ViewRecord):
+        path = scan.path_of(view)
+        gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        if gray is None:
+            raise DataError(f"{path}: cannot decode calibration image of view {view.index}")
+        size = (gray.shape[1], gray.shape[0])
+        if spec.kind == "chessboard":
+            uv = detect_chessboard(gray, spec.cols, spec.rows, max_side_px)
+            return view, size, None if uv is None else (np.arange(spec.n_corners), uv)
+        return view, size, detect_charuco(gray, spec, max(2 * max_side_px, 2048))
+
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        results = list(pool.map(one, views))
+    sizes: dict[str, tuple[int, int]] = {}
+    first: dict[str, ViewRecord] = {}
+    dets: list[Detection] = []
+    found: dict[tuple[str, int], int] = defaultdict(int)
+    for view, size, hit in results:
+        if view.camera in sizes and sizes[view.camera] != size:
+            raise DataError(
+                f"camera {view.camera}: calibration images of different sizes: {first[view.camera].file}"
+                f" is {sizes[view.camera][0]}x{sizes[view.camera][1]}, {view.file} is "
+                f"{size[0]}x{size[1]}")
+        sizes.setdefault(view.camera, size)
+        first.setdefault(view.camera, view)
+        if hit is None:
+            continue
+        ids, uv = hit
+        found[(view.camera, view.tilt_index)] += 1
+        dets.append(Detection(view.camera, view.tilt_index, view.angle_deg, 0, ids, uv,
+                              view.index))
+    return dets, sizes, dict(found)
+
+
+def _check_detections(views: list[ViewRecord], found: dict[tuple[str, int], int],
+                      spec: BoardSpec, min_views: int, root: Path) -> None:
+    """Clear errors for a board never found or too few detections per (camera, tilt)."""
+    board = (f"{spec.cols}x{spec.rows}-corner chessboard" if spec.kind == "chessboard"
+             else f"{spec.cols + 1}x{spec.rows + 1}-square ChArUco board ({spec.dictionary})")
+    if not found:
+        raise CalibrationError(
+            f"{root}: no {board} found in any of the {len(views)} calibration views (e.g. "
+            f"{views[0].file}); check calibrate.params (board, cols, rows) against the photos")
+    per_ct = Counter((v.camera, v.tilt_index) for v in views)
+    few = [(c, t, found.get((c, t), 0), n) for (c, t), n in sorted(per_ct.items())
+           if found.get((c, t), 0) < min_views]
+    if few:
+        raise CalibrationError(
+            f"{root}: too few views with the {board} (need calibrate.params.min_views = "
+            f"{min_views} per camera and tilt): " + "; ".join(
+                f"camera {c} tilt {t}: found in {k} of {n} views" for c, t, k, n in few))
+
+
+class FixedCalibrator(Calibrator):
+    """Use a calibration computed elsewhere (a plantscan calibration YAML).
+
+    ``path`` is relative to the scan folder unless absolute; the default is
+    the scan's own ``calibration.yaml`` (what ``plantscan import`` writes).
+    """
+
+    name = "fixed"
+
+    class Params(StageParams):
+        path: str = "calibration.yaml"
+
+    def calibrate(self, scan) -> Calibration:
+        path = Path(self.params.path)
+        if not path.is_absolute():
+            path = Path(scan.root) / path
+        cal = Calibration.load(path)
+        views = scan.views
+        missing = sorted({v.camera for v in views} - set(cal.models))
+        if missing:
+            raise DataError(f"{path}: has no camera {', '.join(missing)} used by the scan "
+                            f"(it has {', '.join(cal.camera_names)})")
+        return cal
+
+
+@hookimpl
+def plantscan_register_stages(registry) -> None:
+    registry.add(TurntableCalibrator)
+    registry.add(FixedCalibrator)
+
+
+@hookimpl
+def plantscan_evaluate(run_dir: Path, truth_dir: Path) -> dict[str, Any] | None:
+    from plantscan_calib.evaluate import evaluate_run
+
+    return evaluate_run(Path(run_dir), Path(truth_dir))

@@ -1,0 +1,982 @@
+"""Turntable calibration from board detections: initialisation and Ceres refinement.
+
+Everything here works on detections (pixels of known board corners), never on
+files, so real corners from another rig can be calibrated directly.
+
+Model
+-----
+A board corner ``P`` (mm, board frame) of board ``b`` photographed by camera
+``c`` at tilt ``t`` and commanded turntable angle ``theta`` projects as::
+
+    X0    = R_b P + t_b                       board -> turntable frame at angle 0
+    X     = Rz(theta * s + e) X0              the plate turned by theta (s: angle scale,
+                                              e: error of this turntable stop, optional)
+    x_cam = R_ct (X - C_ct)                   world -> camera of (c, t)
+    uv    = CameraModel(f, cu, cv, d1, d2)    pinhole + two radial terms
+
+Unknowns: per camera ``[f, cu, cv, d1, d2]``; per (camera, tilt) the rotation
+vector of ``R_ct`` and the centre ``C_ct`` (mm); per board the rotation vector of
+``R_b`` and ``t_b``; optionally ``s``.  Images alone cannot tell a rotation of
+the world about the turntable axis nor a shift along it (the gauge): they are
+fixed by holding the reference camera's centre at ``x = 0`` (on the -Y side of
+the axis) and at ``z = 0`` during the solve; afterwards the world is shifted
+along Z so that the lowest board corner is at ``lowest_corner_height_mm``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import defaultdict
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import cv2
+import numpy as np
+
+from plantscan_core.data import Calibration, CameraModel, Pose, TiltAxis, rotation_z
+from plantscan_core.errors import PlantScanError
+
+
+class CalibrationError(PlantScanError):
+    """Calibration impossible or untrustworthy (too few views, diverging solve...)."""
+
+
+# --------------------------------------------------------------------------- inputs
+@dataclass(frozen=True)
+class Detection:
+    """The corners of one board found in one image.
+
+    Attributes
+    ----------
+    camera : str
+    tilt_index : int
+    angle_deg : float, deg
+        Turntable angle of the image (measured when known, else commanded).
+    board : int
+        Which board (key of the ``boards`` dict given to the solver).
+    corner_ids : (N,) int array
+        Row index of each corner in the board's object points.
+    uv : (N, 2) float64 array, px
+        Detected corner positions (distorted image, pixel centres at integers).
+    view_index : int
+        Index of the view in the scan (-1 when not from a scan).
+    """
+
+    camera: str
+    tilt_index: int
+    angle_deg: float
+    board: int
+    corner_ids: np.ndarray
+    uv: np.ndarray
+    view_index: int = -1
+
+
+@dataclass
+class SolveOptions:
+    """How the rig is solved.
+
+    Attributes
+    ----------
+    fix_principal_point : bool
+        Hold (cu, cv) at ``principal_points`` (default: image centre).
+    principal_points : dict camera -> (cu, cv) px, optional
+    fix_distortion : bool
+        Hold d1 = d2 = 0 (a rig whose lenses are modelled as distortion-free).
+    fit_angle_scale : bool
+        Estimate the turntable's angle scale (gear ratio error) instead of 1.
+    refine : bool
+        False returns the seed's initialisation (plane + circle fit) only.
+    cauchy_scale_px : float
+        Scale of the Cauchy loss of the robust solve.
+    outlier_sigma : float
+        Corners whose residual exceeds this many sigma (robust) are rejected.
+    min_views : int
+        Fewest detections needed per (camera, tilt).
+    lowest_corner_height_mm : float
+        World Z of the lowest board corner (fixes the gauge along the axis).
+    reference_tilt_index : int or None
+        Tilt whose pose anchors the tilt-axis model (default: lowest index).
+    max_rms_px, max_rejected_fraction : float
+        Above these the calibration is refused (``CalibrationError``).
+    angle_jitter_deg : float or None
+        When set, each turntable stop gets its own angle error (backlash,
+        missed steps), estimated with a zero-mean Gaussian prior of this
+        standard deviation; None trusts the recorded angles.
+    prior_noise_px : float
+        Corner noise assumed when weighting that prior against the corners.
+    cross_validate : bool
+        Also solve on even-angle views and report the error on odd ones.
+    covariance : bool
+        Report parameter 1-sigma from the Ceres covariance.
+    max_iterations : int
+    """
+
+    fix_principal_point: bool = False
+    principal_points: dict[str, tuple[float, float]] = field(default_factory=dict)
+    fix_distortion: bool = False
+    fit_angle_scale: bool = False
+    refine: bool = True
+    cauchy_scale_px: float = 1.0
+    outlier_sigma: float = 4.0
+    min_views: int = 3
+    lowest_corner_height_mm: float = 0.0
+    reference_tilt_index: int | None = None
+    max_rms_px: float = 2.0
+    max_rejected_fraction: float = 0.05
+    angle_jitter_deg: float | None = None
+    prior_noise_px: float = 0.2
+    cross_validate: bool = True
+    covariance: bool = True
+    max_iterations: int = 100
+    max_init_views: int = 40
+
+
+# --------------------------------------------------------------------------- rotations
+def rotmats(rv: np.ndarray) -> np.ndarray:
+    """Rotation vectors ``(K, 3)`` rad -> rotation matrices ``(K, 3, 3)`` (Rodrigues)."""
+    rv = np.asarray(rv, dtype=float).reshape(-1, 3)
+    theta = np.linalg.norm(rv, axis=1)
+    small = theta < 1e-9
+    k = rv / np.where(small, 1.0, theta)[:, None]
+    kx = np.zeros((len(rv), 3, 3))
+    kx[:, 0, 1], kx[:, 0, 2] = -k[:, 2], k[:, 1]
+    kx[:, 1, 0], kx[:, 1, 2] = k[:, 2], -k[:, 0]
+    kx[:, 2, 0], kx[:, 2, 1] = -k[:, 1], k[:, 0]
+    s = np.where(small, theta, np.sin(theta))[:, None, None]
+    c = np.where(small, theta**2 / 2.0, 1.0 - np.cos(theta))[:, None, None]
+    return np.eye(3)[None] + s * kx + c * (kx @ kx)
+
+
+def rotvec(r: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation -> (3,) rotation vector, rad."""
+    v, _ = cv2.Rodrigues(np.asarray(r, dtype=float))
+    return v.reshape(3)
+
+
+def mean_rotation(rs: Sequence[np.ndarray]) -> np.ndarray:
+    """Chordal mean of rotation matrices (SVD projection of their sum)."""
+    u, _, vt = np.linalg.svd(np.sum(rs, axis=0))
+    d = np.sign(np.linalg.det(u @ vt))
+    return u @ np.diag([1.0, 1.0, d]) @ vt
+
+
+# --------------------------------------------------------------------------- projection
+# Layout of the parameter vector of one view's cost: intrinsics, camera pose, board pose, scale.
+N_INTR, N_POSE = 5, 6
+I_INTR, I_CAM, I_BOARD, I_SCALE, I_STOP = 0, 5, 11, 17, 18
+N_ALL = 19
+
+
+def project_batch(params: np.ndarray, points: np.ndarray, angle_deg: float) -> np.ndarray:
+    """Pixels of board points under ``K`` parameter vectors at once.
+
+    Parameters
+    ----------
+    params : (K, 19) float64 array
+        ``[f, cu, cv, d1, d2, rc(3), C(3) mm, rb(3), tb(3) mm, s, e deg]`` per row.
+    points : (N, 3) float64 array, mm, board frame
+    angle_deg : float, deg, commanded turntable angle
+
+    Returns
+    -------
+    (K, N, 2) float64 array, px
+    """
+    p = np.atleast_2d(params)
+    rb = rotmats(p[:, 11:14])
+    x0 = np.einsum("kij,nj->kni", rb, points) + p[:, None, 14:17]
+    a = np.radians(angle_deg * p[:, 17] + p[:, 18])
+    ca, sa = np.cos(a)[:, None], np.sin(a)[:, None]
+    xw = np.stack([ca * x0[..., 0] - sa * x0[..., 1], sa * x0[..., 0] + ca * x0[..., 1],
+                   x0[..., 2]], axis=-1)
+    rc = rotmats(p[:, 5:8])
+    xc = np.einsum("kij,knj->kni", rc, xw - p[:, None, 8:11])
+    xy = xc[..., :2] / xc[..., 2:3]
+    r2 = np.sum(xy * xy, axis=-1, keepdims=True)
+    s = 1.0 + p[:, None, 3:4] * r2 + p[:, None, 4:5] * r2 * r2
+    return xy * s * p[:, None, 0:1] + p[:, None, 1:3]
+
+
+def _fd_steps(p: np.ndarray) -> np.ndarray:
+    """Central-difference steps per parameter (relative, floored for small values)."""
+    h = 1e-6 * np.maximum(1.0, np.abs(p))
+    h[3:5] = 1e-7  # distortion terms are dimensionless and small
+    return h
+
+
+def _make_view_cost():
+    import pyceres
+
+    class ViewCost(pyceres.CostFunction):
+        """All corners of one detection in one cost: 2N residuals, 4 parameter blocks.
+
+        Batching a view amortises the Python call; the Jacobian is a central
+        difference of the vectorised projection (all 36 perturbations in one
+        numpy call), accurate to ~1e-9 relative, far below corner noise.
+        """
+
+        def __init__(self, points: np.ndarray, uv: np.ndarray, angle_deg: float):
+            super().__init__()
+            self.points = np.ascontiguousarray(points, dtype=float)
+            self.uv = np.ascontiguousarray(uv, dtype=float)
+            self.angle_deg = float(angle_deg)
+            self.set_num_residuals(2 * len(self.uv))
+            self.set_parameter_block_sizes([N_INTR, N_POSE, N_POSE, 1, 1])
+
+        def Evaluate(self, parameters, residuals, jacobians):  # noqa: N802 - Ceres API
+            p = np.concatenate([np.asarray(b) for b in parameters])
+            if jacobians is None or all(j is None for j in jacobians):
+                uv = project_batch(p[None], self.points, self.angle_deg)[0]
+                if not np.all(np.isfinite(uv)):
+                    return False
+                residuals[:] = (uv - self.uv).ravel()
+                return True
+            h = _fd_steps(p)
+            stack = np.repeat(p[None], 1 + 2 * N_ALL, axis=0)
+            idx = np.arange(N_ALL)
+            stack[1 + idx, idx] += h
+            stack[1 + N_ALL + idx, idx] -= h
+            uv = project_batch(stack, self.points, self.angle_deg)
+            if not np.all(np.isfinite(uv)):
+                return False
+            residuals[:] = (uv[0] - self.uv).ravel()
+            jac = ((uv[1:1 + N_ALL] - uv[1 + N_ALL:]).reshape(N_ALL, -1) / (2 * h[:, None])).T
+            starts = (I_INTR, I_CAM, I_BOARD, I_SCALE, I_STOP)
+            sizes = (N_INTR, N_POSE, N_POSE, 1, 1)
+            for j, (s0, n) in enumerate(zip(starts, sizes, strict=True)):
+                if jacobians[j] is not None:
+                    jacobians[j][:] = jac[:, s0:s0 + n].ravel()
+            return True
+
+    return ViewCost
+
+
+# --------------------------------------------------------------------------- state
+@dataclass
+class RigState:
+    """Parameter blocks of the rig (the arrays Ceres optimises in place)."""
+
+    intrinsics: dict[str, np.ndarray]            # camera -> (5,)
+    cam_poses: dict[tuple[str, int], np.ndarray]  # (camera, tilt) -> (6,) [rvec, C]
+    board_poses: dict[int, np.ndarray]           # board -> (6,) [rvec, t]
+    scale: np.ndarray                            # (1,)
+    image_sizes: dict[str, tuple[int, int]]
+    stops: dict[tuple[int, float], np.ndarray] = field(default_factory=dict)  # (1,) deg each
+
+    def stop(self, d: Detection) -> np.ndarray:
+        """Angle-error block of the turntable stop of ``d`` (created at 0 on first use)."""
+        return self.stops.setdefault(stop_key(d), np.zeros(1))
+
+    def copy(self) -> RigState:
+        return RigState({k: v.copy() for k, v in self.intrinsics.items()},
+                        {k: v.copy() for k, v in self.cam_poses.items()},
+                        {k: v.copy() for k, v in self.board_poses.items()},
+                        self.scale.copy(), dict(self.image_sizes),
+                        {k: v.copy() for k, v in self.stops.items()})
+
+    def params_for(self, d: Detection) -> np.ndarray:
+        return np.concatenate([self.intrinsics[d.camera], self.cam_poses[(d.camera, d.tilt_index)],
+                               self.board_poses[d.board], self.scale, self.stop(d)])
+
+    def residuals(self, d: Detection, boards: dict[int, np.ndarray]) -> np.ndarray:
+        """(N, 2) reprojection residuals of one detection, px."""
+        pts = boards[d.board][d.corner_ids]
+        return project_batch(self.params_for(d)[None], pts, d.angle_deg)[0] - d.uv
+
+    def model(self, camera: str) -> CameraModel:
+        f, cu, cv, d1, d2 = (float(x) for x in self.intrinsics[camera])
+        w, h = self.image_sizes[camera]
+        return CameraModel(f, cu, cv, d1, d2, int(w), int(h))
+
+    def pose(self, key: tuple[str, int]) -> Pose:
+        p = self.cam_poses[key]
+        r = rotmats(p[:3])[0]
+        return Pose(r, -r @ p[3:6])
+
+    def apply_gauge(self, yaw_deg: float, dz: float) -> None:
+        """Rotate the world by ``yaw_deg`` about Z, then shift it by ``dz`` along Z."""
+        q = rotation_z(yaw_deg)
+        for p in self.cam_poses.values():
+            r = rotmats(p[:3])[0] @ q.T
+            p[:3] = rotvec(r)
+            p[3:6] = q @ p[3:6] + [0.0, 0.0, dz]
+        for p in self.board_poses.values():
+            p[:3] = rotvec(q @ rotmats(p[:3])[0])
+            p[3:6] = q @ p[3:6] + [0.0, 0.0, dz]
+
+
+def stop_key(d: Detection) -> tuple[int, float]:
+    """A turntable stop: every camera at one tilt and one commanded angle shares it."""
+    return (d.tilt_index, round(d.angle_deg, 6))
+
+
+def _pose_vec(r: np.ndarray, c: np.ndarray) -> np.ndarray:
+    return np.concatenate([rotvec(r), np.asarray(c, dtype=float)])
+
+
+# --------------------------------------------------------------------------- initialisation
+def harmonise_symmetric_order(detections: list[Detection]) -> list[Detection]:
+    """Undo 180-degree flips of a symmetric board's corner order along each orbit.
+
+    A chessboard whose inner-corner counts sum to an even number looks the same
+    turned by 180 degrees, so a detector may number its corners from either
+    end.  Along the orbit of one (camera, tilt, board) consecutive views move
+    little, so each view takes the order closer to its predecessor's.
+    Only full detections (every corner, ids 0..N-1) are considered.
+    """
+    groups: dict[tuple, list[int]] = defaultdict(list)
+    for i, d in enumerate(detections):
+        groups[(d.camera, d.tilt_index, d.board)].append(i)
+    out = list(detections)
+    for idx in groups.values():
+        idx.sort(key=lambda i: out[i].angle_deg)
+        prev = None
+        for i in idx:
+            d = out[i]
+            if prev is not None and len(d.uv) == len(prev.uv):
+                same = np.mean(np.linalg.norm(d.uv - prev.uv, axis=1))
+                flip = np.mean(np.linalg.norm(d.uv[::-1] - prev.uv, axis=1))
+                if flip < same:
+                    out[i] = replace(d, uv=d.uv[::-1].copy())
+            prev = out[i]
+    return out
+
+
+def _init_intrinsics(cam: str, dets: list[Detection], boards: dict[int, np.ndarray],
+                     size: tuple[int, int], opt: SolveOptions) -> np.ndarray:
+    """Mono calibration of one camera (OpenCV ``calibrateCamera``) on a subset of views."""
+    usable = [d for d in dets if len(d.uv) >= 6]
+    if len(usable) > opt.max_init_views:
+        pick = np.linspace(0, len(usable) - 1, opt.max_init_views).round().astype(int)
+        usable = [usable[i] for i in sorted(set(pick))]
+    obj = [boards[d.board][d.corner_ids].astype(np.float32) for d in usable]
+    img = [d.uv.reshape(-1, 1, 2).astype(np.float32) for d in usable]
+    k = cv2.initCameraMatrix2D(obj, img, size)
+    f0 = float(np.sqrt(k[0, 0] * k[1, 1]))
+    cu, cv_ = opt.principal_points.get(cam, ((size[0] - 1) / 2.0, (size[1] - 1) / 2.0))
+    k = np.array([[f0, 0, cu], [0, f0, cv_], [0, 0, 1.0]])
+    flags = (cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_ASPECT_RATIO
+             | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K3)
+    if opt.fix_principal_point:
+        flags |= cv2.CALIB_FIX_PRINCIPAL_POINT
+    if opt.fix_distortion:
+        flags |= cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2
+    _, k, dist, _, _ = cv2.calibrateCamera(obj, img, size, k, np.zeros(5), flags=flags)
+    return np.array([(k[0, 0] + k[1, 1]) / 2, k[0, 2], k[1, 2], dist.ravel()[0],
+                     dist.ravel()[1]], dtype=float)
+
+
+def _board_to_camera(d: Detection, intr: np.ndarray, boards: dict[int, np.ndarray]):
+    """(R, t) board -> camera of one detection (PnP with the camera's intrinsics)."""
+    k = np.array([[intr[0], 0, intr[1]], [0, intr[0], intr[2]], [0, 0, 1.0]])
+    dist = np.array([intr[3], intr[4], 0.0, 0.0, 0.0])
+    obj = boards[d.board][d.corner_ids].astype(np.float64)
+    ok, rv, tv = cv2.solvePnP(obj, d.uv.astype(np.float64), k, dist, flags=cv2.SOLVEPNP_IPPE)
+    if not ok:
+        ok, rv, tv = cv2.solvePnP(obj, d.uv.astype(np.float64), k, dist)
+    ok, rv, tv = cv2.solvePnP(obj, d.uv.astype(np.float64), k, dist, rv, tv, True,
+                              cv2.SOLVEPNP_ITERATIVE)
+    return cv2.Rodrigues(rv)[0], tv.reshape(3)
+
+
+def fit_plane_circle_axis(orbits: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray,
+                                                                                np.ndarray]:
+    """Turntable axis in a camera frame from the orbits of board corners (the seed's method).
+
+    Parameters
+    ----------
+    orbits : list of (angles (M,) deg, points (M, 3) mm camera frame)
+        Positions of one board corner photographed at several turntable angles.
+
+    Returns
+    -------
+    direction : (3,) unit vector, camera frame, oriented so that increasing
+        turntable angle is a right-handed rotation about it
+    point : (3,) mm, camera frame, a point on the axis
+
+    Notes
+    -----
+    All orbits lie in parallel planes: one SVD of the orbit-centred points
+    gives the common normal.  Each orbit's centre comes from Coope's linear
+    least-squares circle fit in its plane; the axis passes through the centres.
+    """
+    centred = np.concatenate([p - p.mean(axis=0) for _, p in orbits])
+    _, _, vt = np.linalg.svd(centred, full_matrices=False)
+    n = vt[2]
+    e1, e2 = vt[0], vt[1]
+    centres, turn = [], 0.0
+    for ang, p in orbits:
+        m = p.mean(axis=0)
+        x, y = (p - m) @ e1, (p - m) @ e2
+        a = np.stack([2 * x, 2 * y, np.ones_like(x)], axis=1)
+        sol, *_ = np.linalg.lstsq(a, x * x + y * y, rcond=None)
+        c = m + sol[0] * e1 + sol[1] * e2
+        centres.append(c)
+        order = np.argsort(ang)
+        q = p[order] - c
+        turn += float(np.sum(np.cross(q[:-1], q[1:]) @ n * np.sign(np.diff(ang[order]))))
+    if turn < 0:
+        n = -n
+    return n, np.mean(centres, axis=0)
+
+
+def initialise(detections: list[Detection], boards: dict[int, np.ndarray],
+               image_sizes: dict[str, tuple[int, int]], opt: SolveOptions) -> RigState:
+    """The seed's initialisation: mono calibration, plane + circle axis fit, board transfer.
+
+    1. ``calibrateCamera`` per camera gives intrinsics; PnP gives every view's
+       board -> camera transform.
+    2. The (camera, tilt) with the most detections fixes the world: the
+       turntable axis from the plane + circle fit of its corner orbits, the
+       board poses at angle 0 from its views.
+    3. Every other (camera, tilt) gets its pose from views of a board whose
+       turntable-frame pose is already known (the "stereo" transfer between
+       tilts and cameras); new boards seen there become known in turn.
+    """
+    by_cam: dict[str, list[Detection]] = defaultdict(list)
+    by_ct: dict[tuple[str, int], list[Detection]] = defaultdict(list)
+    for d in detections:
+        by_cam[d.camera].append(d)
+        by_ct[(d.camera, d.tilt_index)].append(d)
+    intr = {c: _init_intrinsics(c, ds, boards, image_sizes[c], opt) for c, ds in by_cam.items()}
+    b2c = {id(d): _board_to_camera(d, intr[d.camera], boards) for d in detections}
+
+    def n_angles(key):
+        return len({round(d.angle_deg, 6) for d in by_ct[key]})
+
+    ref = max(sorted(by_ct), key=lambda k: (n_angles(k), len(by_ct[k])))
+    if n_angles(ref) < 3:
+        raise CalibrationError(
+            "no (camera, tilt) saw a board at 3 or more turntable angles; the turntable axis "
+            f"cannot be found (best: camera {ref[0]} tilt {ref[1]} with {n_angles(ref)} angles)")
+    orbits = []
+    for b in sorted({d.board for d in by_ct[ref]}):
+        ds = [d for d in by_ct[ref] if d.board == b]
+        for cid in range(len(boards[b])):
+            ang, pts = [], []
+            for d in ds:
+                hit = np.nonzero(d.corner_ids == cid)[0]
+                if len(hit):
+                    r, t = b2c[id(d)]
+                    ang.append(d.angle_deg)
+                    pts.append(r @ boards[b][cid] + t)
+            if len(ang) >= 3 and np.ptp(ang) > 0:
+                orbits.append((np.array(ang), np.array(pts)))
+    axis, point = fit_plane_circle_axis(orbits)
+    # World frame of the reference: Z = axis, X = any perpendicular, origin on the axis.
+    ez = axis
+    seed = np.array([1.0, 0.0, 0.0]) if abs(axis[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    ex = seed - ez * (seed @ ez)
+    ex /= np.linalg.norm(ex)
+    ey = np.cross(ez, ex)
+    r_ref = np.stack([ex, ey, ez], axis=1)   # columns: world axes in camera coordinates
+    poses: dict[tuple[str, int], tuple[np.ndarray, np.ndarray]] = {ref: (r_ref, point)}
+
+    board_world: dict[int, list[tuple[np.ndarray, np.ndarray]]] = defaultdict(list)
+
+    def add_board_estimates(key):
+        rc, tc = poses[key]
+        for d in by_ct[key]:
+            r, t = b2c[id(d)]
+            rz = rotation_z(-d.angle_deg)
+            # board -> world at angle theta, then undo the plate's rotation
+            board_world[d.board].append((rz @ rc.T @ r, rz @ rc.T @ (t - tc)))
+
+    add_board_estimates(ref)
+    pending = [k for k in sorted(by_ct) if k != ref]
+    while pending:
+        known = {b: (mean_rotation([r for r, _ in v]), np.mean([t for _, t in v], axis=0))
+                 for b, v in board_world.items()}
+        progress = False
+        for key in list(pending):
+            ests = []
+            for d in by_ct[key]:
+                if d.board in known:
+                    rb, tb = known[d.board]
+                    r, t = b2c[id(d)]
+                    rz = rotation_z(d.angle_deg)
+                    # camera <- board = (camera <- world) (world <- board at theta)
+                    rw = r @ (rz @ rb).T
+                    ests.append((rw, t - rw @ (rz @ tb)))
+            if ests:
+                poses[key] = (mean_rotation([r for r, _ in ests]),
+                              np.mean([t for _, t in ests], axis=0))
+                add_board_estimates(key)
+                pending.remove(key)
+                progress = True
+        if not progress:
+            raise CalibrationError(
+                "these (camera, tilt) share no board with the others, so they cannot be placed "
+                f"in one frame: {', '.join(f'{c} tilt {t}' for c, t in pending)}")
+    known = {b: (mean_rotation([r for r, _ in v]), np.mean([t for _, t in v], axis=0))
+             for b, v in board_world.items()}
+    state = RigState(
+        intrinsics=intr,
+        cam_poses={k: _pose_vec(r, -r.T @ t) for k, (r, t) in poses.items()},
+        board_poses={b: _pose_vec(r, t) for b, (r, t) in known.items()},
+        scale=np.array([1.0]),
+        image_sizes=dict(image_sizes),
+    )
+    _normalise_gauge(state, reference_key(state))
+    return state
+
+
+def reference_key(state: RigState) -> tuple[str, int]:
+    """The (camera, tilt) that anchors the gauge: first camera, lowest tilt index."""
+    return min(state.cam_poses)
+
+
+def _normalise_gauge(state: RigState, ref: tuple[str, int]) -> None:
+    """Turn the world so the reference camera centre is on -Y and at Z = 0."""
+    c = state.cam_poses[ref][3:6]
+    yaw = -90.0 - math.degrees(math.atan2(c[1], c[0]))
+    state.apply_gauge(yaw, 0.0)
+    state.apply_gauge(0.0, -float(state.cam_poses[ref][5]))
+
+
+# --------------------------------------------------------------------------- refinement
+@dataclass
+class SolveReport:
+    """What one Ceres solve did."""
+
+    termination: str
+    iterations: int
+    seconds: float
+    initial_cost: float
+    final_cost: float
+    usable: bool
+
+
+def _build_problem(state: RigState, detections: list[Detection], boards: dict[int, np.ndarray],
+                   masks: dict[int, np.ndarray], opt: SolveOptions, robust: bool):
+    import pyceres
+
+    view_cost = _make_view_cost()
+    problem = pyceres.Problem()
+    loss = pyceres.CauchyLoss(opt.cauchy_scale_px) if robust else pyceres.TrivialLoss()
+    n_res = 0
+    for i, d in enumerate(detections):
+        keep = masks[i]
+        if keep.sum() < 4:
+            continue
+        cost = view_cost(boards[d.board][d.corner_ids[keep]], d.uv[keep], d.angle_deg)
+        problem.add_residual_block(cost, loss, [state.intrinsics[d.camera],
+                                                state.cam_poses[(d.camera, d.tilt_index)],
+                                                state.board_poses[d.board], state.scale,
+                                                state.stop(d)])
+        n_res += 2 * int(keep.sum())
+    fixed = []
+    if opt.fix_principal_point:
+        fixed += [1, 2]
+    if opt.fix_distortion:
+        fixed += [3, 4]
+    for arr in state.intrinsics.values():
+        if len(fixed) == N_INTR:
+            problem.set_parameter_block_constant(arr)
+        elif fixed:
+            problem.set_manifold(arr, pyceres.SubsetManifold(N_INTR, fixed))
+    # Gauge: the reference camera centre stays at x = 0 and z = 0 (see module docstring).
+    problem.set_manifold(state.cam_poses[reference_key(state)], pyceres.SubsetManifold(6, [3, 5]))
+    if not opt.fit_angle_scale:
+        problem.set_parameter_block_constant(state.scale)
+    stops = {stop_key(d) for i, d in enumerate(detections) if masks[i].sum() >= 4}
+    for key in stops:
+        block = state.stops[key]
+        if opt.angle_jitter_deg is None:
+            problem.set_parameter_block_constant(block)
+        else:
+            # Gaussian prior: a stop's error is ~N(0, angle_jitter_deg), in units of the
+            # corner noise so that it weighs like that many pixels of evidence.
+            problem.add_residual_block(_make_prior_cost()(opt.prior_noise_px / opt.angle_jitter_deg),
+                                       None, [block])
+    return problem, n_res
+
+
+def _make_prior_cost():
+    import pyceres
+
+    class PriorCost(pyceres.CostFunction):
+        """residual = weight * x for a 1-parameter block (zero-mean Gaussian prior)."""
+
+        def __init__(self, weight: float):
+            super().__init__()
+            self.weight = float(weight)
+            self.set_num_residuals(1)
+            self.set_parameter_block_sizes([1])
+
+        def Evaluate(self, parameters, residuals, jacobians):  # noqa: N802 - Ceres API
+            residuals[0] = self.weight * parameters[0][0]
+            if jacobians is not None and jacobians[0] is not None:
+                jacobians[0][0] = self.weight
+            return True
+
+    return PriorCost
+
+
+def _solve(problem, opt: SolveOptions) -> SolveReport:
+    import pyceres
+
+    options = pyceres.SolverOptions()
+    options.linear_solver_type = pyceres.LinearSolverType.DENSE_SCHUR
+    options.max_num_iterations = opt.max_iterations
+    options.function_tolerance = 1e-12
+    options.parameter_tolerance = 1e-12
+    options.gradient_tolerance = 1e-14
+    options.num_threads = 1
+    options.minimizer_progress_to_stdout = False
+    summary = pyceres.SolverSummary()
+    t0 = time.perf_counter()
+    pyceres.solve(options, problem, summary)
+    return SolveReport(str(summary.termination_type).split(".")[-1],
+                       int(summary.num_successful_steps + summary.num_unsuccessful_steps),
+                       time.perf_counter() - t0, float(summary.initial_cost),
+                       float(summary.final_cost), bool(summary.IsSolutionUsable()))
+
+
+def refine(state: RigState, detections: list[Detection], boards: dict[int, np.ndarray],
+           opt: SolveOptions, masks: dict[int, np.ndarray] | None = None,
+           ) -> tuple[dict[int, np.ndarray], list[SolveReport], Any]:
+    """Robust (Cauchy) solve, reject outliers at ``outlier_sigma``, then plain solves.
+
+    ``state`` is updated in place.  Returns the kept-corner masks per detection,
+    the solve reports and the final Ceres problem (for the covariance).
+    """
+    masks = {i: np.ones(len(d.uv), bool) for i, d in enumerate(detections)} if masks is None \
+        else masks
+    reports = []
+    problem, _ = _build_problem(state, detections, boards, masks, opt, robust=True)
+    reports.append(_solve(problem, opt))
+    for _ in range(3):
+        norms = {i: np.linalg.norm(state.residuals(d, boards), axis=1)
+                 for i, d in enumerate(detections)}
+        # Noise differs between cameras (sensor, focus, a detector that rounds): one sigma
+        # per camera.  The median of a 2-D Gaussian residual norm is 1.1774 sigma (Rayleigh).
+        sigma = {}
+        for cam in state.intrinsics:
+            kept = np.concatenate([norms[i][masks[i]] for i in norms
+                                   if detections[i].camera == cam] or [np.zeros(1)])
+            sigma[cam] = max(float(np.median(kept)) / 1.1774, 1e-6)
+        new = {i: masks[i] & (norms[i] <= opt.outlier_sigma * sigma[detections[i].camera])
+               for i in norms}
+        changed = any(np.any(new[i] != masks[i]) for i in masks)
+        masks = new
+        problem, _ = _build_problem(state, detections, boards, masks, opt, robust=False)
+        reports.append(_solve(problem, opt))
+        if not changed:
+            break
+    return masks, reports, problem
+
+
+# --------------------------------------------------------------------------- tilt axis
+def fit_tilt_axis(poses: dict[tuple[str, int], Pose], tilts_deg: dict[int, float],
+                  reference_tilt_index: int) -> tuple[TiltAxis, dict[str, float]] | None:
+    """Tilt-arm axis (world frame at turntable angle 0) from poses at several tilts.
+
+    Moving the arm by ``dphi`` about the axis (``q`` = rotation by ``dphi``
+    about ``direction`` through ``origin``) turns a camera pose ``(R, t)`` into
+    ``(R q^T, R (o - q^T o) + t)``.  The direction is the least-squares fit of
+    the rotation vectors of ``q_i = R_i^T R_ref`` against the commanded
+    ``dphi_i``; the origin the least-squares solution of
+    ``R_ref^T (t_i - t_ref) = (I - q_i^T) o`` (its component along the axis,
+    which is arbitrary, is the one nearest the world origin).
+
+    Returns None when no camera has two tilts.  The second value reports how
+    well the axis reproduces the calibrated poses (mm, deg).
+    """
+    pairs = []
+    for (cam, ti), pose in poses.items():
+        ref = poses.get((cam, reference_tilt_index))
+        if ti == reference_tilt_index or ref is None or ti not in tilts_deg:
+            continue
+        dphi = tilts_deg[ti] - tilts_deg[reference_tilt_index]
+        if abs(dphi) < 1e-6:
+            continue
+        pairs.append((ref, pose, math.radians(dphi)))
+    if not pairs:
+        return None
+    num = sum(rotvec(p.R.T @ r.R) * d for r, p, d in pairs)
+    direction = num / np.linalg.norm(num)
+    a_rows, b_rows = [], []
+    for r, p, d in pairs:
+        q = rotmats(direction * d)[0]
+        a_rows.append(np.eye(3) - q.T)
+        b_rows.append(r.R.T @ (p.t - r.t))
+    origin, *_ = np.linalg.lstsq(np.concatenate(a_rows), np.concatenate(b_rows), rcond=None)
+    axis = TiltAxis(origin, direction, reference_tilt_index)
+    # How well the one-axis model reproduces each calibrated pose.
+    cal = Calibration({}, dict(poses), dict(tilts_deg), 1.0, axis)
+    worst_c, worst_r, angle_err = 0.0, 0.0, 0.0
+    for r, p, d in pairs:
+        q = rotmats(direction * d)[0]
+        rr = r.R @ q.T
+        tt = r.R @ (origin - q.T @ origin) + r.t
+        worst_c = max(worst_c, float(np.linalg.norm(-rr.T @ tt - p.centre)))
+        worst_r = max(worst_r, math.degrees(np.linalg.norm(rotvec(rr.T @ p.R))))
+        angle_err = max(angle_err, abs(np.linalg.norm(rotvec(p.R.T @ r.R)) - abs(d)))
+    del cal
+    return axis, {"max_centre_misfit_mm": worst_c, "max_rotation_misfit_deg": worst_r,
+                  "max_tilt_angle_misfit_deg": math.degrees(angle_err)}
+
+
+# --------------------------------------------------------------------------- reports
+def residual_stats(state: RigState, detections: list[Detection], boards: dict[int, np.ndarray],
+                   masks: dict[int, np.ndarray] | None = None) -> dict[str, Any]:
+    """RMS / max / mean residual (px) overall, per camera, per (camera, tilt), per view."""
+    per_cam: dict[str, list[np.ndarray]] = defaultdict(list)
+    per_ct: dict[str, list[np.ndarray]] = defaultdict(list)
+    views, alln = [], []
+    for i, d in enumerate(detections):
+        n = np.linalg.norm(state.residuals(d, boards), axis=1)
+        if masks is not None:
+            n = n[masks[i]]
+        if not len(n):
+            continue
+        alln.append(n)
+        per_cam[d.camera].append(n)
+        per_ct[f"{d.camera}/t{d.tilt_index}"].append(n)
+        views.append({"camera": d.camera, "tilt_index": d.tilt_index,
+                      "angle_deg": round(d.angle_deg, 6), "board": d.board,
+                      "view_index": d.view_index, "corners": len(n),
+                      "rms_px": _rms(n), "max_px": float(n.max())})
+
+    def summ(groups):
+        return {k: {"rms_px": _rms(np.concatenate(v)), "max_px": float(np.concatenate(v).max()),
+                    "mean_px": float(np.concatenate(v).mean()), "views": len(v)}
+                for k, v in sorted(groups.items())}
+
+    a = np.concatenate(alln)
+    return {"rms_px": _rms(a), "mean_px": float(a.mean()), "max_px": float(a.max()),
+            "corners": int(len(a)), "per_camera": summ(per_cam), "per_camera_tilt": summ(per_ct),
+            "per_view": views}
+
+
+def _rms(n: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.asarray(n) ** 2)))
+
+
+def _covariance(problem, state: RigState, n_res: int, final_cost: float,
+                opt: SolveOptions) -> dict[str, Any]:
+    """Parameter 1-sigma from the Jacobian Ceres evaluates at the solution.
+
+    ``cov = sigma^2 (J^T J)^-1`` in each block's tangent space, with ``sigma^2``
+    the residual variance.  The columns are scaled to unit norm before the
+    inversion (pixels per radian and per pixel of focal length differ by 1e6,
+    which Ceres' own ``Covariance`` reports as rank deficiency).
+    """
+    import pyceres
+
+    blocks = (list(state.intrinsics.values()) + list(state.cam_poses.values())
+              + list(state.board_poses.values()) + [state.scale]
+              + [state.stops[k] for k in sorted(state.stops) if problem.has_parameter_block(
+                  state.stops[k])])
+    eopt = pyceres.EvaluateOptions()
+    eopt.set_parameter_blocks(blocks)
+    eopt.apply_loss_function = False
+    crs = problem.evaluate_jacobian(eopt)
+    rows, cols, vals = (np.asarray(x) for x in (crs.rows, crs.cols, crs.values))
+    jac = np.zeros((crs.num_rows, crs.num_cols))
+    jac[np.repeat(np.arange(crs.num_rows), np.diff(rows)), cols] = vals
+    sizes = [0 if problem.is_parameter_block_constant(b) else
+             problem.parameter_block_tangent_size(b) for b in blocks]
+    if sum(sizes) != jac.shape[1]:
+        sizes = [problem.parameter_block_tangent_size(b) for b in blocks]
+    norms = np.linalg.norm(jac, axis=0)
+    live = norms > 0
+    js = jac[:, live] / norms[live]
+    sigma2 = 2.0 * final_cost / max(n_res - int(live.sum()), 1)
+    u, sv, vt = np.linalg.svd(js, full_matrices=False)
+    if sv[-1] < 1e-10 * sv[0]:
+        return {"error": f"Jacobian rank-deficient (condition {sv[0] / sv[-1]:.3g})"}
+    inv = (vt.T / sv**2) @ vt
+    cov = np.zeros((jac.shape[1], jac.shape[1]))
+    idx = np.nonzero(live)[0]
+    cov[np.ix_(idx, idx)] = inv / np.outer(norms[live], norms[live]) * sigma2
+    offs = np.concatenate([[0], np.cumsum(sizes)])
+
+    def block(b):
+        i = next(k for k, x in enumerate(blocks) if x is b)
+        return cov[offs[i]:offs[i + 1], offs[i]:offs[i + 1]]
+
+    out: dict[str, Any] = {"residual_sigma_px": math.sqrt(sigma2), "models": {}, "poses": {}}
+    fixed = ([1, 2] if opt.fix_principal_point else []) + ([3, 4] if opt.fix_distortion else [])
+    free = [k for k in range(N_INTR) if k not in fixed]
+    names = ("f", "cu", "cv", "d1", "d2")
+    for cam, arr in state.intrinsics.items():
+        c = block(arr)
+        if c.shape[0] == len(free):
+            out["models"][cam] = {names[k]: float(np.sqrt(max(c[i, i], 0)))
+                                  for i, k in enumerate(free)}
+    for (cam, ti), arr in state.cam_poses.items():
+        c = block(arr)
+        if c.shape[0] == 6:
+            centre = float(np.sqrt(max(np.trace(c[3:, 3:]), 0)))
+        else:  # the gauge-anchored reference camera: only C_y free
+            centre = float(np.sqrt(max(c[3, 3], 0)))
+        out["poses"][f"{cam}/t{ti}"] = {
+            "centre_mm": centre,
+            "rotation_deg": math.degrees(math.sqrt(max(np.trace(c[:3, :3]), 0))),
+        }
+    if opt.fit_angle_scale:
+        out["angle_scale"] = float(np.sqrt(max(block(state.scale)[0, 0], 0)))
+    return out
+
+
+# --------------------------------------------------------------------------- entry point
+def calibrate_turntable(detections: list[Detection], boards: dict[int, np.ndarray],
+                        image_sizes: dict[str, tuple[int, int]], tilts_deg: dict[int, float],
+                        options: SolveOptions | None = None,
+                        symmetric_boards: bool = False) -> Calibration:
+    """Calibrate a turntable rig from board detections.
+
+    Parameters
+    ----------
+    detections : list of Detection
+    boards : dict board -> (N, 3) float64 array, mm, board frame
+        Object points of each board's corners (``corner_ids`` index rows).
+    image_sizes : dict camera -> (width, height) px
+    tilts_deg : dict tilt index -> commanded tilt, deg
+    options : SolveOptions
+    symmetric_boards : bool
+        True when a board looks the same turned by 180 degrees (corner order
+        then harmonised along each orbit).
+
+    Returns
+    -------
+    Calibration
+        Models, poses per (camera, tilt), the tilt axis (when two or more
+        tilts), the angle scale and the quality report.
+
+    Raises
+    ------
+    CalibrationError
+        Too few detections for a (camera, tilt), disconnected views, a solve
+        that did not converge, residual RMS or rejections above the limits.
+    """
+    opt = options or SolveOptions()
+    if not detections:
+        raise CalibrationError("no board detections to calibrate from")
+    if symmetric_boards:
+        detections = harmonise_symmetric_order(detections)
+    counts: dict[tuple[str, int], int] = defaultdict(int)
+    for d in detections:
+        counts[(d.camera, d.tilt_index)] += 1
+    few = {k: n for k, n in counts.items() if n < opt.min_views}
+    if few:
+        raise CalibrationError(
+            "too few board detections (need at least %d per camera and tilt): %s" % (
+                opt.min_views, ", ".join(f"camera {c} tilt {t}: {n}"
+                                         for (c, t), n in sorted(few.items()))))
+    t0 = time.perf_counter()
+    state = initialise(detections, boards, image_sizes, opt)
+    init_stats = residual_stats(state, detections, boards)
+    quality: dict[str, Any] = {
+        "method": "plane+circle initialisation" + (" + pyceres refinement" if opt.refine else ""),
+        "initialisation": {"rms_px": init_stats["rms_px"], "max_px": init_stats["max_px"]},
+        "detections": len(detections),
+        "flags": [],
+    }
+    masks = None
+    if opt.refine:
+        masks, reports, problem = refine(state, detections, boards, opt)
+        final = reports[-1]
+        quality["solver"] = {"solves": [r.__dict__ for r in reports]}
+        if not final.usable or final.termination not in ("CONVERGENCE", "NO_CONVERGENCE"):
+            raise CalibrationError(
+                f"the calibration solve failed ({final.termination}); initial RMS "
+                f"{init_stats['rms_px']:.3g} px — check the board spec and the turntable angles")
+        if final.termination == "NO_CONVERGENCE":
+            quality["flags"].append(f"solver stopped after {opt.max_iterations} iterations")
+        total = sum(len(m) for m in masks.values())
+        rejected = [(i, np.nonzero(~m)[0]) for i, m in masks.items() if (~m).any()]
+        n_rej = sum(len(r) for _, r in rejected)
+        quality["rejected_corners"] = n_rej
+        quality["rejected_fraction"] = n_rej / total
+        quality["rejected"] = [
+            {"camera": detections[i].camera, "tilt_index": detections[i].tilt_index,
+             "angle_deg": detections[i].angle_deg, "board": detections[i].board,
+             "view_index": detections[i].view_index,
+             "corner": int(detections[i].corner_ids[j]),
+             "residual_px": float(np.linalg.norm(state.residuals(detections[i], boards)[j]))}
+            for i, js in rejected for j in js][:200]
+        n_res = 2 * (total - n_rej)
+        if opt.covariance:
+            try:
+                quality["sigma"] = _covariance(problem, state, n_res, final.final_cost, opt)
+            except Exception as exc:  # noqa: BLE001 - a report item, never fatal
+                quality["sigma"] = {"error": str(exc)}
+        if opt.cross_validate:
+            quality["cross_validation"] = _cross_validate(state, detections, boards, masks, opt)
+    stats = residual_stats(state, detections, boards, masks)
+    quality.update({k: stats[k] for k in ("rms_px", "mean_px", "max_px", "corners",
+                                          "per_camera", "per_camera_tilt", "per_view")})
+    n_params = sum(len(v) for v in state.intrinsics.values()) + 6 * (
+        len(state.cam_poses) + len(state.board_poses))
+    quality["corner_noise_px"] = stats["rms_px"] * math.sqrt(
+        2 * stats["corners"] / max(2 * stats["corners"] - n_params, 1) / 2.0)
+    # Gauge along the axis: the lowest board corner at the requested height.
+    zmin = min(float(np.min((rotmats(p[:3])[0] @ boards[b].T)[2] + p[5]))
+               for b, p in state.board_poses.items())
+    state.apply_gauge(0.0, opt.lowest_corner_height_mm - zmin)
+    models = {c: state.model(c) for c in state.intrinsics}
+    poses = {k: state.pose(k) for k in state.cam_poses}
+    if opt.angle_jitter_deg is not None and state.stops:
+        errs = sorted(((float(v[0]), k) for k, v in state.stops.items()), key=lambda x: -abs(x[0]))
+        quality["stop_angle_error_deg"] = {
+            "rms": float(np.sqrt(np.mean([e * e for e, _ in errs]))),
+            "max": abs(errs[0][0]),
+            "largest": [{"tilt_index": k[0], "angle_deg": k[1], "error_deg": e}
+                        for e, k in errs[:10]]}
+    quality["boards"] = {str(b): {"R": rotmats(p[:3])[0].tolist(), "t": p[3:].tolist()}
+                         for b, p in state.board_poses.items()}
+    ref_tilt = opt.reference_tilt_index if opt.reference_tilt_index is not None \
+        else min(t for _, t in poses)
+    tilt_axis = None
+    if len({t for _, t in poses}) >= 2:
+        fitted = fit_tilt_axis(poses, tilts_deg, ref_tilt)
+        if fitted is not None:
+            tilt_axis, quality["tilt_axis"] = fitted
+    quality["seconds"] = time.perf_counter() - t0
+    if opt.refine:
+        if stats["rms_px"] > opt.max_rms_px:
+            raise CalibrationError(
+                f"calibration residual RMS {stats['rms_px']:.3g} px exceeds max_rms_px "
+                f"{opt.max_rms_px} (worst: {_worst(stats)}); check the board spec")
+        if quality["rejected_fraction"] > opt.max_rejected_fraction:
+            raise CalibrationError(
+                f"{quality['rejected_corners']} corners ({100 * quality['rejected_fraction']:.1f}"
+                f" %) rejected as outliers, above max_rejected_fraction "
+                f"{opt.max_rejected_fraction}; worst view: {_worst(stats)}")
+    return Calibration(models, poses, {int(k): float(v) for k, v in tilts_deg.items()
+                                       if any(t == k for _, t in poses)},
+                       float(state.scale[0]), tilt_axis, quality)
+
+
+def _worst(stats: dict[str, Any]) -> str:
+    v = max(stats["per_view"], key=lambda x: x["rms_px"])
+    return (f"camera {v['camera']} tilt {v['tilt_index']} angle {v['angle_deg']:g} board "
+            f"{v['board']} view {v['view_index']}: {v['rms_px']:.3g} px RMS")
+
+
+def _cross_validate(state: RigState, detections: list[Detection], boards: dict[int, np.ndarray],
+                    masks: dict[int, np.ndarray], opt: SolveOptions) -> dict[str, Any]:
+    """Solve on even turntable stops, report the reprojection error on the odd ones."""
+    angles = sorted({round(d.angle_deg, 6) for d in detections})
+    rank = {a: i for i, a in enumerate(angles)}
+    even = [i for i, d in enumerate(detections) if rank[round(d.angle_deg, 6)] % 2 == 0]
+    odd = [i for i, d in enumerate(detections) if rank[round(d.angle_deg, 6)] % 2 == 1]
+    train = [detections[i] for i in even]
+    if not odd or len({(d.camera, d.tilt_index) for d in train}) < len(state.cam_poses):
+        return {"skipped": "too few views to split by odd/even angle"}
+    sub = state.copy()
+    for i in odd:  # held-out stops keep no angle error fitted on themselves
+        sub.stop(detections[i])[:] = 0.0
+    problem, _ = _build_problem(sub, train, boards, {j: masks[i] for j, i in enumerate(even)},
+                                replace(opt, cross_validate=False), robust=False)
+    _solve(problem, opt)
+    held = np.concatenate([np.linalg.norm(sub.residuals(detections[i], boards), axis=1)[masks[i]]
+                           for i in odd])
+    fit = np.concatenate([np.linalg.norm(sub.residuals(detections[i], boards), axis=1)[masks[i]]
+                          for i in even])
+    return {"train": "even angle stops", "rms_train_px": _rms(fit), "rms_heldout_px": _rms(held),
+            "difference_px": _rms(held) - _rms(fit)}

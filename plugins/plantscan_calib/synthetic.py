@@ -1,0 +1,130 @@
+"""Synthetic turntable rigs with exact answers, for tests and benchmarks.
+
+``make_rig`` builds a rig like the seed's (two cameras on a tilting arm, a
+board standing on the turntable) as a ground-truth ``Calibration``;
+``synthetic_detections`` projects the board corners through it with
+``CameraModel`` (exact), adds Gaussian corner noise and corrupts a fraction of
+corners by a few pixels.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from plantscan_core.data import (
+    Calibration,
+    CameraModel,
+    Pose,
+    TiltAxis,
+    rotation_about_axis,
+    rotation_x,
+    rotation_z,
+)
+from plantscan_calib.detect import BoardSpec
+from plantscan_calib.solver import Detection
+
+
+@dataclass
+class SyntheticRig:
+    """A ground-truth rig and its boards."""
+
+    truth: Calibration
+    boards: dict[int, np.ndarray]          # board -> (N, 3) mm, board frame
+    board_poses: dict[int, Pose]           # board -> board->world (R, t) at angle 0
+    spec: BoardSpec
+
+
+def make_rig(image_size: tuple[int, int] = (5184, 3456), tilts_deg=(0.0, 20.0, 40.0),
+             cameras: int = 2, boards: int = 1, cols: int = 9, rows: int = 6,
+             square_mm: float = 25.0, distortion: bool = True) -> SyntheticRig:
+    """A two-camera tilting-arm rig, tilt axis horizontal through the plant volume.
+
+    Camera ``cam0`` looks at the plant from 700 mm at 150 mm height, ``cam1``
+    from above it (tilted down 35 deg); the arm tilts both about the world X
+    axis through (0, 0, 200) mm.  Boards stand on the plate at radius 60 mm,
+    tipped back 20 deg, facing outward.
+    """
+    w, h = image_size
+    f = 1.05 * w  # ~ a 24 mm lens on an APS-C body
+    models, poses = {}, {}
+    bases = [Pose.look_at((0.0, -700.0, 150.0), (0.0, 0.0, 150.0)),
+             Pose.look_at((0.0, -600.0, 520.0), (0.0, 0.0, 120.0))][:cameras]
+    axis = TiltAxis(np.array([0.0, 0.0, 200.0]), np.array([1.0, 0.0, 0.0]), 0)
+    for c, base in enumerate(bases):
+        name = f"cam{c}"
+        models[name] = CameraModel(f * (1 + 0.02 * c), w / 2 + 13.0 - 7 * c, h / 2 - 9.0 + 5 * c,
+                                   -0.08 if distortion else 0.0,
+                                   0.05 if distortion else 0.0, w, h)
+        for ti, tilt in enumerate(tilts_deg):
+            q = rotation_about_axis(axis.direction, tilt - tilts_deg[0])
+            o = axis.origin
+            poses[(name, ti)] = Pose(base.R @ q.T, base.R @ (o - q.T @ o) + base.t)
+    truth = Calibration(models, poses, {i: float(t) for i, t in enumerate(tilts_deg)}, 1.0,
+                        axis if len(tilts_deg) > 1 else None)
+    spec = BoardSpec("chessboard", cols, rows, square_mm)
+    pts = spec.object_points()
+    pts = pts - pts.mean(axis=0)
+    bp, bd = {}, {}
+    for b in range(boards):
+        # Board plane faces -Y at angle 0 (toward cam0), tipped back, on the plate.
+        r = rotation_z(180.0 * b) @ rotation_x(-90.0 - 20.0)
+        t = rotation_z(180.0 * b) @ np.array([0.0, -60.0, 110.0 + 20 * b])
+        bp[b] = Pose(r, t)
+        bd[b] = pts
+    return SyntheticRig(truth, bd, bp, spec)
+
+
+def synthetic_detections(rig: SyntheticRig, angles_deg, noise_px: float = 0.2,
+                         corrupt_fraction: float = 0.0, corrupt_px=(3.0, 15.0),
+                         max_obliquity_deg: float = 60.0, seed: int = 0,
+                         tilt_indices=None) -> list[Detection]:
+    """Project the boards through the true rig at each angle, as a detector would report them.
+
+    A board is "found" when its plane faces the camera within
+    ``max_obliquity_deg`` and every corner is inside the image (like
+    ``findChessboardCorners``, all or nothing).
+    """
+    rng = np.random.default_rng(seed)
+    out = []
+    truth = rig.truth
+    keys = sorted(truth.poses)
+    if tilt_indices is not None:
+        keys = [k for k in keys if k[1] in tilt_indices]
+    for cam, ti in keys:
+        for a in angles_deg:
+            camera = truth.camera_at(cam, ti, a)
+            for b, bpose in rig.board_poses.items():
+                # Everything in the turntable frame: the camera turns around the board.
+                xw = rig.boards[b] @ bpose.R.T + bpose.t
+                view_dir = xw.mean(axis=0) - camera.pose.centre
+                facing = bpose.R[:, 2] @ view_dir / np.linalg.norm(view_dir)
+                if abs(facing) < math.cos(math.radians(max_obliquity_deg)):
+                    continue
+                if facing > 0:   # seeing the back of the board
+                    continue
+                uv = camera.project(xw)
+                m = truth.models[cam]
+                if not np.all(np.isfinite(uv)) or uv.min() < 5 or uv[:, 0].max() > m.width - 5 \
+                        or uv[:, 1].max() > m.height - 5:
+                    continue
+                uv = uv + rng.normal(0.0, noise_px, uv.shape)
+                if corrupt_fraction > 0:
+                    bad = rng.random(len(uv)) < corrupt_fraction
+                    mag = rng.uniform(*corrupt_px, bad.sum())
+                    ang = rng.uniform(0, 2 * math.pi, bad.sum())
+                    uv[bad] += np.stack([mag * np.cos(ang), mag * np.sin(ang)], axis=1)
+                out.append(Detection(cam, ti, float(a), b, np.arange(len(uv)), uv))
+    return out
+
+
+def volume_points(radius_mm: float = 120.0, z_range_mm=(0.0, 400.0), n: int = 600,
+                  seed: int = 1) -> np.ndarray:
+    """(n, 3) points spread uniformly through a plant-sized cylinder, mm, world frame."""
+    rng = np.random.default_rng(seed)
+    r = radius_mm * np.sqrt(rng.random(n))
+    a = rng.uniform(0, 2 * math.pi, n)
+    z = rng.uniform(*z_range_mm, n)
+    return np.stack([r * np.cos(a), r * np.sin(a), z], axis=1)
