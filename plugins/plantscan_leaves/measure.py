@@ -228,8 +228,16 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
     # geodesic graphs on a resampled copy of each side: a shortest path along mesh edges
     # of a marching-cubes grid is a staircase (up to ~40 % too long on a diagonal); joining
     # every pair of points closer than 3 spacings makes the path directions dense enough
-    on_a = side > -0.35
-    on_b = side < 0.35
+    # a vertex is on side A (B) when one of its faces faces A (B) or is a rim face; the crest
+    # is the vertices on both (rim faces and the vertices around them)
+    face_side = np.einsum("ij,ij->i", fn, face_axis)
+    fmax = np.full(len(v), -np.inf)
+    fmin = np.full(len(v), np.inf)
+    for c in range(3):
+        np.maximum.at(fmax, f[:, c], face_side)
+        np.minimum.at(fmin, f[:, c], face_side)
+    on_a = fmax > -0.35
+    on_b = fmin < 0.35
     spacing = max(p.graph_spacing_mm, edge_mm)
     # crest points are shared by both sides' graphs, so paths of both sides end on them
     pts_c = _downsample(np.flatnonzero(on_a & on_b), v, spacing)
@@ -262,13 +270,14 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
     mid_axis = _axes_at(mid_pts, keys, axes, grid, cell)
     tangent = np.gradient(mid_pts, axis=0) if len(mid_pts) > 1 else np.zeros((1, 3))
     across = np.cross(tangent, mid_axis)
-    valid = np.flatnonzero(np.isfinite(d_mid) & (src >= 0))
-    # station of each node: its nearest point on the smoothed midrib
+    # the widest points are on the crest: stations along the midrib, crest nodes only
+    valid = crest[np.isfinite(d_mid[crest]) & (src[crest] >= 0)]
     from scipy.spatial import cKDTree
 
     _, k = cKDTree(mid_pts).query(q[valid])
     left = np.einsum("ij,ij->i", q[valid] - mid_pts[k], across[k]) > 0
-    nbins = max(int(len(mid_pts) / 4), 1)
+    mid_len = geo.polyline_length(mid_pts)
+    nbins = max(int(mid_len / max(2.0 * spacing, mid_len / 60.0)), 1)
     station = np.minimum((k * nbins) // len(mid_pts), nbins - 1)
     dv = d_mid[valid]
     best_l = np.full(nbins, -1.0)
@@ -280,9 +289,7 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
     for st in np.argsort(-total)[: p.width_stations]:
         if total[st] <= 0:
             break
-        in_st = (station == st) & (kind[valid] == 0)  # widest points on the crest
-        if not (in_st & left).any() or not (in_st & ~left).any():
-            continue
+        in_st = station == st
         li = valid[in_st & left][np.argmax(dv[in_st & left])]
         ri = valid[in_st & ~left][np.argmax(dv[in_st & ~left])]
         w = _two_side_length([g_a, g_b], q, int(li), int(ri), sigma)

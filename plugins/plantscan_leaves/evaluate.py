@@ -1,0 +1,139 @@
+"""Leaf traits of a run against the virtual scanner's truth (``plantscan evaluate``).
+
+Measured leaves are the leaf labels of ``run_dir/labelled.npz``; truth leaves
+are the ``face_leaf_id`` groups of ``truth_dir/plant.npz`` (-1 = stem).  The
+two meshes are in the same (turntable) frame but are different surfaces (the
+hull encloses the true leaf), so overlap is measured by nearest faces:
+
+* every truth face takes the label of the nearest measured face;
+  ``cover[t, m]`` = fraction of truth leaf ``t``'s area whose nearest
+  measured face belongs to measured leaf ``m``;
+* truth and measured leaves are paired one to one maximising total cover
+  (Hungarian algorithm); a pair counts when its cover is >= 0.5;
+* a measured leaf is *merged* when it covers >= 0.3 of two or more truth
+  leaves; a truth leaf is *missed* when it has no pair.
+
+Errors use the seed's ε = mean(|truth − measured| / truth) over the pairs.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from plantscan_core.data import TRAIT_NAMES, LabelledMesh, Traits, mean_relative_error
+from plantscan_core.errors import DataError
+
+PAIR_COVER = 0.5  # more than half of a truth leaf must be in its measured leaf
+MERGE_COVER = 0.3  # a measured leaf holding 30 % of each of two truth leaves merged them
+
+
+def _face_centroids(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    return vertices[faces].mean(axis=1)
+
+
+def match_leaves(labelled: LabelledMesh, truth_vertices: np.ndarray, truth_faces: np.ndarray,
+                 truth_leaf_id: np.ndarray) -> dict[str, Any]:
+    """Pair measured leaves with truth leaves by surface overlap.
+
+    Returns
+    -------
+    dict with ``pairs`` (list of (truth id, measured label, cover)),
+    ``merged`` (measured labels holding several truth leaves), ``missed``
+    (truth ids without a pair), ``extra`` (measured leaves without a pair),
+    ``cover`` (truth ids x measured labels matrix as nested lists).
+    """
+    from scipy.optimize import linear_sum_assignment
+    from scipy.spatial import cKDTree
+
+    truth_ids = sorted(int(i) for i in np.unique(truth_leaf_id) if i >= 0)
+    leaf_labels = labelled.leaf_labels
+    out: dict[str, Any] = {"pairs": [], "merged": [], "missed": list(truth_ids),
+                           "extra": list(leaf_labels), "truth_ids": truth_ids,
+                           "measured_labels": leaf_labels}
+    if not truth_ids or not leaf_labels or labelled.mesh.is_empty:
+        return out
+    mc = _face_centroids(labelled.mesh.vertices, labelled.mesh.faces)
+    tc = _face_centroids(truth_vertices, truth_faces)
+    v = truth_vertices[truth_faces]
+    t_area = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+    _, nearest = cKDTree(mc).query(tc)
+    label_of_truth_face = labelled.face_labels[nearest]
+    col = {lab: j for j, lab in enumerate(leaf_labels)}
+    cover = np.zeros((len(truth_ids), len(leaf_labels)))
+    for i, tid in enumerate(truth_ids):
+        sel = truth_leaf_id == tid
+        total = t_area[sel].sum()
+        labs, inv = np.unique(label_of_truth_face[sel], return_inverse=True)
+        sums = np.bincount(inv, t_area[sel])
+        for lab, s in zip(labs, sums):
+            if int(lab) in col:
+                cover[i, col[int(lab)]] = s / max(total, 1e-12)
+    rows, cols = linear_sum_assignment(-cover)
+    pairs = [(truth_ids[r], leaf_labels[c], float(cover[r, c]))
+             for r, c in zip(rows, cols) if cover[r, c] >= PAIR_COVER]
+    paired_t = {p[0] for p in pairs}
+    paired_m = {p[1] for p in pairs}
+    out.update(
+        pairs=pairs,
+        merged=[leaf_labels[j] for j in range(len(leaf_labels))
+                if np.count_nonzero(cover[:, j] >= MERGE_COVER) >= 2],
+        missed=[t for t in truth_ids if t not in paired_t],
+        extra=[m for m in leaf_labels if m not in paired_m],
+        cover=cover.round(4).tolist(),
+    )
+    return out
+
+
+def trait_errors(truth: Traits, measured: Traits, pairs: list[tuple[int, int, float]]
+                 ) -> dict[str, Any]:
+    """Per-trait ε over the matched pairs, plus the per-leaf table."""
+    t_by = {leaf.leaf_id: leaf for leaf in truth.leaves}
+    m_by = {leaf.leaf_id: leaf for leaf in measured.leaves}
+    used = [(t_by[t], m_by[m]) for t, m, _ in pairs if t in t_by and m in m_by]
+    errors = {name: mean_relative_error([t.trait(name) for t, _ in used],
+                                        [m.trait(name) for _, m in used])
+              for name in TRAIT_NAMES}
+    finite = [e for e in errors.values() if np.isfinite(e)]
+    errors["all"] = float(np.mean(finite)) if finite else float("nan")
+    per_leaf = [
+        {"truth_id": t.leaf_id, "measured_id": m.leaf_id,
+         **{f"{name}_truth": t.trait(name) for name in TRAIT_NAMES},
+         **{f"{name}_measured": m.trait(name) for name in TRAIT_NAMES}}
+        for t, m in used
+    ]
+    return {"mean_relative_error": errors, "per_leaf": per_leaf, "pairs_measured": len(used)}
+
+
+def evaluate_traits(run_dir: Path, truth_dir: Path) -> dict[str, Any] | None:
+    """The ``traits`` section of ``plantscan evaluate``, or None when either side is absent."""
+    run_dir, truth_dir = Path(run_dir), Path(truth_dir)
+    needed = [run_dir / "labelled.npz", run_dir / "traits.csv", truth_dir / "plant.npz",
+              truth_dir / "traits.csv"]
+    if not all(p.exists() for p in needed):
+        return None
+    try:
+        labelled = LabelledMesh.load(run_dir / "labelled.npz")
+        with np.load(truth_dir / "plant.npz") as z:
+            tv, tf, tid = z["vertices"], z["faces"], z["face_leaf_id"]
+        measured = Traits.load(run_dir / "traits.csv")
+        truth = Traits.load(truth_dir / "traits.csv")
+    except (KeyError, ValueError, OSError) as exc:
+        raise DataError(f"{run_dir} / {truth_dir}: cannot read leaves or truth ({exc})") from exc
+    m = match_leaves(labelled, tv, tf, tid)
+    errs = trait_errors(truth, measured, m["pairs"])
+    return {
+        "traits": {
+            "mean_relative_error": errs["mean_relative_error"],
+            "leaves_found": len(m["pairs"]),
+            "leaves_truth": len(m["truth_ids"]),
+            "leaves_measured": len(m["measured_labels"]),
+            "leaves_merged": len(m["merged"]),
+            "leaves_missed": len(m["missed"]),
+            "leaves_extra": len(m["extra"]),
+            "pairs": [{"truth_id": t, "measured_id": mm, "cover": c} for t, mm, c in m["pairs"]],
+            "per_leaf": errs["per_leaf"],
+        }
+    }

@@ -1,0 +1,56 @@
+"""plantscan_leaves: leaf segmentation (``curvature-regions``) and leaf traits (``leaf-geometry``).
+
+See ``docs/leaves.md`` for the method, parameters and per-species guidance.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+from plantscan_core.data import LabelledMesh, Mesh, Traits
+from plantscan_core.hookspecs import hookimpl
+from plantscan_core.stages import Measurer, MeshSegmenter
+
+from plantscan_leaves.evaluate import evaluate_traits
+from plantscan_leaves.measure import LeafGeometryParams, measure_plant
+from plantscan_leaves.segment import CurvatureRegionsParams, segment_leaves
+
+log = logging.getLogger(__name__)
+
+
+class CurvatureRegions(MeshSegmenter):
+    """Leaves and stem by curvature-constrained region growing (every face labelled)."""
+
+    name = "curvature-regions"
+    Params = CurvatureRegionsParams
+
+    def segment(self, mesh: Mesh) -> LabelledMesh:
+        labelled, info = segment_leaves(mesh, self.params)
+        self.info = info
+        return labelled
+
+
+class LeafGeometry(Measurer):
+    """Flat-leaf length, width, area, perimeter of every leaf; plant-level traits."""
+
+    name = "leaf-geometry"
+    Params = LeafGeometryParams
+
+    def measure(self, labelled: LabelledMesh) -> Traits:
+        traits, measurements, info = measure_plant(labelled, self.params)
+        self.info = info
+        self.measurements = measurements
+        return traits
+
+
+@hookimpl
+def plantscan_register_stages(registry) -> None:
+    registry.add(CurvatureRegions)
+    registry.add(LeafGeometry)
+
+
+@hookimpl
+def plantscan_evaluate(run_dir: Path, truth_dir: Path) -> dict[str, Any] | None:
+    return evaluate_traits(run_dir, truth_dir)
