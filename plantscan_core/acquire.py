@@ -394,16 +394,14 @@ class _Run:
     def _axis_call(self, which: str, fn: Callable, *args):
         try:
             return fn(*args)
-        except PlantScanError as exc:
-            if isinstance(exc, AcquisitionError):
-                raise
-            raise AcquisitionError(
-                f"{which}: {exc}; {self._kept()}", device=which, captured=len(self.scan.views)
-            ) from exc
+        except AcquisitionError:
+            raise
         except Exception as exc:
+            self._commit_quietly()  # the images exposed before the failure are kept and counted
+            msg = str(exc) if isinstance(exc, PlantScanError) else (
+                f"failed ({type(exc).__name__}: {exc})")
             raise AcquisitionError(
-                f"{which} failed ({type(exc).__name__}: {exc}); {self._kept()}",
-                device=which, captured=len(self.scan.views),
+                f"{which}: {msg}; {self._kept()}", device=which, captured=len(self.scan.views)
             ) from exc
 
     def move(self, v: PlannedView) -> None:

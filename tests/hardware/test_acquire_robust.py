@@ -143,6 +143,7 @@ acquire(recipe, out, m, raw_recipe=raw, resume=(out / "scan.yaml").exists())
 """
 
 
+@pytest.mark.slow
 def test_sigkill_at_random_points_then_resume(manager, tmp_path):
     """Kill the scanning process 10 times at random moments; resume; exactly the protocol."""
     raw, recipe = _recipe(manager, tilts=(0.0, 20.0), n_angles=8)
