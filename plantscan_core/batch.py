@@ -1,0 +1,362 @@
+"""``plantscan batch``: many plants through the same per-plant pipeline, as Dask tasks.
+
+One task per scan folder runs ``plantscan_core.pipeline.process`` in a Dask
+worker process: an embedded ``distributed.LocalCluster`` (processes, one
+thread each) by default, or the workers of a running scheduler when given its
+address (``tcp://host:8786``; the workers must see the scan and output folders
+at the same paths and have plantscan installed).
+
+A plant that fails (corrupt scan, a stage error, even a crashed worker) is
+reported with its error; the others finish.  Results::
+
+    OUT/
+      <scan name>/            one run folder per plant (docs/formats.md)
+      batch_summary.csv       one row per plant: scan, plant_id, status, error, seconds,
+                              leaf_count, total_leaf_area_mm2, height_mm, run_dir, worker
+      traits_all.csv          every leaf of every plant that succeeded, with scan and plant_id
+      <scan name>/batch_error.txt   the traceback of a failed plant
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import os
+import sys
+import time
+import traceback
+import uuid
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from plantscan_core.data import LEAF_TRAIT_COLUMNS
+from plantscan_core.errors import PlantScanError
+from plantscan_core.scanfolder import atomic_write_text
+
+SUMMARY_CSV = "batch_summary.csv"
+TRAITS_CSV = "traits_all.csv"
+ERROR_TXT = "batch_error.txt"
+SUMMARY_COLUMNS = ("scan", "plant_id", "status", "error", "seconds", "leaf_count",
+                   "total_leaf_area_mm2", "height_mm", "run_dir", "worker")
+TRAITS_COLUMNS = ("scan", "plant_id", *LEAF_TRAIT_COLUMNS)
+
+
+@dataclass
+class PlantOutcome:
+    """What happened to one plant of a batch (one row of ``batch_summary.csv``)."""
+
+    scan: str
+    plant_id: str = ""
+    status: str = "failed"  # "ok" | "failed"
+    error: str = ""
+    seconds: float = 0.0
+    leaf_count: int | None = None
+    total_leaf_area_mm2: float | None = None
+    height_mm: float | None = None
+    run_dir: str = ""
+    worker: str = ""
+    leaves: list[dict[str, Any]] = field(default_factory=list, repr=False)
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+
+@dataclass
+class BatchSummary:
+    """All plants of a batch, in the order the scans were given.
+
+    Attributes
+    ----------
+    plants : list of PlantOutcome
+    out_dir : Path
+    summary_csv, traits_csv : Path
+    seconds : float
+        Wall time of the whole batch (cluster start included).
+    scheduler : str
+        ``"local (N workers)"`` or the scheduler address.
+    """
+
+    plants: list[PlantOutcome]
+    out_dir: Path
+    summary_csv: Path
+    traits_csv: Path
+    seconds: float
+    scheduler: str
+
+    @property
+    def failed(self) -> int:
+        """Number of plants that failed (the CLI exits non-zero when > 0)."""
+        return sum(not p.ok for p in self.plants)
+
+    @property
+    def succeeded(self) -> int:
+        return sum(p.ok for p in self.plants)
+
+    @property
+    def exit_status(self) -> int:
+        """Shell exit status saying how many plants failed (capped at 125, 0 = all fine)."""
+        return min(self.failed, 125)
+
+    def __str__(self) -> str:
+        lines = [f"{'scan':<28} {'status':<7} {'seconds':>8} {'leaves':>6}  error"]
+        for p in self.plants:
+            leaves = "" if p.leaf_count is None else str(p.leaf_count)
+            error = p.error.splitlines()[0] if p.error else ""
+            lines.append(f"{p.scan[-28:]:<28} {p.status:<7} {p.seconds:>8.1f} {leaves:>6}  "
+                         f"{error[:160]}")
+        lines.append(f"{self.succeeded} succeeded, {self.failed} failed in {self.seconds:.1f} s "
+                     f"on {self.scheduler}")
+        lines.append(f"summary: {self.summary_csv}")
+        lines.append(f"traits:  {self.traits_csv}")
+        return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------- the task
+_MANAGER = None
+
+
+def _worker_manager():
+    """Plugins loaded once per worker process (entry points, like ``plantscan process``)."""
+    global _MANAGER
+    if _MANAGER is None:
+        from plantscan_core.plugins import load_plugins
+
+        _MANAGER = load_plugins()
+    return _MANAGER
+
+
+def _worker_name() -> str:
+    try:
+        from distributed import get_worker
+
+        return str(get_worker().address)
+    except (ImportError, ValueError):
+        return f"pid {os.getpid()}"
+
+
+def process_plant(scan_dir: str, recipe_path: str, overrides: Sequence[str], run_dir: str,
+                  threads: int = 1) -> PlantOutcome:
+    """Process one scan; never raises for a plant's own failure (it is returned as such).
+
+    Parameters
+    ----------
+    scan_dir, recipe_path, run_dir : str
+        Paths as the worker sees them.
+    overrides : sequence of str
+        ``--set PATH=VALUE`` overrides of the recipe.
+    threads : int
+        Threads a plant may use inside its stages (1 when plants already fill the cores).
+    """
+    t0 = time.perf_counter()
+    outcome = PlantOutcome(scan=str(scan_dir), run_dir=str(run_dir), worker=_worker_name())
+    try:
+        import cv2
+
+        cv2.setNumThreads(threads)  # one plant per core: no oversubscription inside OpenCV
+        from plantscan_core.pipeline import process
+        from plantscan_core.recipe import apply_overrides, load_recipe, read_recipe_file
+        from plantscan_core.scanfolder import ScanFolder
+
+        manager = _worker_manager()
+        recipe = load_recipe(recipe_path, list(overrides), manager.registry)
+        raw = apply_overrides(read_recipe_file(Path(recipe_path)), list(overrides))
+        outcome.plant_id = str(ScanFolder.open(Path(scan_dir)).info.get("plant_id")
+                               or recipe.plant.id)
+        result = process(Path(scan_dir), recipe, Path(run_dir), manager, raw_recipe=raw,
+                         overrides=list(overrides), workers=threads)
+        if result.traits is not None:
+            outcome.leaf_count = len(result.traits.leaves)
+            plant = result.traits.plant
+            outcome.total_leaf_area_mm2 = _float_or_none(plant.get("total_leaf_area_mm2"))
+            outcome.height_mm = _float_or_none(plant.get("height_mm"))
+            outcome.leaves = [{c: getattr(leaf, c) for c in LEAF_TRAIT_COLUMNS}
+                              for leaf in result.traits.leaves]
+        outcome.status = "ok"
+    except Exception as exc:  # noqa: BLE001 - one plant's failure must not stop the batch
+        outcome.status = "failed"
+        outcome.error = _describe(exc)
+        try:
+            Path(run_dir).mkdir(parents=True, exist_ok=True)
+            atomic_write_text(Path(run_dir) / ERROR_TXT, "".join(traceback.format_exception(exc)))
+        except OSError:
+            pass  # the error is still in the summary
+    outcome.seconds = round(time.perf_counter() - t0, 3)
+    return outcome
+
+
+def _float_or_none(v: Any) -> float | None:
+    return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
+
+
+def _describe(exc: BaseException) -> str:
+    """One-line error for the summary; user errors (PlantScanError) as their own message."""
+    if isinstance(exc, PlantScanError):
+        text = str(exc)
+        cause = exc.__cause__
+        if cause is not None and not isinstance(cause, PlantScanError):
+            text += f" ({type(cause).__name__}: {cause})"
+        return text
+    return f"{type(exc).__name__}: {exc}"
+
+
+# --------------------------------------------------------------------------- the batch
+def _run_dirs(scans: list[Path], out_dir: Path) -> list[Path]:
+    """One run folder per scan, named after the scan folder (suffixed when names repeat)."""
+    seen: dict[str, int] = {}
+    out = []
+    for scan in scans:
+        name = scan.resolve().name or "scan"
+        n = seen.get(name, 0)
+        seen[name] = n + 1
+        out.append(out_dir / (name if n == 0 else f"{name}-{n + 1}"))
+    return out
+
+
+def write_summary(plants: list[PlantOutcome], path: Path) -> None:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(SUMMARY_COLUMNS)
+    for p in plants:
+        row = asdict(p)
+        w.writerow(["" if row[c] is None else row[c] for c in SUMMARY_COLUMNS])
+    atomic_write_text(path, buf.getvalue())
+
+
+def write_traits(plants: list[PlantOutcome], path: Path) -> None:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(TRAITS_COLUMNS)
+    for p in plants:
+        if not p.ok:
+            continue
+        for leaf in p.leaves:
+            w.writerow([p.scan, p.plant_id, leaf["leaf_id"],
+                        *(f"{leaf[c]:.4f}" for c in LEAF_TRAIT_COLUMNS[1:])])
+    atomic_write_text(path, buf.getvalue())
+
+
+def run_batch(
+    scans: list[Path],
+    recipe_path: Path,
+    out_dir: Path,
+    *,
+    overrides: Sequence[str] = (),
+    scheduler: str | None = None,
+    workers: int = 2,
+    progress: bool = True,
+    connect_timeout_s: float = 30.0,
+) -> BatchSummary:
+    """Process every scan in ``scans`` with the recipe, one Dask task per plant.
+
+    Parameters
+    ----------
+    scans : list of Path
+        Scan folders.  A folder that is not a readable scan fails alone.
+    recipe_path : Path
+        Recipe file, read (with ``overrides``) inside each worker.
+    out_dir : Path
+        Receives one run folder per plant, ``batch_summary.csv`` and ``traits_all.csv``.
+    overrides : sequence of str
+        ``--set PATH=VALUE`` recipe overrides.
+    scheduler : str, optional
+        Address of a running Dask scheduler; None starts a local cluster of ``workers``
+        processes (one thread each) for this batch.
+    workers : int
+        Local worker processes (ignored with ``scheduler``).
+    progress : bool
+        Show a progress bar and one line per finished plant on stderr.
+
+    Returns
+    -------
+    BatchSummary : ``summary.failed`` plants failed; ``exit_status`` for the shell.
+    """
+    from distributed import Client, LocalCluster, as_completed
+
+    from plantscan_core.recipe import load_recipe
+
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    scans = [Path(s).resolve() for s in scans]
+    out_dir = Path(out_dir).resolve()
+    recipe_path = Path(recipe_path).resolve()
+    if not scans:
+        raise PlantScanError("batch: no scan folder given")
+    # A broken recipe would fail every plant the same way: say it once, before any work.
+    from plantscan_core.plugins import get_manager
+
+    load_recipe(recipe_path, list(overrides), get_manager().registry)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    run_dirs = _run_dirs(scans, out_dir)
+    t0 = time.perf_counter()
+    batch_id = uuid.uuid4().hex[:8]  # task keys unique even when batches share a scheduler
+    cluster = None
+    if scheduler:
+        client = Client(scheduler, timeout=connect_timeout_s)
+        where = f"scheduler {scheduler}"
+    else:
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                               dashboard_address=None)
+        client = Client(cluster)
+        where = f"local cluster ({workers} worker{'s' if workers > 1 else ''})"
+    outcomes: dict[int, PlantOutcome] = {}
+    try:
+        futures = {
+            client.submit(process_plant, str(scan), str(recipe_path), list(overrides), str(rd),
+                          1, key=f"plantscan-{batch_id}-{i}-{scan.name}", pure=False): i
+            for i, (scan, rd) in enumerate(zip(scans, run_dirs, strict=True))
+        }
+        bar = _Progress(len(futures), where) if progress else None
+        try:
+            for fut in as_completed(futures):
+                i = futures[fut]
+                try:
+                    outcome = fut.result()
+                except Exception as exc:  # noqa: BLE001 - a killed worker, lost connection...
+                    outcome = PlantOutcome(scan=str(scans[i]), run_dir=str(run_dirs[i]),
+                                           error=f"task failed on the cluster: {_describe(exc)}")
+                outcomes[i] = outcome
+                if bar is not None:
+                    bar.done(outcome)
+        finally:
+            if bar is not None:
+                bar.close()
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+    plants = [outcomes[i] for i in range(len(scans))]
+    summary = BatchSummary(plants, out_dir, out_dir / SUMMARY_CSV, out_dir / TRAITS_CSV,
+                           round(time.perf_counter() - t0, 3), where)
+    write_summary(plants, summary.summary_csv)
+    write_traits(plants, summary.traits_csv)
+    return summary
+
+
+class _Progress:
+    """A rich progress bar on stderr plus one line per finished plant."""
+
+    def __init__(self, total: int, where: str) -> None:
+        from rich.console import Console
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
+
+        self.progress = Progress("[progress.description]{task.description}", BarColumn(),
+                                 MofNCompleteColumn(), TimeElapsedColumn(),
+                                 console=Console(file=sys.stderr), transient=True)
+        self.task = self.progress.add_task(f"plants on {where}", total=total)
+        self.progress.start()
+
+    def done(self, p: PlantOutcome) -> None:
+        from rich.markup import escape
+
+        status = "[green]ok[/]" if p.ok else "[red]FAILED[/]"
+        detail = f"{p.leaf_count} leaves" if p.ok and p.leaf_count is not None else p.error[:120]
+        self.progress.console.print(
+            f"{status} {escape(Path(p.scan).name)} ({p.seconds:.1f} s) {escape(detail)}",
+            markup=True, highlight=False)
+        self.progress.advance(self.task)
+
+    def close(self) -> None:
+        self.progress.stop()
