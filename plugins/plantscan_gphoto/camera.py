@@ -94,9 +94,10 @@ class GPhotoParams(StageParams):
     check_image_size: bool = True
     retries: int = Field(default=6, ge=0, le=100)
     retry_backoff_s: float = Field(default=0.5, ge=0.0)
-    # Timing model (plantscan scan --dry-run): shutter release to image in camera, and download.
-    capture_s: float = Field(default=1.2, ge=0.0)
-    download_s: float = Field(default=2.0, ge=0.0)
+    # Timing model (plantscan scan --dry-run): shutter release to image in camera (focus
+    # locked, ~1/60 s exposure, card/RAM write) and download of an 18 MP JPEG over USB 2.
+    capture_s: float = Field(default=1.0, ge=0.0)
+    download_s: float = Field(default=1.0, ge=0.0)
 
 
 class GPhotoError(HardwareError):

@@ -13,7 +13,6 @@ Phidget simulator exists); :class:`Phidget22Port` is the real one.
 
 from __future__ import annotations
 
-import math
 import re
 import threading
 import time
@@ -24,6 +23,7 @@ from pydantic import Field, field_validator
 
 from plantscan_core.errors import HardwareError
 from plantscan_core.stages import MotionAxis, StageParams
+from plantscan_core.timing import move_time_s
 
 
 def parse_gear_ratio(value: float | int | str) -> float:
@@ -178,17 +178,6 @@ def _where(p: PhidgetParams) -> str:
         parts.append(f"hub port {p.hub_port}")
     parts.append(f"channel {p.channel}")
     return ", ".join(parts)
-
-
-def move_time_s(distance_deg: float, velocity: float, acceleration: float) -> float:
-    """Duration of a trapezoidal (or triangular) velocity profile over ``distance_deg``."""
-    d = abs(distance_deg)
-    if d == 0:
-        return 0.0
-    d_ramp = velocity * velocity / acceleration  # accelerate + decelerate
-    if d <= d_ramp:
-        return 2.0 * math.sqrt(d / acceleration)
-    return 2.0 * velocity / acceleration + (d - d_ramp) / velocity
 
 
 class PhidgetAxis(MotionAxis):
