@@ -65,6 +65,9 @@ class LeafGeometryParams(StageParams):
     smoothing_mm: float = Field(0.8, ge=0, description="surface smoothing before measuring, mm")
     path_smoothing_mm: float = Field(
         3.0, ge=0, description="smoothing of midrib/width paths (removes mesh zig-zag), mm")
+    outline_smoothing_mm: float = Field(
+        1.5, ge=0, description="smoothing of the rim crest line (perimeter), mm: below the "
+                               "outline's smallest radius of curvature (leaf tips, teeth)")
     width_stations: int = Field(5, ge=1, description="widest stations whose width is traced")
     graph_spacing_mm: float = Field(
         1.0, gt=0, description="spacing of the points geodesic paths run through, mm")
@@ -193,9 +196,8 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
     mesh : Mesh
         The faces of this leaf only (mm, turntable frame).
     base_hint : (3,) mm, optional
-        Where the leaf attaches (e.g. the stem); the base is the leaf's
-        vertex nearest to it.  Without it the base is one end of the leaf's
-        geodesic diameter.
+        Where the leaf attaches (e.g. the nearest stem point): of the two ends
+        of the leaf's geodesic diameter, the one nearer to it is the base.
     """
     p = params
     v0, f = mesh.vertices, mesh.faces
@@ -209,21 +211,23 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
     fc = v[f].mean(axis=1)
     cell = p.sheet_scale_mm
     keys, axes, grid = _cell_sheet_axes(fc, fn, fa, cell)
-    face_axis = _axes_at(fc, keys, axes, grid, cell)
+    vert_axis = _axes_at(v, keys, axes, grid, cell)
+    face_axis = vert_axis[f].sum(axis=1)  # cells are oriented, so corner axes agree in sign
+    face_axis /= np.maximum(np.linalg.norm(face_axis, axis=1), 1e-12)[:, None]
     area = 0.5 * float(np.sum(fa * np.abs(np.einsum("ij,ij->i", fn, face_axis))))
 
     vn = geo.vertex_normals(v, f)
-    vert_axis = _axes_at(v, keys, axes, grid, cell)
     side = np.einsum("ij,ij->i", vn, vert_axis)
     # rim crest: the zero iso-line of side, by marching triangles, chained into loops and
     # smoothed (the raw iso-line wiggles at the voxel scale and is a few % too long)
-    rim_length = _iso_line_length(v, f, topo, side, p.path_smoothing_mm)
+    rim_length = _iso_line_length(v, f, topo, side, p.outline_smoothing_mm)
     border = topo.edges[topo.edge_face_count == 1]
     border_length = float(np.linalg.norm(v[border[:, 0]] - v[border[:, 1]], axis=1).sum())
     perimeter = rim_length + 0.5 * border_length
 
-    # slab thickness: inward ray casting from side vertices (the rim is excluded)
-    thickness = _thickness(v, f, vn, np.abs(side) > 0.9)
+    # mean slab thickness: enclosed volume over planform area (exact for a flat slab; an
+    # open cut at the stem leaves this an estimate, used only by the rim correction)
+    thickness = _enclosed_volume(v, f) / max(area, 1e-9)
 
     # geodesic graphs on a resampled copy of each side: a shortest path along mesh edges
     # of a marching-cubes grid is a staircase (up to ~40 % too long on a diagonal); joining
@@ -250,14 +254,19 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
     crest = np.arange(len(pts_c))
     if len(crest) == 0:
         crest = np.arange(len(nodes))
+    # base and tip are the two ends of the leaf's geodesic diameter (double sweep); the base
+    # is the end nearer to where the leaf attaches.  (The crest point nearest to the stem is
+    # not used directly: a drooping blade's tip may hang close to another stem.)
+    d0 = dijkstra(g_all, indices=int(crest[0]))
+    end1 = int(crest[np.argmax(np.where(np.isfinite(d0[crest]), d0[crest], -1))])
+    d1 = dijkstra(g_all, indices=end1)
+    end2 = int(crest[np.argmax(np.where(np.isfinite(d1[crest]), d1[crest], -1))])
+    base, tip = end1, end2
     if base_hint is not None:
-        base = int(np.argmin(np.linalg.norm(q - np.asarray(base_hint, float), axis=1)))
-    else:
-        d0 = dijkstra(g_all, indices=int(crest[0]))
-        base = int(crest[np.argmax(np.where(np.isfinite(d0[crest]), d0[crest], -1))])
+        hint = np.asarray(base_hint, float)
+        if np.linalg.norm(q[end2] - hint) < np.linalg.norm(q[end1] - hint):
+            base, tip = end2, end1
     dist_b, pred_b = dijkstra(g_all, indices=base, return_predecessors=True)
-    reach = np.where(np.isfinite(dist_b[crest]), dist_b[crest], -1)
-    tip = int(crest[np.argmax(reach)])
     midrib_idx = np.array(_path(pred_b, tip))
     sigma = p.path_smoothing_mm
     rim_excess = (math.pi / 2 - 1) * thickness if p.rim_correction else 0.0
@@ -395,26 +404,13 @@ def _radius_graphs(q: np.ndarray, kind: np.ndarray, radius: float
     return graph(np.ones(len(pairs), bool)), graph(side_a), graph(side_b)
 
 
-def _thickness(v: np.ndarray, f: np.ndarray, vn: np.ndarray, on_side: np.ndarray) -> float:
-    """Median slab thickness (mm): distance along -normal to the opposite side."""
-    import open3d as o3d
-
-    if not on_side.any():
-        return 0.0
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)),
-                        o3d.core.Tensor(f.astype(np.uint32)))
-    idx = np.flatnonzero(on_side)
-    if len(idx) > 20000:  # a median needs no more samples
-        idx = idx[:: len(idx) // 20000 + 1]
-    eps = 1e-3
-    rays = np.concatenate([v[idx] - eps * vn[idx], -vn[idx]], axis=1).astype(np.float32)
-    t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
-    t = t[np.isfinite(t)]
-    return float(np.median(t)) + eps if len(t) else 0.0
+def _enclosed_volume(v: np.ndarray, f: np.ndarray) -> float:
+    """Volume (mm³) enclosed by a closed, outward-oriented surface (divergence theorem)."""
+    p = v[f]
+    return float(abs(np.einsum("ij,ij->i", p[:, 0], np.cross(p[:, 1], p[:, 2])).sum()) / 6.0)
 
 
-def plant_traits(mesh: Mesh, leaves: list[LeafTraits], pixel_mm: float = 0.5) -> dict[str, float]:
+def plant_traits(mesh: Mesh, leaves: list[LeafTraits], pixel_mm: float = 0.25) -> dict[str, float]:
     """Plant-level traits of the whole mesh (stem and leaves).
 
     ``height_mm`` (vertical extent), ``total_leaf_area_mm2``, ``leaf_count``,

@@ -131,6 +131,7 @@ def mesh_field(
     blur_voxels: float = 0.7,
     noise_mm: float = 0.0,
     seed: int = 0,
+    parts: list | None = None,
 ) -> Mesh:
     """Sample ``field`` on a grid, mesh its 0 level set with marching cubes.
 
@@ -145,6 +146,9 @@ def mesh_field(
         sees a smooth 0.5 level: the staircase of a voxel hull, softened.
     noise_mm : float
         Standard deviation of a random displacement of every vertex, mm.
+    parts : list of (field, (lo, hi)), optional
+        Sample these fields, each only inside its box, and mesh their union
+        (instead of ``field`` over the whole grid).
     """
     from scipy import ndimage
     from skimage.measure import marching_cubes
@@ -153,10 +157,16 @@ def mesh_field(
     hi = np.asarray(hi, float) + 2 * voxel_mm
     n = np.ceil((hi - lo) / voxel_mm).astype(int) + 1
     axes = [lo[i] + voxel_mm * np.arange(n[i]) for i in range(3)]
-    values = np.empty(tuple(n), np.float32)
-    yy, zz = np.meshgrid(axes[1], axes[2], indexing="ij")
-    for i, x in enumerate(axes[0]):  # slice by slice: a plant grid does not fit in memory at once
-        values[i] = field(np.stack([np.full_like(yy, x), yy, zz], axis=-1))
+    values = np.full(tuple(n), -1.0, np.float32)
+    for part, (plo, phi) in (parts if parts is not None else [(field, (lo, hi))]):
+        # each part is sampled only inside its own box (a plant's grid is mostly air)
+        i0 = np.clip(np.floor((np.asarray(plo) - lo) / voxel_mm).astype(int) - 1, 0, n - 1)
+        i1 = np.clip(np.ceil((np.asarray(phi) - lo) / voxel_mm).astype(int) + 2, 1, n)
+        yy, zz = np.meshgrid(axes[1][i0[1]:i1[1]], axes[2][i0[2]:i1[2]], indexing="ij")
+        for i in range(i0[0], i1[0]):  # slice by slice: a plant grid does not fit in memory
+            pts = np.stack([np.full_like(yy, axes[0][i]), yy, zz], axis=-1)
+            sl = values[i, i0[1]:i1[1], i0[2]:i1[2]]
+            np.maximum(sl, part(pts).astype(np.float32), out=sl)
     if binary:
         occ = (values > 0).astype(np.float32)
         if blur_voxels > 0:
@@ -199,9 +209,17 @@ class MockPlant:
     leaves: list[EllipseLeaf]
     lo: np.ndarray
     hi: np.ndarray
+    parts: list[Field]
+    boxes: list[tuple[np.ndarray, np.ndarray]]
+
+    def part_of(self, points: np.ndarray) -> np.ndarray:
+        """(N,) truth part of points near the surface: -1 stem, i for leaf i (largest field)."""
+        values = np.stack([f(points) for f in self.parts])
+        return np.argmax(values, axis=0) - 1
 
     def mesh(self, voxel_mm: float = 0.6, **kwargs) -> Mesh:
-        return mesh_field(self.field, self.lo, self.hi, voxel_mm, **kwargs)
+        return mesh_field(self.field, self.lo, self.hi, voxel_mm,
+                          parts=list(zip(self.parts, self.boxes)), **kwargs)
 
 
 def mock_plant(n_leaves: int = 5, stem_radius: float = 3.0, thickness: float = 1.5,
@@ -209,11 +227,15 @@ def mock_plant(n_leaves: int = 5, stem_radius: float = 3.0, thickness: float = 1
     """Stem + ``n_leaves`` elliptical leaves in a spiral, their bases sunk into the stem.
 
     Each leaf points outwards and upwards (20–35 deg) from a node on the stem;
-    leaves are 60–90 mm long, 30–45 mm wide.
+    leaves are 60–90 mm long, 30–45 mm wide.  A leaf starts half a stem
+    radius from the axis, so its first ``stem_radius / 2`` mm are inside the
+    stem (visible length ``2 a - stem_radius / 2``).
     """
     rng = np.random.default_rng(seed)
     height = 40.0 + 25.0 * n_leaves
     fields = [cylinder_field(stem_radius, 0.0, height)]
+    boxes = [(np.array([-stem_radius, -stem_radius, 0.0]),
+              np.array([stem_radius, stem_radius, height]))]
     leaves = []
     for i in range(n_leaves):
         a = rng.uniform(30.0, 45.0)
@@ -229,9 +251,12 @@ def mock_plant(n_leaves: int = 5, stem_radius: float = 3.0, thickness: float = 1
                @ rotation_about_axis((1, 0, 0), roll))
         # the leaf base sits half a stem radius inside the stem axis' surface
         centre = np.array([stem_radius * 0.5 + a, 0.0, 0.0])
-        fields.append(placed(ellipse_slab_field(a, b, thickness), rot,
-                             rot @ centre + np.array([0.0, 0.0, z])))
+        t = rot @ centre + np.array([0.0, 0.0, z])
+        fields.append(placed(ellipse_slab_field(a, b, thickness), rot, t))
+        corners = np.array(np.meshgrid([-a, a], [-b, b], [-thickness, thickness])).reshape(3, -1).T
+        world = corners @ rot.T + t
+        boxes.append((world.min(axis=0), world.max(axis=0)))
     reach = 2 * 45.0 + stem_radius + 5
     lo = np.array([-reach, -reach, -1.0])
     hi = np.array([reach, reach, height + 60.0])
-    return MockPlant(union(*fields), leaves, lo, hi)
+    return MockPlant(union(*fields), leaves, lo, hi, fields, boxes)

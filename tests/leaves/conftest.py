@@ -1,0 +1,17 @@
+"""Shared phantoms of the leaf tests (meshed once per session: marching cubes is the slow part)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from plantscan_core.data import Mesh
+from plantscan_leaves import phantoms as ph
+
+
+@pytest.fixture(scope="session")
+def mock_plant() -> tuple[ph.MockPlant, Mesh, np.ndarray]:
+    """Stem + 5 leaves voxelised at 0.8 mm, and each face's true part (-1 stem, 0.. leaves)."""
+    plant = ph.mock_plant(5, thickness=2.0)
+    mesh = plant.mesh(voxel_mm=0.8)
+    return plant, mesh, plant.part_of(mesh.vertices[mesh.faces].mean(axis=1))
