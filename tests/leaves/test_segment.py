@@ -1,0 +1,131 @@
+"""curvature-regions on phantoms: one leaf stays one, touching leaves split, a plant's leaves found."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+
+from plantscan_core.data import Mesh, rotation_about_axis
+from plantscan_leaves import phantoms as ph
+from plantscan_leaves.evaluate import match_leaves
+from plantscan_leaves.measure import measure_plant
+from plantscan_leaves.segment import CurvatureRegionsParams, segment_leaves
+
+
+def _all_faces_labelled(labelled) -> None:
+    assert len(labelled.face_labels) == len(labelled.mesh.faces)
+    assert set(np.unique(labelled.face_labels)) <= set(labelled.kinds)
+
+
+@pytest.mark.parametrize("bend_radius", [None, 40.0])
+def test_one_slab_is_one_leaf(bend_radius):
+    mesh = ph.ellipse_slab_mesh(50.0, 25.0, 1.5, voxel_mm=0.5, bend_radius=bend_radius)
+    labelled, info = segment_leaves(mesh)
+    _all_faces_labelled(labelled)
+    assert labelled.leaf_labels == [1]
+    assert np.all(labelled.face_labels == 1)
+
+
+def test_two_touching_leaves_come_out_as_two():
+    # two 1.5 mm slabs, the second tilted 35 deg and overlapping the first one's tip by 4 mm:
+    # one connected surface whose leaves meet along a concave crease
+    a, b = 40.0, 18.0
+    leaf1 = ph.ellipse_slab_field(a, b, 1.5)
+    rot = rotation_about_axis((0, 1, 0), -35.0)
+    leaf2 = ph.placed(ph.ellipse_slab_field(a, b, 1.5), rot,
+                      np.array([a - 4.0, 0.0, 0.0]) + rot @ np.array([a, 0.0, 0.0]))
+    box2 = (np.array([a - 6, -b, -2.0]), np.array([a + 2 * a * np.cos(np.radians(35)) + 2, b,
+                                                    2 * a * np.sin(np.radians(35)) + 2]))
+    mesh = ph.mesh_field(None, (-a, -b, -2.0), box2[1], 0.5,
+                         parts=[(leaf1, ((-a, -b, -2.0), (a, b, 2.0))), (leaf2, box2)])
+    parts = np.argmax(np.stack([leaf1(c := mesh.vertices[mesh.faces].mean(axis=1)), leaf2(c)]), 0)
+    from scipy.sparse.csgraph import connected_components
+
+    from plantscan_leaves.geometry import face_adjacency_operator, topology
+
+    n_parts, _ = connected_components(face_adjacency_operator(len(mesh.faces),
+                                                              topology(mesh.faces).face_pairs))
+    assert n_parts == 1  # the phantom really is one touching surface
+
+    labelled, info = segment_leaves(mesh)
+    _all_faces_labelled(labelled)
+    assert len(labelled.leaf_labels) == 2
+    m = match_leaves(labelled, mesh.vertices, mesh.faces, parts)
+    assert len(m["pairs"]) == 2 and not m["merged"]
+    # each half measures as its own ellipse; the 4 mm overlap hides part of the second leaf's
+    # base and the crease between them is shared, hence 5 %
+    traits, _, _ = measure_plant(labelled)
+    leaf = ph.EllipseLeaf(a, b)
+    for t in traits.leaves:
+        assert t.area_mm2 == pytest.approx(leaf.area_mm2, rel=0.05)
+        assert t.width_mm == pytest.approx(leaf.width_mm, rel=0.05)
+
+
+def test_mock_plant_leaves_and_stem(mock_plant):
+    plant, mesh, part = mock_plant
+    labelled, info = segment_leaves(mesh)
+    _all_faces_labelled(labelled)
+    assert len(labelled.leaf_labels) == len(plant.leaves)
+    assert "stem" in labelled.kinds.values()
+    m = match_leaves(labelled, mesh.vertices, mesh.faces, part)
+    assert len(m["pairs"]) == len(plant.leaves) and not m["merged"] and not m["missed"]
+    # the stem faces are labelled stem (the crease band at each junction is shared: 90 %)
+    stem_label = [k for k, v in labelled.kinds.items() if v == "stem"]
+    true_stem = part == -1
+    assert np.isin(labelled.face_labels[true_stem], stem_label).mean() > 0.9
+
+
+def test_mock_plant_traits(mock_plant):
+    plant, mesh, part = mock_plant
+    labelled, _ = segment_leaves(mesh)
+    traits, _, _ = measure_plant(labelled)
+    m = match_leaves(labelled, mesh.vertices, mesh.faces, part)
+    by_id = {t.leaf_id: t for t in traits.leaves}
+    for truth_id, label, _ in m["pairs"]:
+        leaf, t = plant.leaves[truth_id], by_id[label]
+        # each leaf's first 1.5 mm are inside the stem and its base ends in the junction crease
+        # (+-1.5 mm of outline): 4 % on every trait
+        assert t.length_mm == pytest.approx(leaf.length_mm - 1.5, rel=0.04)
+        assert t.width_mm == pytest.approx(leaf.width_mm, rel=0.04)
+        assert t.area_mm2 == pytest.approx(leaf.area_mm2, rel=0.04)
+        assert t.perimeter_mm == pytest.approx(leaf.perimeter_mm, rel=0.04)
+    assert traits.plant["leaf_count"] == len(plant.leaves)
+
+
+def test_empty_mesh(caplog):
+    with caplog.at_level(logging.WARNING):
+        labelled, info = segment_leaves(Mesh(np.zeros((0, 3)), np.zeros((0, 3), int)))
+    assert len(labelled.face_labels) == 0 and labelled.leaf_labels == []
+    assert "empty" in caplog.text
+
+
+def test_stem_only_has_no_leaf(caplog):
+    mesh = ph.mesh_field(ph.cylinder_field(3.0, 0.0, 80.0), (-3, -3, 0), (3, 3, 80), 0.5)
+    with caplog.at_level(logging.WARNING):
+        labelled, info = segment_leaves(mesh)
+    _all_faces_labelled(labelled)
+    assert labelled.leaf_labels == [] and set(labelled.kinds.values()) == {"stem"}
+    assert "no leaf-like region" in caplog.text
+
+
+def test_non_manifold_mesh_is_reported_and_segmented(caplog):
+    mesh = ph.ellipse_slab_mesh(40.0, 20.0, 1.5, voxel_mm=0.5)
+    # a fin: one extra triangle on an existing edge makes that edge used by three faces
+    a, b = mesh.faces[0, 0], mesh.faces[0, 1]
+    tip = mesh.vertices[[a, b]].mean(axis=0) + np.array([0.0, 0.0, 2.0])
+    bad = Mesh(np.vstack([mesh.vertices, tip]),
+               np.vstack([mesh.faces, [[a, b, len(mesh.vertices)]]]))
+    with caplog.at_level(logging.WARNING):
+        labelled, info = segment_leaves(bad)
+    assert "non-manifold" in caplog.text
+    _all_faces_labelled(labelled)
+    assert len(labelled.leaf_labels) == 1
+    traits, _, _ = measure_plant(labelled)
+    assert traits.leaves[0].area_mm2 == pytest.approx(np.pi * 40 * 20, rel=0.02)
+
+
+def test_params_reject_unknown_keys():
+    with pytest.raises(ValueError, match="concave_curvature"):
+        CurvatureRegionsParams(concave_curvature=0.1)
