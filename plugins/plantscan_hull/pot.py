@@ -1,0 +1,172 @@
+"""Pot and carrier removal: tapered cylinders subtracted from the hull's field.
+
+Given cylinders (from the recipe) or cylinders fitted from the hull: a pot or
+carrier is a solid of revolution about a vertical axis, so its hull slices
+are nearly full discs, while slices through stem and leaves are sparse.  The
+fit walks up from the lowest occupied slice while slices are disc-like,
+splits that run where the radius jumps (pot on a carrier), fits a straight
+taper ``r(z)`` to each piece, then extends the top piece upwards while its
+disc stays filled (leaves hanging over the rim spoil the disc test of the
+slice, not the fill of the fitted disc).  Removal is a field operation,
+``field = min(field, -inside_distance)``, before meshing, so the mesh stays
+watertight and the stem is cut flat at the rim.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from plantscan_core.data import Volume
+
+# A slice is disc-like when its area fills this fraction of the disc through its
+# farthest voxel (a polygonal hull of a circle from >= 8 views fills > 0.9).
+DISC_FILL = 0.75
+# The fitted disc (shrunk by a voxel) must be this full for the rim search to go on.
+RIM_FILL = 0.9
+# Radius jump (voxels) between slices that splits pot from carrier.
+RADIUS_JUMP_VOXELS = 1.5
+# A pot narrower than this (voxels) is not told apart from a stem.
+MIN_POT_RADIUS_VOXELS = 3.0
+
+
+class TaperedCylinder(BaseModel):
+    """A vertical tapered cylinder (pot, carrier), mm, turntable frame."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    z_bottom_mm: float
+    z_top_mm: float
+    r_bottom_mm: float = Field(gt=0)
+    r_top_mm: float = Field(gt=0)
+    centre_xy_mm: tuple[float, float] = (0.0, 0.0)
+
+    def radius_at(self, z: np.ndarray) -> np.ndarray:
+        t = (np.asarray(z, dtype=float) - self.z_bottom_mm) / max(
+            self.z_top_mm - self.z_bottom_mm, 1e-9)
+        return self.r_bottom_mm + t * (self.r_top_mm - self.r_bottom_mm)
+
+    def inside_distance(self, points: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        """Approximate signed distance (mm) into the cylinder grown by ``margin``; > 0 inside."""
+        p = np.asarray(points, dtype=float)
+        rho = np.hypot(p[:, 0] - self.centre_xy_mm[0], p[:, 1] - self.centre_xy_mm[1])
+        zc = np.clip(p[:, 2], self.z_bottom_mm, self.z_top_mm)
+        radial = self.radius_at(zc) + margin - rho
+        below = p[:, 2] - (self.z_bottom_mm - margin)
+        above = (self.z_top_mm + margin) - p[:, 2]
+        return np.minimum(radial, np.minimum(below, above))
+
+
+@dataclass
+class SliceProfile:
+    z: np.ndarray        # (S,) mm, slice centres
+    area: np.ndarray     # (S,) voxels
+    centre: np.ndarray   # (S, 2) mm
+    r_eq: np.ndarray     # (S,) mm, radius of the disc of the same area
+    fill: np.ndarray     # (S,) area / disc through the farthest voxel
+
+
+def slice_profile(occupied: np.ndarray, origin: np.ndarray, s: float) -> SliceProfile:
+    """Per z-slice area, centroid and disc-likeness of an occupancy grid."""
+    nx, ny, nz = occupied.shape
+    xs = origin[0] + np.arange(nx) * s
+    ys = origin[1] + np.arange(ny) * s
+    area = occupied.sum(axis=(0, 1)).astype(float)
+    cx = np.einsum("ijk,i->k", occupied, xs, dtype=float) / np.maximum(area, 1)
+    cy = np.einsum("ijk,j->k", occupied, ys, dtype=float) / np.maximum(area, 1)
+    fill = np.zeros(nz)
+    for kz in np.flatnonzero(area):
+        ii, jj = np.nonzero(occupied[:, :, kz])
+        rmax = np.max(np.hypot(xs[ii] - cx[kz], ys[jj] - cy[kz])) + s / 2
+        fill[kz] = area[kz] * s * s / (np.pi * rmax * rmax)
+    return SliceProfile(origin[2] + np.arange(nz) * s, area, np.stack([cx, cy], axis=1),
+                        np.sqrt(area * s * s / np.pi), fill)
+
+
+def _disc_fill(occupied_slice: np.ndarray, origin: np.ndarray, s: float,
+               centre: np.ndarray, radius: float) -> float:
+    nx, ny = occupied_slice.shape
+    xs = origin[0] + np.arange(nx) * s
+    ys = origin[1] + np.arange(ny) * s
+    disc = np.hypot(xs[:, None] - centre[0], ys[None, :] - centre[1]) <= radius
+    n = disc.sum()
+    return float((occupied_slice & disc).sum() / n) if n else 0.0
+
+
+def fit_pot(volume: Volume) -> list[TaperedCylinder]:
+    """Tapered cylinders (carrier, pot) fitted from the bottom of the hull; [] if none.
+
+    Parameters
+    ----------
+    volume : Volume
+        The hull (field > 0 inside), turntable frame.
+    """
+    occ = volume.field > 0
+    s = float(volume.voxel_size)
+    origin = np.asarray(volume.origin, dtype=float)
+    prof = slice_profile(occ, origin, s)
+    occupied_slices = np.flatnonzero(prof.area)
+    if occupied_slices.size == 0:
+        return []
+    k0 = occupied_slices[0]
+    k = k0
+    while k < len(prof.z) and prof.area[k] > 0 and prof.fill[k] >= DISC_FILL:
+        k += 1
+    run = np.arange(k0, k)
+    if len(run) < 3 or np.median(prof.r_eq[run]) < MIN_POT_RADIUS_VOXELS * s:
+        return []
+    jumps = np.flatnonzero(np.abs(np.diff(prof.r_eq[run])) > RADIUS_JUMP_VOXELS * s) + 1
+    pieces = [p for p in np.split(run, jumps) if len(p) >= 2]
+    cylinders = []
+    for n, piece in enumerate(pieces):
+        z = prof.z[piece]
+        slope, intercept = np.polyfit(z, prof.r_eq[piece], 1)
+        centre = prof.centre[piece].mean(axis=0)
+        top = piece[-1]
+        if n == len(pieces) - 1:
+            # Rim search: the fitted disc stays full up to the rim even under leaves.
+            kk = top + 1
+            while kk < occ.shape[2]:
+                r = slope * prof.z[kk] + intercept - s
+                if r <= 0 or _disc_fill(occ[:, :, kk], origin, s, centre, r) < RIM_FILL:
+                    break
+                kk += 1
+            top = kk - 1
+        z_bottom = prof.z[piece[0]] - s / 2
+        z_top = prof.z[top] + s / 2
+        cylinders.append(TaperedCylinder(
+            z_bottom_mm=float(z_bottom), z_top_mm=float(z_top),
+            r_bottom_mm=float(max(slope * z_bottom + intercept, s)),
+            r_top_mm=float(max(slope * z_top + intercept, s)),
+            centre_xy_mm=(float(centre[0]), float(centre[1]))))
+    return cylinders
+
+
+def remove_cylinders(volume: Volume, cylinders: list[TaperedCylinder],
+                     margin_mm: float) -> tuple[np.ndarray, int]:
+    """Field with ``cylinders`` (grown by ``margin_mm``) subtracted; and voxels removed.
+
+    Returns
+    -------
+    field : (NX, NY, NZ) float32 array, voxels (a new array)
+    removed : int, voxels that were inside and are now outside
+    """
+    field = np.array(volume.field, dtype=np.float32, copy=True)
+    s = float(volume.voxel_size)
+    origin = np.asarray(volume.origin, dtype=float)
+    removed = 0
+    for cyl in cylinders:
+        k_lo = max(0, int(np.floor((cyl.z_bottom_mm - margin_mm - origin[2]) / s)) - 1)
+        k_hi = min(field.shape[2], int(np.ceil((cyl.z_top_mm + margin_mm - origin[2]) / s)) + 2)
+        if k_hi <= k_lo:
+            continue
+        sub = field[:, :, k_lo:k_hi]
+        idx = np.stack(np.meshgrid(np.arange(field.shape[0]), np.arange(field.shape[1]),
+                                   np.arange(k_lo, k_hi), indexing="ij"), axis=-1).reshape(-1, 3)
+        d_in = cyl.inside_distance(origin + idx * s, margin_mm).reshape(sub.shape) / s
+        cut = np.minimum(sub, -np.clip(d_in, -1.0, 1.0)).astype(np.float32)
+        removed += int(((sub > 0) & (cut <= 0)).sum())
+        field[:, :, k_lo:k_hi] = cut
+    return field, removed

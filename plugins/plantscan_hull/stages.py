@@ -1,0 +1,177 @@
+"""The stages of this plugin: ``octree-hull``, ``dense-hull`` and ``marching-cubes``."""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from typing import Literal
+
+import numpy as np
+from pydantic import Field, field_validator
+
+from plantscan_core.data import Calibration, Mesh, Silhouettes, Volume
+from plantscan_core.errors import DataError
+from plantscan_core.stages import Mesher, Reconstructor, StageParams
+from plantscan_hull.bbox import BoundingBoxError, auto_box, touching_faces
+from plantscan_hull.carve import Grid, carve_dense, carve_octree
+from plantscan_hull.meshing import (
+    drop_small_components,
+    marching_cubes,
+    postprocess,
+    topology_report,
+)
+from plantscan_hull.pot import TaperedCylinder, fit_pot, remove_cylinders
+from plantscan_hull.views import prepare_views
+
+log = logging.getLogger(__name__)
+
+POT_FILE = "pot_fit.json"
+
+
+class HullParams(StageParams):
+    """Parameters shared by the hull reconstructors."""
+
+    resolution: int = Field(256, ge=8, le=1024,
+                            description="voxels along the longest side of the bounding box")
+    k: int = Field(3, ge=0, description="a voxel is removed only if outside in more than k views")
+    bbox_margin_mm: float = Field(5.0, ge=0, description="margin added around the found box")
+    bbox: list[float] | None = Field(
+        None, description="fixed box [xmin, ymin, zmin, xmax, ymax, zmax] mm (turntable frame); "
+                          "default: found from the silhouettes")
+    keep_thin: bool = Field(True, description="keep parts thinner than a voxel (thin leaves)")
+    thin_value: float = Field(0.15, gt=0, le=0.5,
+                              description="field value of a rescued thin voxel (voxels)")
+
+    @field_validator("bbox")
+    @classmethod
+    def _six_numbers(cls, v: list[float] | None) -> list[float] | None:
+        if v is not None and (len(v) != 6 or any(v[i] >= v[i + 3] for i in range(3))):
+            raise ValueError("bbox must be [xmin, ymin, zmin, xmax, ymax, zmax] with min < max")
+        return v
+
+
+class _HullBase(Reconstructor):
+    Params = HullParams
+
+    def _carve(self, views, grid: Grid):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def reconstruct(self, silhouettes: Silhouettes, calibration: Calibration) -> Volume:
+        """Carve the k-tolerant visual hull of ``silhouettes``.
+
+        Returns
+        -------
+        Volume
+            ``field``: (k+1)-th smallest signed distance to the silhouette
+            cones, in voxels, clamped to [-1, 1] (> 0 inside); ``stats``:
+            work counts and timings.
+        """
+        p = self.params
+        if len(silhouettes) == 0:
+            raise DataError("reconstruct: no plant silhouette to carve from")
+        if len(silhouettes) <= p.k:
+            raise DataError(
+                f"reconstruct: {len(silhouettes)} silhouettes cannot carve anything with "
+                f"k={p.k} (a voxel must be outside in more than k views); lower "
+                "reconstruct.params.k")
+        t0 = time.perf_counter()
+        views = prepare_views(list(silhouettes), calibration)
+        t_prep = time.perf_counter() - t0
+        info: dict = {}
+        if p.bbox is None:
+            lo, hi, info = auto_box(views, p.k, p.bbox_margin_mm,
+                                    coarse=min(128, p.resolution))
+        else:
+            lo, hi = np.array(p.bbox[:3]), np.array(p.bbox[3:])
+        t_box = time.perf_counter() - t0 - t_prep
+        grid = Grid.from_box(lo, hi, p.resolution)
+        phi, stats = self._carve(views, grid)
+        faces = touching_faces(phi > 0)
+        if faces:
+            where = "reconstruct.params.bbox" if p.bbox is not None else "the automatic box"
+            raise BoundingBoxError(
+                f"the plant touches the faces {', '.join(faces)} of {where} "
+                f"({grid.lo.round(1).tolist()} .. {grid.hi.round(1).tolist()} mm): the box "
+                "clips the plant; enlarge it")
+        out = stats.as_dict()
+        out.update({"views": len(views), "prep_seconds": t_prep, "bbox_seconds": t_box,
+                    "grid_shape": list(grid.shape), "voxel_size_mm": grid.voxel_size,
+                    "bbox_mm": [grid.lo.tolist(), grid.hi.tolist()], "k": p.k, **info})
+        return Volume(phi, grid.origin, grid.voxel_size, out)
+
+
+class OctreeHull(_HullBase):
+    """Coarse-to-fine (octree) visual hull with k-outside tolerance."""
+
+    name = "octree-hull"
+
+    class Params(HullParams):
+        top_cell: int = Field(32, ge=2, le=256,
+                              description="side (voxels, power of two) of the coarsest cells")
+
+        @field_validator("top_cell")
+        @classmethod
+        def _power_of_two(cls, v: int) -> int:
+            if v & (v - 1):
+                raise ValueError("top_cell must be a power of two")
+            return v
+
+    def _carve(self, views, grid):
+        p = self.params
+        return carve_octree(views, grid, p.k, p.top_cell, p.keep_thin, p.thin_value)
+
+
+class DenseHull(_HullBase):
+    """Plain full-grid visual hull: the reference the octree is tested against."""
+
+    name = "dense-hull"
+    Params = HullParams
+
+    def _carve(self, views, grid):
+        p = self.params
+        return carve_dense(views, grid, p.k, p.keep_thin, p.thin_value)
+
+
+class MarchingCubesMesher(Mesher):
+    """Pot/carrier removal, then a watertight manifold surface by marching cubes."""
+
+    name = "marching-cubes"
+
+    class Params(StageParams):
+        pot: Literal["auto", "none"] | list[TaperedCylinder] = Field(
+            "auto", description="'auto' (fit from the hull), 'none', or the tapered cylinders "
+                                "(pot, carrier) to remove, mm")
+        pot_margin_mm: float = Field(1.5, ge=0, description="removed beyond the pot surface")
+        min_component_voxels: int = Field(
+            8, ge=0, description="inside components smaller than this are dropped (mask specks)")
+        smooth_iterations: int = Field(0, ge=0, description="pymeshlab Taubin smoothing steps")
+        target_faces: int | None = Field(None, ge=100,
+                                         description="pymeshlab quadric decimation target")
+
+    def mesh(self, volume: Volume) -> Mesh:
+        """Remove pot and carrier from ``volume``, then extract the closed surface."""
+        p = self.params
+        if p.pot == "auto":
+            cylinders = fit_pot(volume)
+        elif p.pot == "none":
+            cylinders = []
+        else:
+            cylinders = list(p.pot)
+        field, removed = remove_cylinders(volume, cylinders, p.pot_margin_mm)
+        field, dropped = drop_small_components(field, p.min_component_voxels)
+        mesh = marching_cubes(field, volume.origin, volume.voxel_size)
+        mesh = postprocess(mesh, p.smooth_iterations, p.target_faces)
+        report = {"pot": [c.model_dump() for c in cylinders], "pot_mode": p.pot
+                  if isinstance(p.pot, str) else "given", "pot_voxels_removed": removed,
+                  "components_dropped": dropped, "topology": topology_report(mesh)}
+        self.last_report = report
+        run_dir = self.context.run_dir
+        if run_dir is not None:
+            from plantscan_core.scanfolder import atomic_write_text
+
+            atomic_write_text(run_dir / POT_FILE, json.dumps(report, indent=2))
+        if mesh.is_empty:
+            raise DataError("mesh: nothing left to mesh after pot removal (is the hull only "
+                            "the pot? check mesh.params.pot)")
+        return mesh

@@ -1,0 +1,229 @@
+"""Visual hull carving against analytic phantoms with exact silhouettes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hull_phantoms import Box, Cylinder, Sphere, render, ring_calibration, views
+
+from plantscan_core.data import Silhouettes, rotation_x, rotation_z
+from plantscan_hull.carve import Grid, carve_dense, carve_octree
+from plantscan_hull.meshing import marching_cubes, signed_volume
+from plantscan_hull.stages import OctreeHull
+from plantscan_hull.views import prepare_views
+
+ELEVATIONS = (0.0, 30.0)
+SPHERE = Sphere((5.0, -3.0, 10.0), 40.0)
+# A leaf 0.5 mm thick, 60 x 20 mm, tilted 30 deg: much thinner than the ~1.5 mm voxels below.
+LEAF = Box((10.0, 0.0, 20.0), (rotation_z(20) @ rotation_x(30)).T, (30.0, 10.0, 0.25))
+
+
+@pytest.fixture(scope="module")
+def rig():
+    return ring_calibration(elevations=ELEVATIONS), views(12, ELEVATIONS)
+
+
+@pytest.fixture(scope="module")
+def sphere_sils(rig):
+    cal, vl = rig
+    return render(cal, vl, [SPHERE])
+
+
+@pytest.fixture(scope="module")
+def mixed_sils(rig):
+    cal, vl = rig
+    cyl = Cylinder(-40.0, -20.0, 25.0, 30.0)
+    return render(cal, vl, [Sphere((0.0, 10.0, 30.0), 15.0), LEAF, cyl])
+
+
+@pytest.mark.parametrize("k", [0, 3])
+@pytest.mark.parametrize("which", ["sphere", "mixed"])
+def test_octree_equals_dense(rig, sphere_sils, mixed_sils, k, which):
+    # The octree's cell tests are conservative, so every voxel it decides at a coarse
+    # level must get exactly the clamped field the full grid computes: no tolerance.
+    cal, _ = rig
+    sils = sphere_sils if which == "sphere" else mixed_sils
+    vf = prepare_views(list(sils), cal)
+    grid = Grid.from_box((-60, -60, -50), (60, 60, 70), 40)
+    dense, sd = carve_dense(vf, grid, k)
+    octree, so = carve_octree(vf, grid, k, top_cell=16)
+    assert np.array_equal(dense > 0, octree > 0)
+    assert np.array_equal(dense, octree)
+    assert (dense > 0).sum() > 100  # something was kept
+    assert so.voxel_view_tests + so.cell_view_tests < sd.voxel_view_tests
+
+
+def _exact_sphere_hull(cal, vl, sphere: Sphere, points: np.ndarray) -> np.ndarray:
+    """Points inside the continuous visual hull of a sphere (no pixels involved)."""
+    inside = np.ones(len(points), dtype=bool)
+    c = np.asarray(sphere.centre)
+    for v in vl:
+        cam = cal.camera_for_view(v)
+        o = cam.pose.centre
+        d = points - o
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        oc = c - o
+        along = d @ oc
+        dist2 = oc @ oc - along**2
+        inside &= (dist2 <= sphere.radius**2) & (along > 0)
+    return inside
+
+
+def test_sphere_hull_volume(rig, sphere_sils):
+    cal, vl = rig
+    vol = OctreeHull(OctreeHull.Params(resolution=80, k=0)).reconstruct(sphere_sils, cal)
+    mesh = marching_cubes(vol.field, vol.origin, vol.voxel_size)
+    # Exact hull volume by sampling a 0.8 mm lattice (sampling error ~0.2 %).
+    ax = [np.arange(c - 50, c + 50, 0.8) for c in SPHERE.centre]
+    pts = np.stack(np.meshgrid(*ax, indexing="ij"), axis=-1).reshape(-1, 3)
+    exact = _exact_sphere_hull(cal, vl, SPHERE, pts).sum() * 0.8**3
+    sphere_volume = 4 / 3 * np.pi * SPHERE.radius**3
+    assert exact > sphere_volume  # the hull of 24 views is a polyhedron around the sphere
+    # The masks put the boundary to the nearest pixel: on a ~40 px radius that is an
+    # unbiased +-0.5 px, plus marching cubes' chords on ~1.4 mm voxels: 1.5 % covers both.
+    assert signed_volume(mesh) == pytest.approx(exact, rel=0.015)
+
+
+def test_sphere_occupancy_matches_exact_hull(rig, sphere_sils):
+    cal, vl = rig
+    vf = prepare_views(list(sphere_sils), cal)
+    grid = Grid.from_box((-50, -50, -40), (60, 60, 60), 64)
+    phi, _ = carve_octree(vf, grid, 0, keep_thin=False)
+    idx = np.argwhere(np.ones(grid.shape, dtype=bool))
+    exact = _exact_sphere_hull(cal, vl, SPHERE, grid.centres(idx)).reshape(grid.shape)
+    wrong = (phi > 0) != exact
+    # Disagreement only from the masks' pixel quantisation: a voxel within 0.5 px
+    # (~0.5 mm here, a third of a voxel) of the hull surface; that shell is < 2 % of it.
+    assert wrong.sum() < 0.02 * exact.sum()
+    # and never deep: every wrong voxel has a 6-neighbour on the other side of the truth.
+    e = exact
+    border = np.zeros_like(e)
+    for ax in range(3):
+        border |= np.roll(e, 1, ax) != e
+        border |= np.roll(e, -1, ax) != e
+    assert not (wrong & ~border).any()
+
+
+@pytest.mark.parametrize("k", [0, 3])
+def test_more_views_never_add_voxels(rig, mixed_sils, k):
+    cal, _ = rig
+    vf = prepare_views(list(mixed_sils), cal)
+    grid = Grid.from_box((-60, -60, -50), (60, 60, 70), 40)
+    previous = None
+    # Nested view sets: every 4th view of ring 0, every 2nd, all of ring 0, both rings.
+    for subset in (vf[0:12:4], vf[0:12:2], vf[0:12], vf):
+        occ = carve_octree(subset, grid, k, keep_thin=False)[0] > 0
+        if previous is not None:
+            assert not (occ & ~previous).any()
+            assert occ.sum() <= previous.sum()
+        previous = occ
+
+
+def _leaf_points() -> np.ndarray:
+    """(N, 3) points of the leaf's mid-plane on a 1 mm lattice, mm."""
+    grid = np.stack(np.meshgrid(np.linspace(-29, 29, 59), np.linspace(-9, 9, 19), [0.0],
+                                indexing="ij"), -1).reshape(-1, 3)
+    return grid @ np.asarray(LEAF.axes) + np.asarray(LEAF.centre)
+
+
+def _outside_distance(mesh, pts: np.ndarray) -> np.ndarray:
+    """Distance (mm) from each point to the closed mesh, 0 for points inside it."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh.to_open3d()))
+    q = o3d.core.Tensor(pts.astype(np.float32))
+    d = scene.compute_distance(q).numpy()
+    return np.where(scene.compute_occupancy(q).numpy() > 0, 0.0, d)
+
+
+def _exact_leaf_hull_volumes(cal, vl) -> dict[int, float]:
+    """Volume (mm^3) of the continuous k-tolerant visual hull of LEAF for k = 0, 3.
+
+    Ray geometry only: a point is outside a view when the ray through it misses the box.
+    """
+    step = np.array([1.0, 1.0, 0.2])  # fine across the leaf, where the hull is thin
+    g = np.stack(np.meshgrid(np.arange(-34, 34, step[0]), np.arange(-14, 14, step[1]),
+                             np.arange(-5, 5, step[2]), indexing="ij"), -1).reshape(-1, 3)
+    pts = g @ np.asarray(LEAF.axes) + np.asarray(LEAF.centre)
+    n_out = np.zeros(len(pts), dtype=int)
+    for v in vl:
+        o = cal.camera_for_view(v).pose.centre
+        d = pts - o
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        n_out += ~LEAF.hit(np.broadcast_to(o, d.shape).copy(), d)
+    assert not ((n_out <= 3) & (np.abs(g[:, 2]) >= 4.8)).any()  # the lattice holds the hull
+    return {k: float((n_out <= k).sum() * step.prod()) for k in (0, 3)}
+
+
+@pytest.fixture(scope="module")
+def leaf_sils(rig):
+    cal, vl = rig
+    return render(cal, vl, [LEAF])
+
+
+@pytest.fixture(scope="module")
+def leaf_hull_volumes(rig):
+    return _exact_leaf_hull_volumes(*rig)
+
+
+@pytest.mark.parametrize("k", [0, 3])
+def test_thin_leaf_survives(rig, leaf_sils, leaf_hull_volumes, k):
+    cal, vl = rig
+    sils = leaf_sils
+    vol = OctreeHull(OctreeHull.Params(resolution=64, k=k)).reconstruct(sils, cal)
+    s = vol.voxel_size
+    assert s > 2 * 0.5  # the leaf is less than half a voxel thick
+    mesh = marching_cubes(vol.field, vol.origin, vol.voxel_size)
+    d = _outside_distance(mesh, _leaf_points()) / s
+    # Not lost: a voxel centre is within half a voxel of the leaf plane and the kept
+    # sheet passes through it, so the leaf is within a voxel of (or inside) the mesh;
+    # near the leaf's outline the outline itself is only known to a voxel, hence 1.5.
+    assert np.mean(d < 1.0) >= 0.99, k
+    assert d.max() < 1.5, (k, d.max())
+    # Not fattened: no more volume than the exact k-tolerant hull of the leaf (+10 % for
+    # pixel quantisation); a whole-footprint test gives 1.7-2.8 times that.
+    assert signed_volume(mesh) <= 1.1 * leaf_hull_volumes[k]
+
+
+def test_thin_leaf_lost_without_rescue(rig, leaf_sils):
+    # The failure the rescue exists for: centre tests at k = 0 leave holes in the leaf.
+    cal, vl = rig
+    sils = leaf_sils
+    vol = OctreeHull(OctreeHull.Params(resolution=64, k=0, keep_thin=False)).reconstruct(
+        sils, cal)
+    mesh = marching_cubes(vol.field, vol.origin, vol.voxel_size)
+    d = _outside_distance(mesh, _leaf_points()) / vol.voxel_size
+    assert d.max() > 1.5 or np.mean(d < 1.0) < 0.99
+
+
+def test_views_that_miss_a_voxel_do_not_carve_it(rig):
+    # Some images end at column 170 (a narrower sensor): the part of the sphere beyond
+    # that column is unseen by them and must not be carved by them.
+    from dataclasses import replace
+
+    from plantscan_core.data import Camera, Silhouette
+    from plantscan_hull.views import prepare_view
+
+    cal, vl = rig
+    sils = render(cal, vl, [SPHERE])
+    vf = []
+    for s in sils:
+        cam = cal.camera_for_view(s.view)
+        if s.view.tilt_index == 0 and s.view.angle_index % 3 == 0:
+            narrow = Camera(replace(cam.model, width=170), cam.pose)
+            assert s.mask[:, 170:].any()  # the sphere really crosses the cut
+            vf.append(prepare_view(Silhouette(s.view, s.mask[:, :170]), narrow))
+        else:
+            vf.append(prepare_view(s, cam))
+    grid = Grid.from_box((-50, -50, -40), (60, 60, 60), 40)
+    phi = carve_octree(vf, grid, 0, keep_thin=False)[0]
+    idx = np.argwhere(np.ones(grid.shape, dtype=bool))
+    depth = SPHERE.radius - np.linalg.norm(grid.centres(idx) - SPHERE.centre, axis=1)
+    deep = (depth > grid.voxel_size).reshape(grid.shape)
+    assert deep.sum() > 1000
+    assert (phi[deep] > 0).all()
+
+
+def test_silhouettes_container_roundtrip(sphere_sils):
+    assert isinstance(sphere_sils, Silhouettes) and len(sphere_sils) == 24
