@@ -176,7 +176,16 @@ class PluginManager:
         return merged
 
     def add_commands(self, subparsers) -> None:
-        self.pm.hook.plantscan_add_commands(subparsers=subparsers)
+        """Let each plugin add CLI commands; one that fails is reported, the others still add."""
+        for impl in self.pm.hook.plantscan_add_commands.get_hookimpls():
+            try:
+                impl.function(subparsers=subparsers)
+            except Exception as exc:  # noqa: BLE001 - a broken plugin must not break the CLI
+                detail = "".join(traceback.format_exception_only(type(exc), exc)).strip()
+                self.failed.append(FailedPlugin(impl.plugin_name, "plantscan_add_commands",
+                                                "", detail))
+                print(f"plantscan: warning: plugin {impl.plugin_name!r} could not add its "
+                      f"commands: {detail}", file=sys.stderr)
 
     def build(self, stage: str, name: str, params: dict[str, Any] | None = None, context=None):
         """Instantiate the ``stage`` plugin ``name`` with validated ``params``."""
