@@ -294,9 +294,10 @@ class GPhotoCamera(CameraBackend):
             if name is None:
                 if key == "capture_target":  # cameras without it write to RAM anyway
                     continue
+                where = key if key in SETTING_ALIASES else f"settings.{key}"
                 raise GPhotoError(
-                    f"{self.label}: setting {key!r} (params.{key if key in SETTING_ALIASES else 'settings.' + key}) "
-                    f"is not offered by this camera; it offers: {', '.join(sorted(available))}"
+                    f"{self.label}: setting {key!r} (params.{where}) is not offered by this "
+                    f"camera; it offers: {', '.join(sorted(available))}"
                 )
             widget = config.get_child_by_name(name)
             if key == "capture_target":

@@ -7,8 +7,10 @@ virtual USB layer at import time from ``VCAMERADIR``, so it must be set before
 libgphoto2 error codes its next calls raise, one per call (0: the real
 virtual-camera call runs).
 
-Usage: ``python gphoto_runner.py RECIPE_JSON OUT [resume]``; prints a JSON
-summary (views, retries, error) on the last line.
+Usage: ``python gphoto_runner.py RECIPE_JSON OUT [resume]`` prints a JSON
+summary (views, retries, error) on the last line; ``python gphoto_runner.py
+--probe CASES_JSON`` opens the camera with each case's params, takes one image
+of the case's size, and prints each case's error (or None).
 """
 
 from __future__ import annotations
@@ -22,14 +24,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import gphoto2 as gp  # noqa: E402  (after VCAMERADIR, which the parent sets)
 import hwfakes  # noqa: E402
+from plantscan_gphoto import plugin as gphoto_plugin  # noqa: E402
+from plantscan_gphoto.camera import GPhotoCamera  # noqa: E402
 
 from plantscan_core.acquire import acquire  # noqa: E402
 from plantscan_core.errors import PlantScanError  # noqa: E402
 from plantscan_core.hookspecs import hookimpl  # noqa: E402
 from plantscan_core.plugins import new_manager  # noqa: E402
 from plantscan_core.recipe import validate_recipe  # noqa: E402
-from plantscan_gphoto import plugin as gphoto_plugin  # noqa: E402
-from plantscan_gphoto.camera import GPhotoCamera  # noqa: E402
 
 FAULTS: dict[str, list[int]] = json.loads(os.environ.get("GPHOTO_FAULTS", "{}"))
 RETRIES: list[int] = []
@@ -73,7 +75,31 @@ class _FaultyPlugin:
         registry.add(FaultyGPhotoCamera)
 
 
+def probe(cases_file: str) -> None:
+    """Open a camera with each case's params and take one image; print ok/error per case."""
+    from plantscan_core.stages import CaptureRequest
+
+    results = []
+    for i, case in enumerate(json.loads(Path(cases_file).read_text())):
+        cam = GPhotoCamera(GPhotoCamera.Params(**case["params"]))
+        cam.camera_name = f"probe{i}"
+        try:
+            cam.open()
+            out = Path(cases_file).with_name(f"probe{i}.jpg")
+            cam.capture(CaptureRequest(out, "plant", "cam0", 0, 0.0, 0, 0.0, None,
+                                       tuple(case["size"]), "jpg"))
+            results.append({"error": None})
+        except PlantScanError as exc:
+            results.append({"error": str(exc)})
+        finally:
+            cam.close()
+    print(json.dumps(results))
+
+
 def main() -> None:
+    if sys.argv[1] == "--probe":
+        probe(sys.argv[2])
+        return
     raw = json.loads(Path(sys.argv[1]).read_text())
     out = Path(sys.argv[2])
     m = new_manager()

@@ -39,14 +39,19 @@ class RigState:
         self.triggers: dict[str, int] = {}
         self.moves = 0
         self.stops = 0
+        self.events_file: str | None = None
         cfg = os.environ.get("HWFAKES")
         if cfg:
             c = json.loads(cfg)
             self.delay_s = float(c.get("delay_s", 0.0))
+            self.events_file = c.get("events_file")
 
     def log(self, *event) -> None:
         with self.lock:
             self.events.append(event)
+            if self.events_file:  # seen by a parent process (tests of signals)
+                with open(self.events_file, "a") as f:
+                    f.write(" ".join(map(str, event)) + "\n")
 
 
 RIG = RigState()

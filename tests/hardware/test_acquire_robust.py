@@ -180,6 +180,36 @@ def test_sigkill_at_random_points_then_resume(manager, tmp_path):
     assert all(final[f] == s for f, s in stamps.items()), "a finished image was rewritten"
 
 
+@pytest.mark.parametrize(
+    "sig", [signal.SIGINT, pytest.param(signal.SIGTERM, marks=pytest.mark.slow)])
+def test_ctrl_c_in_a_real_process_stops_the_axes(manager, tmp_path, sig):
+    """A real Ctrl-C (SIGINT) or SIGTERM mid-scan: axes stopped, consistent folder, resume."""
+    raw, recipe = _recipe(manager, tilts=(0.0, 20.0), n_angles=8)
+    out = tmp_path / "s"
+    events = tmp_path / "events.txt"
+    script = _RUNNER.format(here=str(HERE), raw=json.dumps(raw), out=str(out))
+    env = {**os.environ, "HWFAKES": json.dumps({"delay_s": 0.02, "events_file": str(events)})}
+    proc = subprocess.Popen([sys.executable, "-c", script], env=env, stderr=subprocess.PIPE)
+    while proc.poll() is None and _count_lines(out / "views.jsonl") < 5:
+        time.sleep(0.005)
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode != 0 and b"KeyboardInterrupt" in err
+    assert "stop" in events.read_text().split("\n")  # the axes were told to stop
+    scan_views = _count_lines(out / "views.jsonl")
+    assert 5 <= scan_views < len(plan(recipe))
+    assert not [p for p in (out / "images").rglob(".*") if p.is_file()], "temporaries left"
+    from plantscan_core.scanfolder import ScanFolder
+
+    scan = ScanFolder.open(out)
+    before = {v.file: scan.path_of(v).stat().st_ino for v in scan.views}
+    for v in scan.views:
+        scan.read_image(v)
+    subprocess.run([sys.executable, "-c", script], env=env, check=True)
+    stamps = check_scan(out, recipe)
+    assert all(stamps[f][0] == ino for f, ino in before.items())
+
+
 def _count_lines(path: Path) -> int:
     try:
         return path.read_bytes().count(b"\n")

@@ -18,7 +18,6 @@ import cv2
 import numpy as np
 import pytest
 from hwfakes import fake_recipe
-
 from plantscan_gphoto.camera import jpeg_size
 
 HERE = Path(__file__).resolve().parent
@@ -86,7 +85,8 @@ def test_png_scan_decodes_to_the_camera_pixels(tmp_path, vcamdir):
 
 def test_transient_errors_are_retried_and_the_scan_completes(tmp_path, vcamdir):
     out = tmp_path / "scan"
-    faults = {"init": [-53, -53], "capture": [-110, 0, -10, -60, 0, -110], "file_get": [-10, 0, -53]}
+    faults = {"init": [-53, -53], "capture": [-110, 0, -10, -60, 0, -110],
+              "file_get": [-10, 0, -53]}
     summary = _run(_recipe("gphoto2-faulty"), out, vcamdir, faults)
     assert summary["error"] is None
     assert len(summary["views"]) == 5
@@ -118,19 +118,6 @@ def test_camera_busy_for_good_mid_scan_keeps_images_and_resume_completes(tmp_pat
     assert all(os.stat(out / f).st_ino == ino for f, ino in kept.items()), "image rewritten"
 
 
-def test_unknown_setting_lists_what_the_camera_offers(tmp_path, vcamdir):
-    summary = _run(_recipe(params={"settings": {"whitebalance": "Daylight"}}),
-                   tmp_path / "scan", vcamdir)
-    assert "'whitebalance'" in summary["error"]["message"]
-    assert "offers:" in summary["error"]["message"]
-
-
-def test_image_size_mismatch_names_both_sizes(tmp_path, vcamdir):
-    summary = _run(_recipe(size=(640, 480)), tmp_path / "scan", vcamdir)
-    msg = summary["error"]["message"]
-    assert "64x48" in msg and "scan.image_size = [640, 480]" in msg
-
-
 def test_jpeg_size_reads_the_header():
     ok, buf = cv2.imencode(".jpg", np.zeros((37, 53, 3), np.uint8))
     assert jpeg_size(buf.tobytes()) == (53, 37)
@@ -149,8 +136,9 @@ def test_real_camera_captures_one_image(tmp_path, request):
     cams = list(gp.Camera.autodetect())
     if not cams:
         pytest.fail("--hardware given but no camera detected by libgphoto2")
-    from plantscan_core.stages import CaptureRequest
     from plantscan_gphoto.camera import GPhotoCamera
+
+    from plantscan_core.stages import CaptureRequest
 
     cam = GPhotoCamera(GPhotoCamera.Params(check_image_size=False))
     cam.open()
@@ -160,3 +148,44 @@ def test_real_camera_captures_one_image(tmp_path, request):
         assert cv2.imread(str(out)) is not None
     finally:
         cam.close()
+
+
+PROBES = {
+    "model": ({"model": "nikon dsc"}, None),
+    "port": ({"port": "usb:001,001"}, None),
+    "serial": ({"serial": "0.1"}, None),  # the virtual camera's serial number
+    "other model": ({"model": "EOS 600D"}, ["model='EOS 600D'", "Nikon DSC D750 on usb:001,001"]),
+    "other serial": ({"serial": "123456"}, ["'123456'", "Nikon DSC D750 on usb:001,001"]),
+    "unknown setting": ({"settings": {"whitebalance": "Daylight"}},
+                        ["'whitebalance'", "params.settings.whitebalance", "offers:"]),
+    "size mismatch": ({"check_image_size": True}, ["64x48", "scan.image_size = [640, 480]"]),
+}
+
+
+@pytest.fixture(scope="module")
+def probe_results(tmp_path_factory):
+    """Open the virtual camera once per case (one subprocess for all cases)."""
+    root = tmp_path_factory.mktemp("probe")
+    d = root / "vcam"
+    d.mkdir()
+    cv2.imwrite(str(d / "photo.jpg"), np.full((SIZE[1], SIZE[0], 3), 90, np.uint8))
+    cases = [{"params": {"retry_backoff_s": 0.01, **params},
+              "size": [640, 480] if name == "size mismatch" else list(SIZE)}
+             for name, (params, _) in PROBES.items()]
+    (root / "cases.json").write_text(json.dumps(cases))
+    env = {**os.environ, "VCAMERADIR": str(d)}
+    res = subprocess.run([sys.executable, str(HERE / "gphoto_runner.py"), "--probe",
+                          str(root / "cases.json")], env=env, capture_output=True, text=True,
+                         timeout=60)
+    assert res.returncode == 0, res.stderr
+    return dict(zip(PROBES, json.loads(res.stdout.strip().splitlines()[-1]), strict=True))
+
+
+@pytest.mark.parametrize("case", list(PROBES))
+def test_camera_selection_settings_and_size(probe_results, case):
+    expected = PROBES[case][1]
+    error = probe_results[case]["error"]
+    if expected is None:
+        assert error is None
+    else:
+        assert error is not None and all(part in error for part in expected), error

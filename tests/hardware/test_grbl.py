@@ -11,12 +11,12 @@ import hwfakes
 import pytest
 from grbl_emulator import GrblMachine, PtyGrbl, TcpGrbl
 from hwfakes import RIG, check_scan, fake_recipe
+from plantscan_serial import plugin as serial_plugin
+from plantscan_serial.grbl import GrblAxis, GrblError, GrblParams
 
 from plantscan_core.acquire import AcquisitionError, acquire
 from plantscan_core.plugins import new_manager
 from plantscan_core.recipe import validate_recipe
-from plantscan_serial import plugin as serial_plugin
-from plantscan_serial.grbl import GrblAxis, GrblError, GrblParams
 
 
 @pytest.fixture

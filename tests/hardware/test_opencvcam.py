@@ -9,13 +9,13 @@ import hwfakes
 import numpy as np
 import pytest
 from hwfakes import RIG, fake_recipe
+from plantscan_opencvcam import plugin as opencv_plugin
 
 from plantscan_core.acquire import acquire
 from plantscan_core.errors import HardwareError
 from plantscan_core.plugins import new_manager
 from plantscan_core.recipe import validate_recipe
 from plantscan_core.scanfolder import ScanFolder
-from plantscan_opencvcam import plugin as opencv_plugin
 
 SIZE = (40, 30)
 
@@ -96,8 +96,9 @@ def test_real_webcam(request, tmp_path):
     dev = os.environ.get("PLANTSCAN_WEBCAM")
     if not request.config.getoption("--hardware", default=False) or dev is None:
         pytest.skip("set PLANTSCAN_WEBCAM and run with --hardware")
-    from plantscan_core.stages import CaptureRequest
     from plantscan_opencvcam.camera import OpenCVCamera
+
+    from plantscan_core.stages import CaptureRequest
 
     cam = OpenCVCamera(OpenCVCamera.Params(device=int(dev) if dev.isdigit() else dev,
                                            set_size=False))

@@ -9,11 +9,6 @@ import hwfakes
 import pytest
 from fake_stepper import FakeStepperPort
 from hwfakes import RIG, check_scan, fake_recipe
-
-from plantscan_core.acquire import AcquisitionError, acquire
-from plantscan_core.hookspecs import hookimpl
-from plantscan_core.plugins import new_manager
-from plantscan_core.recipe import validate_recipe
 from plantscan_phidget import plugin as phidget_plugin
 from plantscan_phidget.stepper import (
     PhidgetAxis,
@@ -22,6 +17,11 @@ from plantscan_phidget.stepper import (
     move_time_s,
     parse_gear_ratio,
 )
+
+from plantscan_core.acquire import AcquisitionError, acquire
+from plantscan_core.hookspecs import hookimpl
+from plantscan_core.plugins import new_manager
+from plantscan_core.recipe import validate_recipe
 
 SEED_RATIO = 99 + 1044 / 2057
 

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import hwfakes
 import pytest
+from plantscan_gphoto import plugin as gphoto_plugin
+from plantscan_phidget import plugin as phidget_plugin
 
 from plantscan_core.plugins import new_manager
 from plantscan_core.recipe import validate_recipe
 from plantscan_core.timing import estimate_scan_time, move_time_s
-from plantscan_gphoto import plugin as gphoto_plugin
-from plantscan_phidget import plugin as phidget_plugin
 
 
 @pytest.fixture
