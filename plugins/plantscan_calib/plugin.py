@@ -39,7 +39,7 @@ class TurntableCalibrator(Calibrator):
         square_mm: float = Field(25.0, gt=0)
         marker_mm: float = Field(0.0, ge=0, description="ChArUco marker side, mm")
         dictionary: str = "DICT_5X5_100"
-        detect_max_side_px: int = Field(1024, ge=256,
+        detect_max_side_px: int = Field(800, ge=128,
                                         description="pyramid top size for chessboard detection")
         min_views: int = Field(3, ge=1, description="fewest board detections per camera and tilt")
         fix_principal_point: bool = False
@@ -93,7 +93,7 @@ class TurntableCalibrator(Calibrator):
         return cal
 
 
-def detect_views(scan, views: list[ViewRecord], spec: BoardSpec, max_side_px: int = 1024,
+def detect_views(scan, views: list[ViewRecord], spec: BoardSpec, max_side_px: int = 800,
                  workers: int = 2) -> tuple[list[Detection], dict[str, tuple[int, int]],
                                             dict[tuple[str, int], int]]:
     """Detect the board in each view (threads: OpenCV releases the GIL).

@@ -66,12 +66,12 @@ def make_rig(image_size: tuple[int, int] = (5184, 3456), tilts_deg=(0.0, 20.0, 4
                         axis if len(tilts_deg) > 1 else None)
     spec = BoardSpec("chessboard", cols, rows, square_mm)
     pts = spec.object_points()
-    pts = pts - pts.mean(axis=0)
+    centre = pts.mean(axis=0)
     bp, bd = {}, {}
     for b in range(boards):
         # Board plane faces -Y at angle 0 (toward cam0), tipped back, on the plate.
         r = rotation_z(180.0 * b) @ rotation_x(-90.0 - 20.0)
-        t = rotation_z(180.0 * b) @ np.array([0.0, -60.0, 110.0 + 20 * b])
+        t = rotation_z(180.0 * b) @ np.array([0.0, -60.0, 110.0 + 20 * b]) - r @ centre
         bp[b] = Pose(r, t)
         bd[b] = pts
     return SyntheticRig(truth, bd, bp, spec)
@@ -88,6 +88,8 @@ def synthetic_detections(rig: SyntheticRig, angles_deg, noise_px: float = 0.2,
     ``findChessboardCorners``, all or nothing).
     """
     rng = np.random.default_rng(seed)
+    # A separate stream for corruption: the same seed gives the same noise with or without it.
+    bad_rng = np.random.default_rng(seed + 7919)
     out = []
     truth = rig.truth
     keys = sorted(truth.poses)
@@ -103,7 +105,7 @@ def synthetic_detections(rig: SyntheticRig, angles_deg, noise_px: float = 0.2,
                 facing = bpose.R[:, 2] @ view_dir / np.linalg.norm(view_dir)
                 if abs(facing) < math.cos(math.radians(max_obliquity_deg)):
                     continue
-                if facing > 0:   # seeing the back of the board
+                if facing < 0:   # the back of the board (its +z points away from the viewer)
                     continue
                 uv = camera.project(xw)
                 m = truth.models[cam]
@@ -112,9 +114,9 @@ def synthetic_detections(rig: SyntheticRig, angles_deg, noise_px: float = 0.2,
                     continue
                 uv = uv + rng.normal(0.0, noise_px, uv.shape)
                 if corrupt_fraction > 0:
-                    bad = rng.random(len(uv)) < corrupt_fraction
-                    mag = rng.uniform(*corrupt_px, bad.sum())
-                    ang = rng.uniform(0, 2 * math.pi, bad.sum())
+                    bad = bad_rng.random(len(uv)) < corrupt_fraction
+                    mag = bad_rng.uniform(*corrupt_px, bad.sum())
+                    ang = bad_rng.uniform(0, 2 * math.pi, bad.sum())
                     uv[bad] += np.stack([mag * np.cos(ang), mag * np.sin(ang)], axis=1)
                 out.append(Detection(cam, ti, float(a), b, np.arange(len(uv)), uv))
     return out
@@ -128,3 +130,88 @@ def volume_points(radius_mm: float = 120.0, z_range_mm=(0.0, 400.0), n: int = 60
     a = rng.uniform(0, 2 * math.pi, n)
     z = rng.uniform(*z_range_mm, n)
     return np.stack([r * np.cos(a), r * np.sin(a), z], axis=1)
+
+
+# --------------------------------------------------------------------------- rendered boards
+def board_texture(spec: BoardSpec, px_per_mm: float, margin_mm: float | None = None
+                  ) -> tuple[np.ndarray, float]:
+    """(H, W) uint8 image of a chessboard (``cols+1`` x ``rows+1`` squares) with a white margin.
+
+    Returns the image and the margin (mm) between the image edge and the
+    board's outer corner; inner corner 0 is one square further in.
+    """
+    m = spec.square_mm if margin_mm is None else margin_mm
+    nx, ny = spec.cols + 1, spec.rows + 1
+    w = int(round((nx * spec.square_mm + 2 * m) * px_per_mm))
+    h = int(round((ny * spec.square_mm + 2 * m) * px_per_mm))
+    # Pixel centre (u, v) sits at board mm ((u + 0.5) / ppm - m, ...) from the outer corner.
+    u = (np.arange(w) + 0.5) / px_per_mm - m
+    v = (np.arange(h) + 0.5) / px_per_mm - m
+    iu = np.floor(u / spec.square_mm).astype(int)
+    iv = np.floor(v / spec.square_mm).astype(int)
+    inside = (iu[None, :] >= 0) & (iu[None, :] < nx) & (iv[:, None] >= 0) & (iv[:, None] < ny)
+    black = ((iu[None, :] + iv[:, None]) % 2 == 0) & inside
+    img = np.where(black, 25, 230).astype(np.uint8)
+    return img, m
+
+
+def render_board_view(camera, board_pose: Pose, spec: BoardSpec, texture: np.ndarray,
+                      px_per_mm: float, margin_mm: float, background: int = 128) -> np.ndarray:
+    """(H, W) uint8 image of the board seen by a distortion-free ``camera`` (homography warp).
+
+    ``board_pose`` maps board-frame mm (inner corner 0 at the origin, as
+    ``BoardSpec.object_points``) to the camera's world frame.
+    """
+    import cv2
+
+    m = camera.model
+    k = m.K
+    r = camera.pose.R @ board_pose.R
+    t = camera.pose.R @ board_pose.t + camera.pose.t
+    h_img_board = k @ np.column_stack([r[:, 0], r[:, 1], t])
+    # texture pixel centre (u, v) -> board mm of the inner-corner frame
+    off = spec.square_mm + margin_mm
+    h_board_tex = np.array([[1 / px_per_mm, 0, 0.5 / px_per_mm - off],
+                            [0, 1 / px_per_mm, 0.5 / px_per_mm - off], [0, 0, 1.0]])
+    hmat = h_img_board @ h_board_tex
+    return cv2.warpPerspective(texture, hmat, (m.width, m.height), flags=cv2.INTER_AREA,
+                               borderMode=cv2.BORDER_CONSTANT, borderValue=background)
+
+
+def write_board_scan(root, rig: SyntheticRig, angles_deg, noise: float = 2.0, seed: int = 0,
+                     px_per_mm: float = 8.0):
+    """A scan folder of rendered calibration views of ``rig`` (distortion-free cameras).
+
+    Every (camera, tilt, angle) gets an image; the board is visible in some.
+    """
+    import cv2
+
+    from plantscan_core.data import ViewRecord
+    from plantscan_core.scanfolder import ScanFolder
+
+    rng = np.random.default_rng(seed)
+    tex, margin = board_texture(rig.spec, px_per_mm)
+    scan = ScanFolder.create(root, {"plant_id": "synthetic-board", "rig": {
+        "tilts_deg": [rig.truth.tilts_deg[i] for i in sorted(rig.truth.tilts_deg)]}})
+    idx = 0
+    for (cam, ti) in sorted(rig.truth.poses):
+        for ai, a in enumerate(angles_deg):
+            camera = rig.truth.camera_at(cam, ti, a)
+            img = np.full((camera.model.height, camera.model.width), 128, np.uint8)
+            for b, bp in rig.board_poses.items():
+                xw = rig.boards[b] @ bp.R.T + bp.t
+                view_dir = xw.mean(axis=0) - camera.pose.centre
+                if bp.R[:, 2] @ view_dir <= 0:  # back of the board
+                    continue
+                layer = render_board_view(camera, bp, rig.spec, tex, px_per_mm, margin, 0)
+                cover = render_board_view(camera, bp, rig.spec, np.full_like(tex, 255),
+                                          px_per_mm, margin, 0)
+                img = np.where(cover > 127, layer, img)
+            img = np.clip(img + rng.normal(0, noise, img.shape), 0, 255).astype(np.uint8)
+            name = f"images/calibration/{cam}_t{ti:02d}_a{ai:03d}.png"
+            view = ViewRecord(idx, "calibration", cam, ti, rig.truth.tilts_deg[ti], ai, float(a),
+                              None, name)
+            scan.append_view(view, lambda p, im=img: cv2.imwrite(str(p), im) or
+                             (_ for _ in ()).throw(OSError(f"cannot write {p}")))
+            idx += 1
+    return scan

@@ -1,0 +1,157 @@
+"""The solver on synthetic detections: exact projections through CameraModel + known noise."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from plantscan_calib.evaluate import compare_calibrations
+from plantscan_calib.solver import CalibrationError, SolveOptions, calibrate_turntable
+from plantscan_calib.synthetic import make_rig, synthetic_detections, volume_points
+from plantscan_core.data import Calibration
+
+ANGLES_36 = np.arange(0.0, 360.0, 10.0)
+
+
+def _sizes(rig):
+    return {c: (m.width, m.height) for c, m in rig.truth.models.items()}
+
+
+def test_noise_free_detections_give_the_exact_rig():
+    # Exact corners: every error must vanish up to the solver's tolerances.
+    rig = make_rig(tilts_deg=(0.0, 20.0))
+    rig.truth.angle_scale = 1.0004  # a turntable gear-ratio error, to be found
+    dets = synthetic_detections(rig, ANGLES_36, noise_px=0.0)
+    cal = calibrate_turntable(dets, rig.boards, _sizes(rig), rig.truth.tilts_deg,
+                              SolveOptions(fit_angle_scale=True, cross_validate=False))
+    err = compare_calibrations(cal, rig.truth, volume_points())
+    assert err["camera_centre_error_mm"]["max"] < 1e-4
+    assert err["rotation_error_deg"]["max"] < 1e-5
+    assert err["volume_reprojection_px_rms"] < 1e-4
+    assert abs(cal.angle_scale - 1.0004) < 1e-8
+    assert cal.quality["rejected_corners"] == 0
+
+
+def test_paper360_noise_and_corrupted_corners():
+    """paper-360 protocol (2 cameras x 5 tilts x 36 stops, board in ~1/3 of views),
+    0.2 px corner noise, 1 % of corners moved by 3-15 px."""
+    rig = make_rig(tilts_deg=(0.0, 10.0, 20.0, 30.0, 40.0))
+    clean = synthetic_detections(rig, ANGLES_36, noise_px=0.2, seed=3)
+    dets = synthetic_detections(rig, ANGLES_36, noise_px=0.2, corrupt_fraction=0.01, seed=3)
+    corrupted = {(i, j) for i, (a, b) in enumerate(zip(clean, dets, strict=True))
+                 for j in np.nonzero(np.linalg.norm(a.uv - b.uv, axis=1) > 1.0)[0]}
+    assert 0.005 < len(corrupted) / sum(len(d.uv) for d in dets) < 0.02
+    cal = calibrate_turntable(dets, rig.boards, _sizes(rig), rig.truth.tilts_deg, SolveOptions())
+    q = cal.quality
+    # view_index is -1 for synthetic detections: match by (camera, tilt, angle, corner)
+    key = {(d.camera, d.tilt_index, d.angle_deg): i for i, d in enumerate(dets)}
+    rejected = {(key[(r["camera"], r["tilt_index"], r["angle_deg"])], r["corner"])
+                for r in q["rejected"]}
+    assert corrupted <= rejected, "every corrupted corner is rejected"
+    # Gaussian 4-sigma tail of ~6500 corners: a handful of false rejections at most.
+    assert len(rejected - corrupted) <= 10
+    err = compare_calibrations(cal, rig.truth, volume_points())
+    sig = q["sigma"]["poses"]
+    # The errors are what the data allow: each pose within 4 sigma of Ceres' covariance
+    # (sigma is the 3-D spread, so 4 sigma bounds any honest estimate).
+    for k, e in err["per_pose"].items():
+        assert e["centre_error_mm"] < 4 * sig[k]["centre_mm"], k
+        assert e["rotation_error_deg"] < 4 * sig[k]["rotation_deg"], k
+    # Absolute figures for this data volume (~120 board views of 54 corners at 0.2 px on
+    # 18 MP, board 200x125 mm): measured 0.05-0.15 mm, 0.007-0.023 deg, 0.08-0.29 px over
+    # seeds 0-3.  The issue's 0.1 mm / 0.01 deg / 0.05 px need ~4x this information.
+    assert err["camera_centre_error_mm"]["mean"] < 0.25
+    assert err["rotation_error_deg"]["max"] < 0.04
+    assert err["volume_reprojection_px_rms"] < 0.4
+    # Residuals consistent with the simulated noise (0.2 px per axis -> 0.28 px norm RMS).
+    assert 0.17 < q["corner_noise_px"] < 0.23
+    assert abs(q["cross_validation"]["difference_px"]) < 0.05
+
+
+def test_refinement_beats_the_seed_initialisation():
+    rig = make_rig(tilts_deg=(0.0, 20.0))
+    dets = synthetic_detections(rig, ANGLES_36, noise_px=0.2, seed=1)
+    opt = SolveOptions(cross_validate=False, covariance=False)
+    seed = calibrate_turntable(dets, rig.boards, _sizes(rig), rig.truth.tilts_deg,
+                               replace(opt, refine=False))
+    refined = calibrate_turntable(dets, rig.boards, _sizes(rig), rig.truth.tilts_deg, opt)
+    pts = volume_points()
+    e0 = compare_calibrations(seed, rig.truth, pts)
+    e1 = compare_calibrations(refined, rig.truth, pts)
+    assert e1["volume_reprojection_px_rms"] < e0["volume_reprojection_px_rms"] / 2
+    assert e1["camera_centre_error_mm"]["mean"] < e0["camera_centre_error_mm"]["mean"]
+
+
+def test_tilt_axis_gives_cameras_at_uncalibrated_tilts():
+    # Truth at 0..40 deg every 10; calibrated only at 0, 20 and 40.
+    rig = make_rig(tilts_deg=(0.0, 10.0, 20.0, 30.0, 40.0))
+    dets = synthetic_detections(rig, ANGLES_36, noise_px=0.2, seed=2, tilt_indices={0, 2, 4})
+    tilts = {i: rig.truth.tilts_deg[i] for i in (0, 2, 4)}
+    cal = calibrate_turntable(dets, rig.boards, _sizes(rig), tilts,
+                              SolveOptions(cross_validate=False, covariance=False))
+    assert cal.tilt_axis is not None
+    assert {t for _, t in cal.poses} == {0, 2, 4}
+    err = compare_calibrations(cal, rig.truth, volume_points())
+    un = err["uncalibrated_tilts"]
+    assert {10.0, 30.0} <= set(un["tilts"])
+    # Interpolated poses are about as good as calibrated ones (same noise; measured
+    # 0.1-0.2 mm, 0.01-0.02 deg).
+    assert un["camera_centre_error_mm"]["max"] < 0.5
+    assert un["rotation_error_deg"]["max"] < 0.05
+    assert un["volume_reprojection_px_rms"] < 2 * err["volume_reprojection_px_rms"] + 0.1
+    # The round trip through YAML keeps the axis.
+    again = Calibration.from_dict(cal.to_dict())
+    cam = again.camera_at_tilt("cam0", 10.0, 30.0)
+    assert np.linalg.norm(cam.pose.centre - cal.camera_at_tilt("cam0", 10.0, 30.0).pose.centre) \
+        < 1e-9
+
+
+def test_two_boards_fixed_principal_point_and_no_distortion():
+    # The configuration of the real PhenoArch corners: two boards, lens modelled distortion-free.
+    rig = make_rig(tilts_deg=(0.0,), boards=2, distortion=False)
+    dets = synthetic_detections(rig, np.arange(0.0, 360.0, 3.0), noise_px=0.2, seed=4)
+    assert {d.board for d in dets} == {0, 1}
+    pp = {c: (m.cu, m.cv) for c, m in rig.truth.models.items()}
+    cal = calibrate_turntable(dets, rig.boards, _sizes(rig), {0: 0.0}, SolveOptions(
+        fix_principal_point=True, principal_points=pp, fix_distortion=True,
+        cross_validate=False))
+    for c, m in cal.models.items():
+        assert (m.cu, m.cv, m.d1, m.d2) == (pp[c][0], pp[c][1], 0.0, 0.0)
+    err = compare_calibrations(cal, rig.truth, volume_points())
+    # Measured 0.1-0.3 mm and 0.31 px (one tilt, board covering a small part of the view).
+    assert err["camera_centre_error_mm"]["max"] < 0.4
+    assert err["volume_reprojection_px_rms"] < 0.5
+
+
+def test_symmetric_board_flips_are_undone():
+    # An 8x6 board looks the same turned by 180 deg; a detector may number it from either end.
+    rig = make_rig(tilts_deg=(0.0,), cols=8, rows=6)
+    dets = synthetic_detections(rig, np.arange(0.0, 360.0, 5.0), noise_px=0.2, seed=5)
+    flipped = [replace(d, uv=d.uv[::-1].copy()) if i % 3 == 1 else d for i, d in enumerate(dets)]
+    cal = calibrate_turntable(flipped, rig.boards, _sizes(rig), {0: 0.0},
+                              SolveOptions(cross_validate=False, covariance=False),
+                              symmetric_boards=True)
+    assert cal.quality["rejected_corners"] < 5
+    assert cal.quality["rms_px"] < 0.35
+
+
+def test_too_few_detections_names_camera_and_tilt():
+    rig = make_rig(tilts_deg=(0.0, 20.0))
+    dets = synthetic_detections(rig, ANGLES_36, noise_px=0.2)
+    few = [d for d in dets if (d.camera, d.tilt_index) != ("cam1", 1)]
+    few += [d for d in dets if (d.camera, d.tilt_index) == ("cam1", 1)][:2]
+    with pytest.raises(CalibrationError, match=r"camera cam1 tilt 1: 2"):
+        calibrate_turntable(few, rig.boards, _sizes(rig), rig.truth.tilts_deg, SolveOptions())
+
+
+def test_board_spec_mismatch_is_refused():
+    # Corners of a 9x6 board solved with the object points of a 6x9 one: no rig fits.
+    rig = make_rig(tilts_deg=(0.0,))
+    dets = synthetic_detections(rig, ANGLES_36, noise_px=0.2)
+    j, i = np.mgrid[0:9, 0:6]
+    wrong = {0: np.stack([i.ravel() * 25.0, j.ravel() * 25.0, np.zeros(54)], axis=1)}
+    with pytest.raises(CalibrationError, match=r"max_rms_px|rejected|failed"):
+        calibrate_turntable(dets, wrong, _sizes(rig), {0: 0.0},
+                            SolveOptions(cross_validate=False, covariance=False))
