@@ -98,7 +98,8 @@ def touching_faces(occupied: np.ndarray) -> list[str]:
 
 
 def auto_box(views: Sequence[ViewField], k: int, margin_mm: float, coarse: int = 128,
-             grow: float = 0.25, attempts: int = 3) -> tuple[np.ndarray, np.ndarray, dict]:
+             grow: float = 0.25, attempts: int = 3, backend: str = "numpy",
+             ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Initial frustum box, refined by a ``coarse``-voxel carve; returns ``(lo, hi, info)``."""
     lo0, hi0 = frustum_box(views)
     lo, hi = lo0.copy(), hi0.copy()
@@ -106,7 +107,7 @@ def auto_box(views: Sequence[ViewField], k: int, margin_mm: float, coarse: int =
         ext = hi - lo
         lo_big, hi_big = lo - grow * ext - margin_mm, hi + grow * ext + margin_mm
         grid = Grid.from_box(lo_big, hi_big, coarse)
-        phi, stats = carve_octree(views, grid, k, top_cell=16)
+        phi, stats = carve_octree(views, grid, k, top_cell=16, backend=backend)
         occ = phi > -0.5
         if not occ.any():
             raise BoundingBoxError(

@@ -86,13 +86,14 @@ class CarveStats:
     fine_voxels: int = 0
     rescued_voxels: int = 0
     seconds: float = 0.0
+    backend: str = "numpy"
 
     def as_dict(self) -> dict:
         return {"voxel_view_tests": self.voxel_view_tests,
                 "cell_view_tests": self.cell_view_tests,
                 "cells_per_level": {str(k): v for k, v in self.cells_per_level.items()},
                 "fine_voxels": self.fine_voxels, "rescued_voxels": self.rescued_voxels,
-                "carve_seconds": self.seconds}
+                "carve_seconds": self.seconds, "backend": self.backend}
 
 
 # --------------------------------------------------------------------------- fine voxels
@@ -203,6 +204,39 @@ def classify_cells(views: Sequence[ViewField], centres: np.ndarray, half_size: f
     return decision
 
 
+# --------------------------------------------------------------------------- backends
+BACKENDS = ("auto", "numpy", "numba")
+
+
+class _Kernels:
+    """The two hot loops, from numpy (reference) or numba (compiled)."""
+
+    def __init__(self, views: Sequence[ViewField], backend: str):
+        from plantscan_hull import kernels
+
+        if backend not in BACKENDS:
+            raise ValueError(f"unknown backend {backend!r}; valid: {', '.join(BACKENDS)}")
+        if backend == "numba" and not kernels.supported(views):
+            raise ValueError("backend 'numba' needs numba installed and the seed's camera "
+                             "model (CameraModel) for every view")
+        use_numba = backend == "numba" or (backend == "auto" and kernels.supported(views))
+        self.name = "numba" if use_numba else "numpy"
+        self.views = views
+        self._kernels = kernels
+        self._packed = kernels.pack(views) if use_numba else None
+
+    def voxel_field(self, points, voxel_size, k, stats):
+        if self._packed is not None:
+            return self._kernels.voxel_field(self._packed, points, voxel_size, k, stats)
+        return voxel_field(self.views, points, voxel_size, k, stats)
+
+    def classify_cells(self, centres, half_size, voxel_size, k, stats):
+        if self._packed is not None:
+            return self._kernels.classify_cells(self._packed, centres, half_size, voxel_size, k,
+                                                CELL_SLACK_PX, stats)
+        return classify_cells(self.views, centres, half_size, voxel_size, k, stats)
+
+
 # --------------------------------------------------------------------------- thin parts
 def rescue_thin(phi: np.ndarray, value: float) -> int:
     """Keep sub-voxel parts (thin leaves) in place: see the module docstring.
@@ -238,7 +272,8 @@ def _finish(phi: np.ndarray, stats: CarveStats, keep_thin: bool, thin_value: flo
 
 
 def carve_dense(views: Sequence[ViewField], grid: Grid, k: int, keep_thin: bool = True,
-                thin_value: float = 0.15, chunk: int = 1 << 20) -> tuple[np.ndarray, CarveStats]:
+                thin_value: float = 0.15, chunk: int = 1 << 20, backend: str = "numpy",
+                ) -> tuple[np.ndarray, CarveStats]:
     """Full-grid reference: ``voxel_field`` at every voxel centre.
 
     Returns
@@ -248,13 +283,15 @@ def carve_dense(views: Sequence[ViewField], grid: Grid, k: int, keep_thin: bool 
     """
     t0 = time.perf_counter()
     stats = CarveStats()
+    kern = _Kernels(views, backend)
+    stats.backend = kern.name
     nx, ny, nz = grid.shape
     phi = np.empty(nx * ny * nz, dtype=np.float32)
     total = nx * ny * nz
     for start in range(0, total, chunk):
         flat = np.arange(start, min(total, start + chunk))
         idx = np.stack(np.unravel_index(flat, grid.shape), axis=1)
-        phi[flat] = voxel_field(views, grid.centres(idx), grid.voxel_size, k, stats)
+        phi[flat] = kern.voxel_field(grid.centres(idx), grid.voxel_size, k, stats)
     stats.fine_voxels = total
     phi = phi.reshape(grid.shape)
     return _finish(phi, stats, keep_thin, thin_value, t0), stats
@@ -268,7 +305,7 @@ def _children(cells: np.ndarray, size: int) -> np.ndarray:
 
 
 def carve_octree(views: Sequence[ViewField], grid: Grid, k: int, top_cell: int = 32,
-                 keep_thin: bool = True, thin_value: float = 0.15,
+                 keep_thin: bool = True, thin_value: float = 0.15, backend: str = "numpy",
                  ) -> tuple[np.ndarray, CarveStats]:
     """Coarse-to-fine carving; same field as ``carve_dense`` with far fewer tests.
 
@@ -280,6 +317,8 @@ def carve_octree(views: Sequence[ViewField], grid: Grid, k: int, top_cell: int =
         raise ValueError(f"top_cell must be a power of two, got {top_cell}")
     t0 = time.perf_counter()
     stats = CarveStats()
+    kern = _Kernels(views, backend)
+    stats.backend = kern.name
     shape = np.array(grid.shape)
     s = grid.voxel_size
     padded = -(-shape // top_cell) * top_cell
@@ -292,7 +331,7 @@ def carve_octree(views: Sequence[ViewField], grid: Grid, k: int, top_cell: int =
         cells = cells[np.all(cells < shape, axis=1)]
         stats.cells_per_level[size] = len(cells)
         centres = grid.centres(cells + (size - 1) / 2.0)
-        decision = classify_cells(views, centres, size * s / 2.0, s, k, stats)
+        decision = kern.classify_cells(centres, size * s / 2.0, s, k, stats)
         full = cells[decision == 1]
         if len(full):
             r = np.arange(size)
@@ -306,7 +345,7 @@ def carve_octree(views: Sequence[ViewField], grid: Grid, k: int, top_cell: int =
         cells = cells[np.all(cells < shape, axis=1)]
         stats.cells_per_level[1] = len(cells)
         stats.fine_voxels = len(cells)
-        phi[cells[:, 0], cells[:, 1], cells[:, 2]] = voxel_field(
-            views, grid.centres(cells), s, k, stats)
+        phi[cells[:, 0], cells[:, 1], cells[:, 2]] = kern.voxel_field(
+            grid.centres(cells), s, k, stats)
     phi = np.ascontiguousarray(phi[: shape[0], : shape[1], : shape[2]])
     return _finish(phi, stats, keep_thin, thin_value, t0), stats

@@ -28,6 +28,8 @@ DISC_FILL = 0.75
 RIM_FILL = 0.9
 # Radius jump (voxels) between slices that splits pot from carrier.
 RADIUS_JUMP_VOXELS = 1.5
+# Non-disc slices tolerated at the bottom of the hull (the cone under the pot).
+BOTTOM_SKIP_SLICES = 4
 # A pot narrower than this (voxels) is not told apart from a stem.
 MIN_POT_RADIUS_VOXELS = 3.0
 
@@ -111,14 +113,21 @@ def fit_pot(volume: Volume) -> list[TaperedCylinder]:
     if occupied_slices.size == 0:
         return []
     k0 = occupied_slices[0]
-    k = k0
-    while k < len(prof.z) and prof.area[k] > 0 and prof.fill[k] >= DISC_FILL:
+    disc = (prof.area > 0) & (prof.fill >= DISC_FILL) & (prof.r_eq >= MIN_POT_RADIUS_VOXELS * s)
+    # Under the pot the hull is a cone (no camera looks up): skip a few slices to the first disc.
+    starts = np.flatnonzero(disc[k0:k0 + BOTTOM_SKIP_SLICES + 1])
+    if starts.size == 0:
+        return []
+    k = ks = k0 + starts[0]
+    while k < len(prof.z) and disc[k]:
         k += 1
-    run = np.arange(k0, k)
-    if len(run) < 3 or np.median(prof.r_eq[run]) < MIN_POT_RADIUS_VOXELS * s:
+    run = np.arange(ks, k)
+    if len(run) < 3:
         return []
     jumps = np.flatnonzero(np.abs(np.diff(prof.r_eq[run])) > RADIUS_JUMP_VOXELS * s) + 1
-    pieces = [p for p in np.split(run, jumps) if len(p) >= 2]
+    pieces = [p for p in np.split(run, jumps) if len(p) >= 3]
+    if not pieces:
+        return []
     cylinders = []
     for n, piece in enumerate(pieces):
         z = prof.z[piece]
@@ -134,7 +143,8 @@ def fit_pot(volume: Volume) -> list[TaperedCylinder]:
                     break
                 kk += 1
             top = kk - 1
-        z_bottom = prof.z[piece[0]] - s / 2
+        # The lowest piece also takes the cone under the pot (down to the lowest slice).
+        z_bottom = prof.z[k0 if n == 0 else piece[0]] - s / 2
         z_top = prof.z[top] + s / 2
         cylinders.append(TaperedCylinder(
             z_bottom_mm=float(z_bottom), z_top_mm=float(z_top),
@@ -147,6 +157,9 @@ def fit_pot(volume: Volume) -> list[TaperedCylinder]:
 def remove_cylinders(volume: Volume, cylinders: list[TaperedCylinder],
                      margin_mm: float) -> tuple[np.ndarray, int]:
     """Field with ``cylinders`` (grown by ``margin_mm``) subtracted; and voxels removed.
+
+    ``margin_mm`` is the full margin; callers add a voxel to it because the
+    hull's rim is only known to a voxel.
 
     Returns
     -------

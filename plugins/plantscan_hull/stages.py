@@ -42,6 +42,8 @@ class HullParams(StageParams):
     keep_thin: bool = Field(True, description="keep parts thinner than a voxel (thin leaves)")
     thin_value: float = Field(0.15, gt=0, le=0.5,
                               description="field value of a rescued thin voxel (voxels)")
+    backend: Literal["auto", "numpy", "numba"] = Field(
+        "auto", description="hot loops: numba when installed (auto), or the numpy reference")
 
     @field_validator("bbox")
     @classmethod
@@ -81,7 +83,7 @@ class _HullBase(Reconstructor):
         info: dict = {}
         if p.bbox is None:
             lo, hi, info = auto_box(views, p.k, p.bbox_margin_mm,
-                                    coarse=min(128, p.resolution))
+                                    coarse=min(128, p.resolution), backend=p.backend)
         else:
             lo, hi = np.array(p.bbox[:3]), np.array(p.bbox[3:])
         t_box = time.perf_counter() - t0 - t_prep
@@ -119,7 +121,8 @@ class OctreeHull(_HullBase):
 
     def _carve(self, views, grid):
         p = self.params
-        return carve_octree(views, grid, p.k, p.top_cell, p.keep_thin, p.thin_value)
+        return carve_octree(views, grid, p.k, p.top_cell, p.keep_thin, p.thin_value,
+                            backend=p.backend)
 
 
 class DenseHull(_HullBase):
@@ -130,7 +133,7 @@ class DenseHull(_HullBase):
 
     def _carve(self, views, grid):
         p = self.params
-        return carve_dense(views, grid, p.k, p.keep_thin, p.thin_value)
+        return carve_dense(views, grid, p.k, p.keep_thin, p.thin_value, backend=p.backend)
 
 
 class MarchingCubesMesher(Mesher):
@@ -142,7 +145,9 @@ class MarchingCubesMesher(Mesher):
         pot: Literal["auto", "none"] | list[TaperedCylinder] = Field(
             "auto", description="'auto' (fit from the hull), 'none', or the tapered cylinders "
                                 "(pot, carrier) to remove, mm")
-        pot_margin_mm: float = Field(1.5, ge=0, description="removed beyond the pot surface")
+        pot_margin_mm: float = Field(
+            1.5, ge=0, description="removed beyond the pot surface, plus one voxel (the hull's "
+                                   "rim is known to a voxel)")
         min_component_voxels: int = Field(
             8, ge=0, description="inside components smaller than this are dropped (mask specks)")
         smooth_iterations: int = Field(0, ge=0, description="pymeshlab Taubin smoothing steps")
@@ -158,12 +163,14 @@ class MarchingCubesMesher(Mesher):
             cylinders = []
         else:
             cylinders = list(p.pot)
-        field, removed = remove_cylinders(volume, cylinders, p.pot_margin_mm)
+        margin = p.pot_margin_mm + float(volume.voxel_size)
+        field, removed = remove_cylinders(volume, cylinders, margin)
         field, dropped = drop_small_components(field, p.min_component_voxels)
         mesh = marching_cubes(field, volume.origin, volume.voxel_size)
         mesh = postprocess(mesh, p.smooth_iterations, p.target_faces)
         report = {"pot": [c.model_dump() for c in cylinders], "pot_mode": p.pot
-                  if isinstance(p.pot, str) else "given", "pot_voxels_removed": removed,
+                  if isinstance(p.pot, str) else "given", "pot_margin_mm": margin,
+                  "pot_voxels_removed": removed,
                   "components_dropped": dropped, "topology": topology_report(mesh)}
         self.last_report = report
         run_dir = self.context.run_dir
