@@ -30,12 +30,12 @@ sys.path[:0] = [str(ROOT / "tests" / "batch"), str(ROOT / "plugins")]
 
 def main() -> int:
     from batch_fixtures import SCAN_ARGS, write_recipe
+    from plantscan_sim import make_scan
 
     from plantscan_core.batch import run_batch
     from plantscan_core.pipeline import process
     from plantscan_core.plugins import load_plugins
     from plantscan_core.recipe import load_recipe
-    from plantscan_sim import make_scan
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--plants", type=int, default=4)
@@ -73,7 +73,7 @@ def main() -> int:
         t0 = time.perf_counter()
         summary = run_batch(scans, recipe, out, overrides=overrides, workers=workers,
                             progress=False)
-        rows.append((f"run_batch, local cluster", workers, time.perf_counter() - t0,
+        rows.append(("run_batch, local cluster", workers, time.perf_counter() - t0,
                      summary.succeeded))
         if summary.failed:
             print(summary)

@@ -51,7 +51,8 @@ def quality_rows(quality: dict[str, Any], limit: int = 60) -> list[tuple[str, st
                 rows.append((path, f"{len(node)} records"))
             elif _numeric_list(node):
                 arr = np.asarray(node, dtype=float).ravel()
-                rows.append((path, f"{arr.size} values, mean {arr.mean():.4g}, max {arr.max():.4g}"))
+                rows.append((path, f"{arr.size} values, mean {arr.mean():.4g}, "
+                                   f"max {arr.max():.4g}"))
             elif len(node) <= 12:
                 for i, v in enumerate(node):
                     walk(v, f"{path}.{i}")

@@ -46,7 +46,8 @@ def _truth_leaf_centroids(truth_dir: Path) -> dict[int, np.ndarray] | None:
     return _centroids(vertices, faces, leaf_id)
 
 
-def _centroids(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray) -> dict[int, np.ndarray]:
+def _centroids(vertices: np.ndarray, faces: np.ndarray,
+               labels: np.ndarray) -> dict[int, np.ndarray]:
     """Area-weighted centroid (3,) mm of each label's faces."""
     tri = vertices[faces]
     area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
@@ -77,6 +78,7 @@ def match_leaves(measured: Traits, truth: Traits, labelled: LabelledMesh | None,
                      if cost[r, c] < 0.5 * truth_by_id[t_ids[c]].length_mm]
             return LeafMatch(pairs, "nearest leaf centroid (Hungarian)",
                              len(measured.leaves) - len(pairs), len(truth.leaves) - len(pairs))
-    pairs = [(measured_by_id[i], truth_by_id[i]) for i in sorted(measured_by_id) if i in truth_by_id]
+    pairs = [(measured_by_id[i], truth_by_id[i]) for i in sorted(measured_by_id)
+             if i in truth_by_id]
     return LeafMatch(pairs, "same leaf id", len(measured.leaves) - len(pairs),
                      len(truth.leaves) - len(pairs))

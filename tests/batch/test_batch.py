@@ -59,17 +59,16 @@ def test_run_folders_are_named_after_scans_and_never_collide(tmp_path: Path):
     assert [d.name for d in dirs] == ["p1", "p1-2", "p2"]
 
 
-def test_a_broken_recipe_fails_once_before_any_work(tmp_path: Path, batch_inputs):
-    scans, recipe = batch_inputs
+def test_a_broken_recipe_fails_once_before_any_work(tmp_path: Path, batch_recipe):
     with pytest.raises(RecipeError) as err:
-        run_batch([scans["good1"]], recipe, tmp_path / "out",
+        run_batch([tmp_path / "some-scan"], batch_recipe, tmp_path / "out",
                   overrides=["segment.plugin=no-such-segmenter"], progress=False)
     assert "segment.plugin" in str(err.value)
     assert not (tmp_path / "out").exists()  # no cluster started, nothing written
 
 
-def test_a_plant_task_returns_its_failure_instead_of_raising(tmp_path: Path, batch_inputs):
-    _, recipe = batch_inputs
+def test_a_plant_task_returns_its_failure_instead_of_raising(tmp_path: Path, batch_recipe):
+    recipe = batch_recipe
     not_a_scan = tmp_path / "empty-folder"
     not_a_scan.mkdir()
     outcome = process_plant(str(not_a_scan), str(recipe), [], str(tmp_path / "run"))

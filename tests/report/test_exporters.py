@@ -8,16 +8,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from plantscan_core.data import Traits
-from plantscan_core.plugins import new_manager
-from plantscan_core.stages import RunResult, StageContext
 from plantscan_report import plugin
 from plantscan_report.colours import face_colours, leaf_colour
 from plantscan_report.html_report import HtmlReportExporter
 from plantscan_report.truth import match_leaves, read_truth_traits
-
 from report_fixtures import HOSTILE_ID, HOSTILE_RECIPE
+
+from plantscan_core.data import Traits
+from plantscan_core.plugins import new_manager
+from plantscan_core.stages import RunResult, StageContext
 
 
 def build(name: str, run: RunResult, params: dict | None = None):
@@ -241,9 +240,9 @@ def test_view_decimation_keeps_the_shape():
     """The 3D view of a dense mesh is decimated to its face budget, its area kept within 2 %
     (quadric decimation of a smooth sphere loses little surface)."""
     import open3d as o3d
+    from plantscan_report.html_report import _decimate
 
     from plantscan_core.data import Mesh
-    from plantscan_report.html_report import _decimate
 
     sphere = Mesh.from_open3d(o3d.geometry.TriangleMesh.create_sphere(50.0, resolution=60))
     small = _decimate(sphere, 1000)

@@ -7,10 +7,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from report_chromium import chromium_binary, open_page
-
 from plantscan_report.colours import leaf_colour
 from plantscan_report.html_report import HtmlReportExporter
+from report_chromium import chromium_binary, open_page
 
 pytestmark = pytest.mark.skipif(
     chromium_binary() is None,
