@@ -141,9 +141,10 @@ class Run:
         compute: Callable[[Stage], Any],
         load: Callable[[], Any],
         spec=None,
+        stage: str | None = None,
     ) -> tuple[Any, str]:
         """Run (or load from cache) one stage; returns (result, cache key)."""
-        stage = PROCESSING_SECTIONS.get(section, section)
+        stage = stage or PROCESSING_SECTIONS[section]
         spec = spec if spec is not None else getattr(self.recipe, section)
         plugin = self.manager.build(stage, spec.plugin, spec.params, self.context)
         key = _sha({"stage": stage, "plugin": spec.plugin, "version": plugin.version(),
@@ -341,8 +342,7 @@ class Run:
             # Exporters are cheap and their inputs are the whole run: never cached.
             self._cache_path(f"export.{i}").unlink(missing_ok=True)
             written, _ = self.run_stage(f"export.{i}", now_iso(), [], compute, lambda: [],
-                                        spec=spec)
-            self.info["stages"][f"export.{i}"]["stage"] = "exporter"
+                                        spec=spec, stage="exporter")
             files += [str(p) for p in written or []]
         self.info["exports"] = files
 
