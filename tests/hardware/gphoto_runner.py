@@ -88,7 +88,10 @@ def probe(cases_file: str) -> None:
             out = Path(cases_file).with_name(f"probe{i}.jpg")
             cam.capture(CaptureRequest(out, "plant", "cam0", 0, 0.0, 0, 0.0, None,
                                        tuple(case["size"]), "jpg"))
-            results.append({"error": None})
+            config = cam._cam.get_config()  # read back from the (virtual) camera
+            values = {n: str(config.get_child_by_name(n).get_value())
+                      for n in case.get("read", [])}
+            results.append({"error": None, "values": values})
         except PlantScanError as exc:
             results.append({"error": str(exc)})
         finally:

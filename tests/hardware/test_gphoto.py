@@ -159,7 +159,12 @@ PROBES = {
     "unknown setting": ({"settings": {"whitebalance": "Daylight"}},
                         ["'whitebalance'", "params.settings.whitebalance", "offers:"]),
     "size mismatch": ({"check_image_size": True}, ["64x48", "scan.image_size = [640, 480]"]),
+    "settings": ({"aperture": "f/8", "shutter_speed": "0.0050s", "capture_target": "card",
+                  "settings": {"exposurecompensation": "-1"}}, None),
+    "invalid value": ({"aperture": "8"}, ["params.aperture = '8'", "valid: f/2.8, f/3.5"]),
 }
+READ_BACK = {"f-number": "f/8", "shutterspeed": "0.0050s", "capturetarget": "Memory card",
+             "exposurecompensation": "-1"}
 
 
 @pytest.fixture(scope="module")
@@ -170,7 +175,8 @@ def probe_results(tmp_path_factory):
     d.mkdir()
     cv2.imwrite(str(d / "photo.jpg"), np.full((SIZE[1], SIZE[0], 3), 90, np.uint8))
     cases = [{"params": {"retry_backoff_s": 0.01, **params},
-              "size": [640, 480] if name == "size mismatch" else list(SIZE)}
+              "size": [640, 480] if name == "size mismatch" else list(SIZE),
+              "read": list(READ_BACK) if name == "settings" else []}
              for name, (params, _) in PROBES.items()]
     (root / "cases.json").write_text(json.dumps(cases))
     env = {**os.environ, "VCAMERADIR": str(d)}
@@ -187,5 +193,7 @@ def test_camera_selection_settings_and_size(probe_results, case):
     error = probe_results[case]["error"]
     if expected is None:
         assert error is None
+        if case == "settings":  # what the virtual camera reports after open()
+            assert probe_results[case]["values"] == READ_BACK
     else:
         assert error is not None and all(part in error for part in expected), error
