@@ -49,7 +49,7 @@ th{background:#f0f0f0} td.l,th.l{text-align:left}
 .swatch{display:inline-block;width:12px;height:12px;border-radius:2px;margin-right:6px;
 vertical-align:middle;border:1px solid #888}
 .strip{display:flex;flex-wrap:wrap;gap:8px}
-figure{margin:0;font-size:.8em;text-align:center} figure img{display:block;width:220px;height:auto}
+figure{margin:0;font-size:.8em;text-align:center} figure img{display:block;width:240px;height:auto}
 .grid{display:flex;flex-wrap:wrap;gap:12px} .grid>div{flex:1 1 420px;min-width:320px}
 .note{color:#666;font-size:.85em} .bad{color:#a00}
 """
@@ -212,26 +212,39 @@ def _calibration_section(run: RunResult, figs: _Figures) -> str:
     return "".join(out)
 
 
-def _thumbnail_b64(image: np.ndarray, mask: np.ndarray | None, max_width: int) -> str:
-    """JPEG (base64) of a BGR image with the silhouette outlined and the outside dimmed."""
+THUMB_WIDTH = 240  # px of a silhouette thumbnail
+
+
+def _thumbnail_b64(image: np.ndarray, mask: np.ndarray | None, width: int = THUMB_WIDTH) -> str:
+    """JPEG (base64) of a BGR image ``width`` px wide, outside of ``mask`` dimmed, outlined.
+
+    The image and the mask are resized to the thumbnail first, so the outline is one
+    thumbnail pixel whatever the camera's resolution.
+    """
     import cv2
 
-    img = image.copy()
+    height = max(1, round(image.shape[0] * width / image.shape[1]))
+    interp = cv2.INTER_AREA if image.shape[1] > width else cv2.INTER_LINEAR
+    img = cv2.resize(image, (width, height), interpolation=interp)
     if mask is not None:
-        m = cv2.resize(mask.astype(np.uint8), (img.shape[1], img.shape[0]),
-                       interpolation=cv2.INTER_NEAREST).astype(bool)
+        m = cv2.resize(mask.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA)
+        m = m >= 0.5
         img[~m] = (img[~m] * 0.45).astype(np.uint8)
         contours, _ = cv2.findContours(m.astype(np.uint8), cv2.RETR_EXTERNAL,
                                        cv2.CHAIN_APPROX_SIMPLE)
         cv2.drawContours(img, contours, -1, (255, 0, 255), 1, lineType=cv2.LINE_AA)
-    if img.shape[1] > max_width:
-        scale = max_width / img.shape[1]
-        img = cv2.resize(img, (max_width, max(1, round(img.shape[0] * scale))),
-                         interpolation=cv2.INTER_AREA)
     ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 80])
     if not ok:
         raise PlantScanError("could not encode a report thumbnail as JPEG")
     return base64.b64encode(buf.tobytes()).decode("ascii")
+
+
+def _decode_reduce(full_width: int, reduce: int) -> int:
+    """The largest decode reduction <= ``reduce`` that still gives a thumbnail-wide image."""
+    for r in (8, 4, 2):
+        if r <= reduce and full_width / r >= THUMB_WIDTH:
+            return r
+    return 1
 
 
 def _silhouette_section(run: RunResult, count: int, reduce: int) -> str:
@@ -246,8 +259,8 @@ def _silhouette_section(run: RunResult, count: int, reduce: int) -> str:
         caption = (f"view {view.index} · {view.camera} · tilt {view.tilt_deg:g}° · "
                    f"{view.angle_deg:g}° · {100 * sil.mask.mean():.1f}% plant")
         try:
-            image = run.scan.read_image(view, reduce=reduce)
-            b64 = _thumbnail_b64(image, sil.mask, 240)
+            image = run.scan.read_image(view, reduce=_decode_reduce(sil.mask.shape[1], reduce))
+            b64 = _thumbnail_b64(image, sil.mask)
             figures.append(f'<figure><img alt="{_esc(view.file)}" '
                            f'src="data:image/jpeg;base64,{b64}"><figcaption>{_esc(caption)}'
                            "</figcaption></figure>")
@@ -340,7 +353,7 @@ def _run_section(run: RunResult) -> str:
     rows = [["scan", _esc(run.scan.root if run.scan is not None else "-")],
             ["run folder", _esc(run.run_dir)], ["report written", _esc(now_iso())]]
     for key, value in (run.info or {}).items():
-        if isinstance(value, (str, int, float, bool)):
+        if isinstance(value, (str, int, float, bool)) and key not in ("scan", "run_dir"):
             rows.append([_esc(key), _esc(value)])
     return f'<section id="run"><h2>Run</h2>{_table(["item", "value"], rows, 2)}</section>'
 
@@ -386,7 +399,8 @@ class HtmlReportExporter(Exporter):
         thumbnails: int = Field(default=6, ge=0, le=72)
         """Number of silhouettes shown over their images (evenly spread over the views)."""
         thumbnail_reduce: Literal[1, 2, 4, 8] = 4
-        """Decode the images at 1/reduce of their size for the thumbnails (fast, small)."""
+        """Decode images at up to 1/reduce of their size for the thumbnails (fast); less
+        reduction when that would be narrower than a thumbnail."""
         max_faces: int = Field(default=150_000, ge=1_000)
         """Face budget of the 3D view (decimated above it; the exported meshes are not)."""
 
