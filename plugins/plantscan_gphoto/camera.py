@@ -36,6 +36,7 @@ TRANSIENT = {GP_ERROR_TIMEOUT, GP_ERROR_IO_USB_CLAIM, GP_ERROR_IO_LOCK, GP_ERROR
 GP_ERROR_IO = -7
 GP_ERROR_IO_USB_FIND = -52
 GP_ERROR_MODEL_NOT_FOUND = -105
+RECONNECTABLE = {GP_ERROR_IO, GP_ERROR_IO_USB_FIND}  # the camera was reset or re-enumerated
 
 HINTS = {
     GP_ERROR_IO_USB_CLAIM: (
@@ -191,7 +192,8 @@ class GPhotoCamera(CameraBackend):
         if not detected:
             raise GPhotoError(
                 f"{self.label}: no camera detected; check it is on, in PC/PTP mode and connected, "
-                "and that this user may access USB cameras (docs/hardware/gphoto2.md)"
+                "and that this user may access USB cameras (docs/hardware/gphoto2.md)",
+                GP_ERROR_IO_USB_FIND,
             )
         candidates = detected
         if p.port:
@@ -323,12 +325,32 @@ class GPhotoCamera(CameraBackend):
         gp = _gp()
         if self._cam is None:
             self.open()
-        where = self._call("capture", self._cam.capture, gp.GP_CAPTURE_IMAGE)
+        where = self._capture_reconnecting(gp)
         folder, name = str(where.folder), str(where.name)
         return lambda: self._download(request, folder, name)
 
     def capture(self, request: CaptureRequest) -> Path:
         return self.trigger(request)()
+
+    def _capture_reconnecting(self, gp):
+        """Release the shutter; if the camera fell off the bus (USB reset), reconnect and retry.
+
+        Only the shutter release is retried this way: an image not yet downloaded is lost
+        with the connection, and its view is captured again on --resume.
+        """
+        for attempt in range(self.params.retries + 1):
+            try:
+                if self._cam is None:
+                    self.open()
+                return self._call("capture", self._cam.capture, gp.GP_CAPTURE_IMAGE)
+            except GPhotoError as exc:
+                if exc.code not in RECONNECTABLE or attempt == self.params.retries:
+                    raise
+                log.warning("%s: %s; reconnecting", self.label, exc)
+                self.retries_used += 1
+                self.close()
+                time.sleep(self.params.retry_backoff_s * (attempt + 1))
+        raise AssertionError("unreachable")
 
     def _download(self, request: CaptureRequest, folder: str, name: str) -> Path:
         gp = _gp()

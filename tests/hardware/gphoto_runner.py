@@ -34,7 +34,7 @@ from plantscan_core.plugins import new_manager  # noqa: E402
 from plantscan_core.recipe import validate_recipe  # noqa: E402
 
 FAULTS: dict[str, list[int]] = json.loads(os.environ.get("GPHOTO_FAULTS", "{}"))
-RETRIES: list[int] = []
+RETRIES: dict[int, int] = {}  # camera object -> transient errors it retried
 
 
 class FaultyCamera:
@@ -64,7 +64,7 @@ class FaultyGPhotoCamera(GPhotoCamera):
         return FaultyCamera(super()._new_camera())
 
     def close(self):
-        RETRIES.append(self.retries_used)
+        RETRIES[id(self)] = self.retries_used
         super().close()
 
 
@@ -117,7 +117,7 @@ def main() -> None:
         error = {"type": type(exc).__name__, "message": str(exc)}
     views = [json.loads(line) for line in (out / "views.jsonl").read_text().splitlines()
              if line.strip()] if (out / "views.jsonl").exists() else []
-    print(json.dumps({"views": views, "retries": sum(RETRIES), "error": error}))
+    print(json.dumps({"views": views, "retries": sum(RETRIES.values()), "error": error}))
 
 
 if __name__ == "__main__":

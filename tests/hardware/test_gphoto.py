@@ -93,6 +93,16 @@ def test_transient_errors_are_retried_and_the_scan_completes(tmp_path, vcamdir):
     assert summary["retries"] == 2 + 4 + 2  # every injected fault was retried once
 
 
+def test_usb_reset_mid_scan_reconnects(tmp_path, vcamdir):
+    """-7 / -52 on the shutter release: the camera is re-opened and the scan goes on."""
+    out = tmp_path / "scan"
+    faults = {"capture": [0, 0, -7, 0, -52], "init": [0, 0, -53]}
+    summary = _run(_recipe("gphoto2-faulty"), out, vcamdir, faults)
+    assert summary["error"] is None and len(summary["views"]) == 5
+    # 2 reconnects + one -53 while re-opening, retried with back-off
+    assert summary["retries"] == 3
+
+
 def test_camera_held_by_another_program_gives_an_actionable_error(tmp_path, vcamdir):
     out = tmp_path / "scan"
     summary = _run(_recipe("gphoto2-faulty", {"retries": 3}), out, vcamdir,
