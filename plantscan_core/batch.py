@@ -26,7 +26,7 @@ import sys
 import time
 import traceback
 import uuid
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -248,6 +248,7 @@ def run_batch(
     workers: int = 2,
     progress: bool = True,
     connect_timeout_s: float = 30.0,
+    task: Callable[..., PlantOutcome] = process_plant,
 ) -> BatchSummary:
     """Process every scan in ``scans`` with the recipe, one Dask task per plant.
 
@@ -268,6 +269,11 @@ def run_batch(
         Local worker processes (ignored with ``scheduler``).
     progress : bool
         Show a progress bar and one line per finished plant on stderr.
+    connect_timeout_s : float
+        How long to wait for ``scheduler`` to answer.
+    task : callable
+        The per-plant function, ``process_plant`` or one with its signature (an
+        importable module-level function: it is pickled to the workers).
 
     Returns
     -------
@@ -304,7 +310,7 @@ def run_batch(
     outcomes: dict[int, PlantOutcome] = {}
     try:
         futures = {
-            client.submit(process_plant, str(scan), str(recipe_path), list(overrides), str(rd),
+            client.submit(task, str(scan), str(recipe_path), list(overrides), str(rd),
                           1, key=f"plantscan-{batch_id}-{i}-{scan.name}", pure=False): i
             for i, (scan, rd) in enumerate(zip(scans, run_dirs, strict=True))
         }

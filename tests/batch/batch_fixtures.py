@@ -58,3 +58,15 @@ def make_scans(root: Path) -> dict[str, Path]:
         image.write_bytes(b"not a PNG: the card reader failed")
     scans["corrupt"] = corrupt
     return scans
+
+
+def crash_on_scan_named_crash(scan_dir: str, recipe_path: str, overrides, run_dir: str,
+                              threads: int = 1):
+    """A per-plant task that kills its worker process on the scan named ``crash``."""
+    import os
+
+    from plantscan_core.batch import PlantOutcome
+
+    if Path(scan_dir).name == "crash":
+        os._exit(17)  # like a segfault in a native library: no exception, the process is gone
+    return PlantOutcome(scan=scan_dir, status="ok", run_dir=run_dir, leaf_count=0)

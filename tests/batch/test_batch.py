@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 
 import pytest
-from batch_fixtures import PLUGINS
+from batch_fixtures import PLUGINS, crash_on_scan_named_crash
 
 from plantscan_core.batch import ERROR_TXT, _run_dirs, process_plant, run_batch
 from plantscan_core.data import Traits
@@ -93,6 +93,24 @@ def test_cli_batch_on_a_two_worker_local_cluster(tmp_path: Path, batch_inputs, c
     # Both worker processes of the cluster took plants (3 tasks submitted at once to 2 idle
     # single-thread workers: the scheduler gives each at least one).
     assert len({r["worker"] for r in rows}) == 2
+
+
+@pytest.mark.slow
+def test_a_plant_that_kills_its_worker_is_reported_and_the_others_finish(tmp_path: Path,
+                                                                         batch_recipe):
+    import dask
+
+    scans = [tmp_path / name for name in ("first", "crash", "last")]
+    # No retries of the crashing task on fresh workers: one death is enough to report it.
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
+        summary = run_batch(scans, batch_recipe, tmp_path / "out", workers=2, progress=False,
+                            task=crash_on_scan_named_crash)
+    status = {Path(p.scan).name: p for p in summary.plants}
+    assert status["first"].ok and status["last"].ok
+    assert not status["crash"].ok
+    assert "task failed on the cluster" in status["crash"].error
+    assert "KilledWorker" in status["crash"].error
+    assert summary.failed == 1
 
 
 def _start(cmd: list[str], log: Path, env: dict[str, str]) -> subprocess.Popen:
