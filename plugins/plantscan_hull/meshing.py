@@ -84,10 +84,14 @@ def topology_report(mesh: Mesh) -> dict:
         return {"boundary_edges": 0, "nonmanifold_edges": 0, "misoriented_edges": 0,
                 "nonmanifold_vertices": 0, "degenerate_faces": 0, "watertight": False,
                 "manifold": False}
-    directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    undirected = np.sort(directed, axis=1)
-    _, counts = np.unique(undirected, axis=0, return_counts=True)
-    _, dcounts = np.unique(directed, axis=0, return_counts=True)
+    n = np.int64(max(len(mesh.vertices), 1))
+    directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]).astype(np.int64)
+    # One int64 key per edge: 1-D unique is an order of magnitude faster than axis=0.
+    dkeys = directed[:, 0] * n + directed[:, 1]
+    ukeys = np.minimum(directed[:, 0], directed[:, 1]) * n + np.maximum(directed[:, 0],
+                                                                        directed[:, 1])
+    _, counts = np.unique(ukeys, return_counts=True)
+    _, dcounts = np.unique(dkeys, return_counts=True)
     degenerate = int(np.sum((f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])))
     o3 = mesh.to_open3d()
     nm_vertices = len(np.asarray(o3.get_non_manifold_vertices()))

@@ -175,11 +175,19 @@ def remove_cylinders(volume: Volume, cylinders: list[TaperedCylinder],
         k_hi = min(field.shape[2], int(np.ceil((cyl.z_top_mm + margin_mm - origin[2]) / s)) + 2)
         if k_hi <= k_lo:
             continue
-        sub = field[:, :, k_lo:k_hi]
-        idx = np.stack(np.meshgrid(np.arange(field.shape[0]), np.arange(field.shape[1]),
+        r_max = max(cyl.r_bottom_mm, cyl.r_top_mm) + margin_mm
+        (cx, cy), n = cyl.centre_xy_mm, field.shape
+        i_lo = max(0, int(np.floor((cx - r_max - origin[0]) / s)) - 1)
+        i_hi = min(n[0], int(np.ceil((cx + r_max - origin[0]) / s)) + 2)
+        j_lo = max(0, int(np.floor((cy - r_max - origin[1]) / s)) - 1)
+        j_hi = min(n[1], int(np.ceil((cy + r_max - origin[1]) / s)) + 2)
+        if i_hi <= i_lo or j_hi <= j_lo:
+            continue
+        sub = field[i_lo:i_hi, j_lo:j_hi, k_lo:k_hi]
+        idx = np.stack(np.meshgrid(np.arange(i_lo, i_hi), np.arange(j_lo, j_hi),
                                    np.arange(k_lo, k_hi), indexing="ij"), axis=-1).reshape(-1, 3)
         d_in = cyl.inside_distance(origin + idx * s, margin_mm).reshape(sub.shape) / s
         cut = np.minimum(sub, -np.clip(d_in, -1.0, 1.0)).astype(np.float32)
         removed += int(((sub > 0) & (cut <= 0)).sum())
-        field[:, :, k_lo:k_hi] = cut
+        field[i_lo:i_hi, j_lo:j_hi, k_lo:k_hi] = cut
     return field, removed

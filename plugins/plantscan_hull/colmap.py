@@ -1,0 +1,316 @@
+"""``plantscan import colmap``: a COLMAP text model + images (+ masks) -> a scan folder.
+
+Each COLMAP image becomes one ``plant`` view with its own calibrated pose:
+camera ``colmap<CAMERA_ID>``, ``tilt_index`` = the view's index, turntable
+angle 0, so ``Calibration.camera_for_view`` returns exactly COLMAP's camera.
+The calibration is written to ``SCAN/calibration.yaml`` (read by the
+``fixed`` calibrator), masks to ``SCAN/masks/<image stem>.png`` (read by the
+``given-masks`` segmenter), and ``scan.yaml`` carries a processing recipe.
+
+COLMAP conventions converted: the centre of the top-left pixel is (0.5, 0.5)
+in COLMAP and (0, 0) here; poses are world -> camera in both (``x = R X + t``,
+``R`` from the quaternion ``QW QX QY QZ``).  Lengths are multiplied by
+``--scale`` (mm per model unit; COLMAP's scale is arbitrary).  The world
+frame is COLMAP's: the pot fit assumes +Z up, so the recipe turns it off.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from plantscan_core.data import Calibration, CameraModel, Pose, ViewRecord
+from plantscan_core.errors import DataError
+from plantscan_core.scanfolder import ScanFolder, atomic_write_bytes, now_iso
+
+SUPPORTED = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+# fx and fy may differ by this fraction (square pixels) for the one-focal model.
+FOCAL_RTOL = 1e-3
+
+
+@dataclass
+class ColmapImage:
+    image_id: int
+    q: np.ndarray      # (4,) qw, qx, qy, qz
+    t: np.ndarray      # (3,) model units
+    camera_id: int
+    name: str
+
+
+def _lines(path: Path) -> list[tuple[int, str]]:
+    if not path.exists():
+        raise DataError(f"{path}: not found (a COLMAP text model needs cameras.txt and "
+                        "images.txt; export it with `colmap model_converter --output_type TXT`)")
+    return [(n, line) for n, line in enumerate(path.read_text().splitlines(), start=1)
+            if line.strip() and not line.lstrip().startswith("#")]
+
+
+def read_cameras(path: Path) -> dict[int, CameraModel]:
+    """cameras.txt -> plantscan camera models (pixel centres converted)."""
+    out = {}
+    for n, line in _lines(path):
+        parts = line.split()
+        try:
+            cam_id, model, w, h = int(parts[0]), parts[1], int(parts[2]), int(parts[3])
+            p = [float(x) for x in parts[4:]]
+        except (IndexError, ValueError) as exc:
+            raise DataError(f"{path}:{n}: malformed camera line ({exc})") from None
+        where = f"{path}:{n} (camera {cam_id}, {model})"
+        if model == "SIMPLE_PINHOLE":
+            f, cx, cy, d1, d2 = p[0], p[1], p[2], 0.0, 0.0
+        elif model == "PINHOLE":
+            fx, fy, cx, cy = p[:4]
+            f, d1, d2 = _one_focal(fx, fy, where), 0.0, 0.0
+        elif model == "SIMPLE_RADIAL":
+            f, cx, cy, d1, d2 = p[0], p[1], p[2], p[3], 0.0
+        elif model == "RADIAL":
+            f, cx, cy, d1, d2 = p[:5]
+        elif model == "OPENCV":
+            fx, fy, cx, cy, d1, d2, p1, p2 = p[:8]
+            f = _one_focal(fx, fy, where)
+            if abs(p1) > 1e-9 or abs(p2) > 1e-9:
+                raise DataError(
+                    f"{where}: tangential distortion (p1={p1:g}, p2={p2:g}) is not in "
+                    "plantscan's camera model (f, cu, cv, d1, d2); undistort the images "
+                    "first (`colmap image_undistorter`) and import the PINHOLE model")
+        else:
+            raise DataError(f"{where}: camera model not supported; valid: {', '.join(SUPPORTED)}")
+        out[cam_id] = CameraModel(f=f, cu=cx - 0.5, cv=cy - 0.5, d1=d1, d2=d2, width=w, height=h)
+    if not out:
+        raise DataError(f"{path}: no camera")
+    return out
+
+
+def _one_focal(fx: float, fy: float, where: str) -> float:
+    if abs(fx - fy) > FOCAL_RTOL * max(abs(fx), abs(fy)):
+        raise DataError(f"{where}: fx={fx:g} and fy={fy:g} differ (non-square pixels are not in "
+                        "plantscan's camera model); undistort/resample to square pixels first")
+    return 0.5 * (fx + fy)
+
+
+def read_images(path: Path) -> list[ColmapImage]:
+    """images.txt -> posed images (the 2D point lines are skipped)."""
+    out = []
+    lines = path.read_text().splitlines() if path.exists() else None
+    if lines is None:
+        _lines(path)  # raises the not-found error
+    body = [(n, ln) for n, ln in enumerate(lines, start=1) if not ln.lstrip().startswith("#")]
+    # Pairs of lines; the second (2D points) may be empty, so pair by position.
+    i = 0
+    while i < len(body):
+        n, line = body[i]
+        if not line.strip():
+            i += 1
+            continue
+        parts = line.split()
+        try:
+            img = ColmapImage(int(parts[0]), np.array(parts[1:5], dtype=float),
+                              np.array(parts[5:8], dtype=float), int(parts[8]),
+                              " ".join(parts[9:]))
+        except (IndexError, ValueError) as exc:
+            raise DataError(f"{path}:{n}: malformed image line ({exc})") from None
+        if not img.name:
+            raise DataError(f"{path}:{n}: image line without a file name")
+        out.append(img)
+        i += 2
+    if not out:
+        raise DataError(f"{path}: no image")
+    return sorted(out, key=lambda im: im.image_id)
+
+
+def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation of the unit quaternion ``(qw, qx, qy, qz)`` (COLMAP's order)."""
+    w, x, y, z = np.asarray(q, dtype=float) / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def matrix_to_quaternion(r: np.ndarray) -> np.ndarray:
+    """Inverse of ``quaternion_to_matrix`` (``qw >= 0``)."""
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_matrix(np.asarray(r, dtype=float)).as_quat()
+    q = np.array([w, x, y, z])
+    return q if w >= 0 else -q
+
+
+def _find_mask(masks: Path, name: str) -> Path | None:
+    base = Path(name)
+    for cand in (masks / f"{name}.png", masks / base.with_suffix(".png"), masks / name,
+                 masks / f"{base.name}.png", masks / base.with_suffix(".png").name):
+        if cand.is_file():
+            return cand
+    return None
+
+
+def import_colmap(sparse_dir: Path, images_dir: Path, out: Path, masks_dir: Path | None = None,
+                  scale: float = 1.0, plant_id: str | None = None) -> ScanFolder:
+    """Write a scan folder from a COLMAP text model; see the module docstring.
+
+    Raises
+    ------
+    DataError
+        Missing or malformed model files, unsupported camera models, a missing
+        image or mask, or a mask/image whose size differs from its camera's
+        (each names the file).
+    """
+    import cv2
+
+    sparse_dir, images_dir, out = Path(sparse_dir), Path(images_dir), Path(out)
+    if scale <= 0:
+        raise ValueError(f"scale must be > 0 mm per model unit, got {scale}")
+    cameras = read_cameras(sparse_dir / "cameras.txt")
+    images = read_images(sparse_dir / "images.txt")
+    missing_cam = sorted({im.camera_id for im in images} - set(cameras))
+    if missing_cam:
+        raise DataError(f"{sparse_dir / 'images.txt'}: images use camera ids {missing_cam} that "
+                        f"{sparse_dir / 'cameras.txt'} does not define")
+    # Check every input before writing anything.
+    plan = []
+    for i, im in enumerate(images):
+        src = images_dir / im.name
+        if not src.is_file():
+            raise DataError(f"{src}: image {im.name!r} (COLMAP image {im.image_id}) not found")
+        model = cameras[im.camera_id]
+        size = _image_size(src)
+        if size != (model.width, model.height):
+            raise DataError(f"{src}: is {size[0]}x{size[1]} px but COLMAP camera "
+                            f"{im.camera_id} is {model.width}x{model.height} px")
+        mask_src = None
+        if masks_dir is not None:
+            mask_src = _find_mask(Path(masks_dir), im.name)
+            if mask_src is None:
+                raise DataError(f"{masks_dir}: no mask for image {im.name!r} (looked for "
+                                f"{im.name}.png and {Path(im.name).with_suffix('.png')})")
+            m = cv2.imread(str(mask_src), cv2.IMREAD_GRAYSCALE)
+            if m is None:
+                raise DataError(f"{mask_src}: cannot read mask")
+            if (m.shape[1], m.shape[0]) != (model.width, model.height):
+                raise DataError(f"{mask_src}: mask is {m.shape[1]}x{m.shape[0]} px but image "
+                                f"{im.name!r} is {model.width}x{model.height} px (masks do not "
+                                "match the images)")
+        flat = im.name.replace("/", "__")
+        plan.append((i, im, src, mask_src, f"images/plant/{flat}"))
+
+    cam_names = {cid: f"colmap{cid}" for cid in cameras}
+    calibration = Calibration(
+        models={cam_names[cid]: m for cid, m in cameras.items()
+                if any(im.camera_id == cid for im in images)},
+        poses={(cam_names[im.camera_id], i): Pose(quaternion_to_matrix(im.q), im.t * scale)
+               for i, im, *_ in plan},
+        tilts_deg={i: 0.0 for i, *_ in plan},
+        quality={"source": "colmap", "sparse_dir": str(sparse_dir), "scale_mm_per_unit": scale},
+    )
+    recipe = import_recipe(sorted(calibration.models), plant_id or out.name)
+    scan = ScanFolder.create(out, {
+        "plant_id": plant_id or out.name, "species": "", "recipe_name": recipe["name"],
+        "recipe": recipe,
+        "rig": {"source": "colmap", "cameras": sorted(calibration.models), "tilts_deg": [0.0]},
+    })
+    calibration.save(out / "calibration.yaml")
+    for i, im, src, mask_src, rel in plan:
+        view = ViewRecord(index=i, role="plant", camera=cam_names[im.camera_id], tilt_index=i,
+                          tilt_deg=0.0, angle_index=0, commanded_angle_deg=0.0,
+                          measured_angle_deg=None, file=rel, captured_at=now_iso())
+        scan.append_view(view, lambda tmp, s=src: shutil.copyfile(s, tmp))
+        if mask_src is not None:
+            m = cv2.imread(str(mask_src), cv2.IMREAD_GRAYSCALE)
+            ok, buf = cv2.imencode(".png", np.where(m > 127, 255, 0).astype(np.uint8))
+            atomic_write_bytes(out / "masks" / f"{Path(rel).stem}.png", buf.tobytes())
+    return scan
+
+
+def _image_size(path: Path) -> tuple[int, int]:
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise DataError(f"{path}: cannot decode image")
+    return img.shape[1], img.shape[0]
+
+
+def import_recipe(camera_names: list[str], plant_id: str) -> dict:
+    """The processing recipe stored with an imported scan (no acquisition happens)."""
+    return {
+        "name": "colmap-import",
+        "description": "Imported from a COLMAP model: fixed calibration, given masks",
+        "plant": {"id": plant_id, "species": ""},
+        "scan": {
+            "protocol": "colmap-import",
+            # Acquisition is not run for an imported scan; the rig entries only name cameras.
+            "cameras": [{"name": n, "plugin": "opencv", "params": {}} for n in camera_names],
+            "turntable": {"plugin": "sim", "params": {}},
+            "tilts_deg": [0.0],
+            "images_per_revolution": 1,
+        },
+        "calibrate": {"plugin": "fixed", "params": {}},
+        "segment": {"plugin": "given-masks", "params": {}},
+        "reconstruct": {"plugin": "octree-hull", "params": {}},
+        "mesh": {"plugin": "marching-cubes", "params": {"pot": "none"}},
+    }
+
+
+def add_import_command(subparsers: argparse._SubParsersAction) -> None:
+    """``plantscan import colmap ...`` (adds the ``import`` group if nobody else did)."""
+    group = subparsers.choices.get("import")
+    if group is None:
+        group = subparsers.add_parser("import", help="import scans from other rigs")
+        group.set_defaults(func=lambda a: (group.print_help(), 2)[1])
+        sub = group.add_subparsers(dest="import_command", metavar="FORMAT")
+        group._plantscan_sub = sub  # type: ignore[attr-defined]
+    sub = getattr(group, "_plantscan_sub", None)
+    if sub is None:  # another plugin made the group its own way
+        sub = group.add_subparsers(dest="import_command", metavar="FORMAT")
+    p = sub.add_parser("colmap", help="COLMAP text model (cameras.txt, images.txt) + images")
+    p.add_argument("sparse", metavar="SPARSE_TXT_DIR", help="folder with cameras.txt, images.txt")
+    p.add_argument("--images", required=True, metavar="DIR", help="folder of the images")
+    p.add_argument("--masks", metavar="DIR", help="plant masks (<image name>.png, 0/255)")
+    p.add_argument("--out", required=True, metavar="SCAN", help="scan folder to write")
+    p.add_argument("--scale", type=float, default=1.0, help="mm per model unit (default 1)")
+    p.add_argument("--plant-id", help="plant id (default: the scan folder name)")
+    p.set_defaults(func=_cmd_import_colmap)
+
+
+def _cmd_import_colmap(args) -> int:
+    scan = import_colmap(Path(args.sparse), Path(args.images), Path(args.out),
+                         Path(args.masks) if args.masks else None, args.scale, args.plant_id)
+    print(f"{scan.root}: {len(scan.views)} views imported from {args.sparse}"
+          + ("" if args.masks else " (no masks: give --masks or choose a segmenter)"))
+    return 0
+
+
+def export_colmap_text(calibration: Calibration, views: list[ViewRecord], out_dir: Path,
+                       scale: float = 1.0) -> None:
+    """Write cameras.txt / images.txt (RADIAL) for ``views``: the inverse of the import.
+
+    One COLMAP camera per plantscan camera model; used by the round-trip test
+    and handy for feeding plantscan calibrations to COLMAP.
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    names = sorted({v.camera for v in views})
+    ids = {n: i + 1 for i, n in enumerate(names)}
+    cam_lines = ["# Camera list: CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]"]
+    for n in names:
+        m = calibration.models[n]
+        cam_lines.append(f"{ids[n]} RADIAL {m.width} {m.height} {m.f!r} {m.cu + 0.5!r} "
+                         f"{m.cv + 0.5!r} {m.d1!r} {m.d2!r}")
+    img_lines = ["# Image list: IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
+                 "#   POINTS2D[] as (X, Y, POINT3D_ID)"]
+    for i, v in enumerate(views, start=1):
+        cam = calibration.camera_for_view(v)
+        q = matrix_to_quaternion(cam.pose.R)
+        t = cam.pose.t / scale
+        img_lines.append(" ".join([str(i), *(repr(float(x)) for x in q),
+                                   *(repr(float(x)) for x in t), str(ids[v.camera]),
+                                   Path(v.file).name]))
+        img_lines.append("")
+    (out_dir / "cameras.txt").write_text("\n".join(cam_lines) + "\n")
+    (out_dir / "images.txt").write_text("\n".join(img_lines) + "\n")

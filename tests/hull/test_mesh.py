@@ -1,0 +1,193 @@
+"""Mesher (pot removal, marching cubes), numba kernels, bad input, registration."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hull_phantoms import Box, Cylinder, Sphere, render, ring_calibration, views
+
+from plantscan_core.data import Silhouette, Silhouettes, Volume
+from plantscan_core.errors import DataError
+from plantscan_hull import kernels
+from plantscan_hull.bbox import BoundingBoxError
+from plantscan_hull.carve import Grid, carve_dense, carve_octree
+from plantscan_hull.meshing import marching_cubes, signed_volume, topology_report
+from plantscan_hull.pot import TaperedCylinder, fit_pot
+from plantscan_hull.stages import DenseHull, MarchingCubesMesher, OctreeHull
+from plantscan_hull.views import prepare_views
+
+ELEVATIONS = (0.0, 35.0)
+POT = Cylinder(-60.0, -20.0, 22.0, 28.0)  # tapered pot, wider at the top
+PLANT = [Sphere((0.0, 0.0, 5.0), 12.0), Box((0.0, 0.0, -8.0), np.eye(3), (2.0, 2.0, 12.0)),
+         # a thin leaf drooping over the rim, outside the pot
+         Box((34.0, 0.0, -22.0), np.eye(3), (3.0, 8.0, 6.0))]
+
+
+@pytest.fixture(scope="module")
+def rig():
+    return ring_calibration(elevations=ELEVATIONS), views(12, ELEVATIONS)
+
+
+@pytest.fixture(scope="module")
+def potted(rig):
+    cal, vl = rig
+    return render(cal, vl, [POT, *PLANT])
+
+
+@pytest.fixture(scope="module")
+def potted_volume(rig, potted):
+    cal, _ = rig
+    return OctreeHull(OctreeHull.Params(resolution=72)).reconstruct(potted, cal)
+
+
+def test_mesh_is_watertight_and_manifold(potted_volume):
+    mesher = MarchingCubesMesher(MarchingCubesMesher.Params(pot="none"))
+    mesh = mesher.mesh(potted_volume)
+    rep = topology_report(mesh)
+    assert rep["watertight"] and rep["manifold"], rep
+    assert signed_volume(mesh) > 0  # faces wind counter-clockwise seen from outside
+
+
+def test_topology_report_detects_a_hole():
+    field = -np.ones((12, 12, 12), np.float32)
+    field[3:9, 3:9, 3:9] = 1.0
+    mesh = marching_cubes(field, np.zeros(3), 1.0)
+    assert topology_report(mesh)["watertight"]
+    holed = type(mesh)(mesh.vertices, mesh.faces[1:])
+    rep = topology_report(holed)
+    assert not rep["watertight"] and rep["boundary_edges"] == 3
+
+
+def test_auto_pot_fit_and_removal(potted_volume):
+    cyl = fit_pot(potted_volume)
+    assert len(cyl) == 1
+    c = cyl[0]
+    s = potted_volume.voxel_size
+    # Rim height and radius from the hull: within 1.5 voxels (the rim is known to a voxel,
+    # and the hull of a circle from 12 azimuths is a polygon ~1-3 % larger).
+    assert c.z_top_mm == pytest.approx(POT.z1, abs=1.5 * s)
+    assert c.r_top_mm == pytest.approx(POT.r1, abs=1.5 * s + 0.04 * POT.r1)
+    assert c.r_bottom_mm == pytest.approx(POT.r0, abs=1.5 * s + 0.04 * POT.r0)
+    mesher = MarchingCubesMesher(MarchingCubesMesher.Params(pot="auto"))
+    mesh = mesher.mesh(potted_volume)
+    assert topology_report(mesh)["watertight"]
+    v = mesh.vertices
+    rho = np.hypot(v[:, 0], v[:, 1])
+    # No pot left: no vertex within the pot wall's region below its rim.
+    in_pot = (v[:, 2] < POT.z1 - s) & (v[:, 2] > POT.z0 - s) & (rho < POT.r1 + 0.5 * s) & (
+        rho > 5.0)
+    assert not in_pot.any()
+    # The plant stays: the sphere and the leaf over the rim are still meshed.
+    sphere_top = v[:, 2].max()
+    assert sphere_top == pytest.approx(17.0, abs=1.5 * s)
+    leaf = (v[:, 0] > 30) & (v[:, 2] < -10)
+    assert leaf.sum() > 20
+
+
+def test_given_pot_is_removed(potted_volume):
+    pot = [TaperedCylinder(z_bottom_mm=POT.z0, z_top_mm=POT.z1, r_bottom_mm=POT.r0,
+                           r_top_mm=POT.r1)]
+    mesher = MarchingCubesMesher(MarchingCubesMesher.Params(pot=pot))
+    mesh = mesher.mesh(potted_volume)
+    v = mesh.vertices
+    rho = np.hypot(v[:, 0], v[:, 1])
+    assert not ((v[:, 2] < POT.z1 - 2) & (v[:, 2] > POT.z0) & (rho < POT.r0 - 2)
+                & (rho > 5)).any()
+
+
+def test_no_pot_found_on_a_plant_without_pot(rig):
+    cal, vl = rig
+    sils = render(cal, vl, [Sphere((0.0, 0.0, 0.0), 5.0),
+                            Box((0.0, 0.0, 0.0), np.eye(3), (30.0, 6.0, 0.5))])
+    vol = OctreeHull(OctreeHull.Params(resolution=48)).reconstruct(sils, cal)
+    assert fit_pot(vol) == []
+
+
+@pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba not installed")
+@pytest.mark.parametrize("k", [0, 3])
+def test_numba_matches_numpy_and_dense(rig, potted, k):
+    cal, _ = rig
+    vf = prepare_views(list(potted), cal)
+    grid = Grid.from_box((-40, -40, -70), (45, 40, 25), 40)
+    ref, _ = carve_dense(vf, grid, k, backend="numpy")
+    fast_dense, _ = carve_dense(vf, grid, k, backend="numba")
+    fast_oct, st = carve_octree(vf, grid, k, top_cell=16, backend="numba")
+    assert st.backend == "numba"
+    # Same arithmetic, different summation order in the projection: float32 rounding only.
+    assert np.abs(fast_dense - ref).max() < 1e-4
+    assert np.array_equal(fast_oct, fast_dense)
+    differs = (ref > 0) != (fast_dense > 0)
+    assert np.all(np.abs(ref[differs]) < 1e-4)
+
+
+def test_dense_and_octree_stages_agree(rig, potted):
+    cal, _ = rig
+    a = OctreeHull(OctreeHull.Params(resolution=40, bbox=[-40, -40, -70, 45, 40, 25]))
+    b = DenseHull(DenseHull.Params(resolution=40, bbox=[-40, -40, -70, 45, 40, 25]))
+    va, vb = a.reconstruct(potted, cal), b.reconstruct(potted, cal)
+    assert np.array_equal(va.field > 0, vb.field > 0)
+    assert va.stats["voxel_view_tests"] < vb.stats["voxel_view_tests"]
+
+
+# --------------------------------------------------------------------------- bad input
+def test_mask_size_mismatch_names_the_view(rig, potted):
+    cal, _ = rig
+    bad = list(potted)
+    bad[5] = Silhouette(bad[5].view, bad[5].mask[:, :-10])
+    with pytest.raises(DataError, match=r"view 5 .*do not match the calibration"):
+        OctreeHull().reconstruct(Silhouettes(bad), cal)
+
+
+@pytest.mark.parametrize("fill, word", [(False, "empty"), (True, "all foreground")])
+def test_empty_or_full_silhouette_names_the_view(rig, potted, fill, word):
+    cal, _ = rig
+    bad = list(potted)
+    bad[3] = Silhouette(bad[3].view, np.full_like(bad[3].mask, fill))
+    with pytest.raises(DataError, match=rf"view 3 .*{word}"):
+        OctreeHull().reconstruct(Silhouettes(bad), cal)
+
+
+def test_clipping_box_is_reported(rig, potted):
+    cal, _ = rig
+    hull = OctreeHull(OctreeHull.Params(resolution=32, bbox=[-40, -40, -40, 40, 40, 10]))
+    with pytest.raises(BoundingBoxError, match=r"z-.*reconstruct.params.bbox.*clips the plant"):
+        hull.reconstruct(potted, cal)
+
+
+def test_too_few_views_for_k(rig, potted):
+    cal, _ = rig
+    with pytest.raises(DataError, match="lower reconstruct.params.k"):
+        OctreeHull(OctreeHull.Params(k=3)).reconstruct(Silhouettes(list(potted)[:3]), cal)
+
+
+def test_bad_params_are_rejected():
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError):
+        OctreeHull.Params(top_cell=24)
+    with pytest.raises(ValidationError):
+        OctreeHull.Params(bbox=[0, 0, 0, -1, 1, 1])
+    with pytest.raises(ValidationError):
+        MarchingCubesMesher.Params(pot="guess")
+
+
+def test_empty_volume_is_an_error():
+    vol = Volume(-np.ones((8, 8, 8), np.float32), np.zeros(3), 1.0)
+    with pytest.raises(DataError, match="nothing left to mesh"):
+        MarchingCubesMesher(MarchingCubesMesher.Params(pot="none")).mesh(vol)
+
+
+def test_plugin_registers_its_stages():
+    from plantscan_core.plugins import new_manager
+    from plantscan_hull import plugin
+
+    manager = new_manager()
+    manager.register(plugin, name="hull")
+    try:
+        assert "octree-hull" in manager.registry.names("reconstructor")
+        assert "dense-hull" in manager.registry.names("reconstructor")
+        hull = manager.build("reconstructor", "octree-hull", {"resolution": 64, "k": 2})
+        assert hull.params.resolution == 64
+        assert manager.build("mesher", "marching-cubes", {"pot": "none"}).params.pot == "none"
+    finally:
+        manager.unregister(plugin)
