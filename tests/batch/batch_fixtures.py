@@ -30,7 +30,7 @@ PROCESSING = {
     "mesh": {"plugin": "marching-cubes"},
     "segment_mesh": {"plugin": "curvature-regions"},
     "measure": {"plugin": "leaf-geometry"},
-    "export": [],
+    "export": [{"plugin": "csv"}, {"plugin": "html-report", "params": {"thumbnails": 2}}],
 }
 
 

@@ -47,6 +47,8 @@ def _check_two_good_one_corrupt(out: Path, scans: dict[str, Path]) -> list[dict[
         info = json.loads((out / name / "run.json").read_text())
         assert {"calibrate", "segment", "reconstruct", "mesh", "segment_mesh",
                 "measure"} <= set(info["stages"])
+        assert (out / name / "report.html").stat().st_size > 1_000_000  # plotly.js inline
+    assert not (out / "corrupt" / "report.html").exists()
     # Different plants (seeds 1 and 2): the batch did not process one scan twice.
     assert rows["good1"]["total_leaf_area_mm2"] != rows["good2"]["total_leaf_area_mm2"]
     return list(rows.values())
