@@ -104,8 +104,10 @@ class SolveOptions:
         When set, each turntable stop gets its own angle error (backlash,
         missed steps), estimated with a zero-mean Gaussian prior of this
         standard deviation; None trusts the recorded angles.
+    distortion_prior : float or None
+        Standard deviation of a zero-mean prior on d1 and d2 (None: no prior).
     prior_noise_px : float
-        Corner noise assumed when weighting that prior against the corners.
+        Corner noise assumed when weighting the priors against the corners.
     cross_validate : bool
         Also solve on even-angle views and report the error on odd ones.
     covariance : bool
@@ -126,6 +128,7 @@ class SolveOptions:
     max_rms_px: float = 2.0
     max_rejected_fraction: float = 0.05
     angle_jitter_deg: float | None = None
+    distortion_prior: float | None = 0.3
     prior_noise_px: float = 0.2
     cross_validate: bool = True
     covariance: bool = True
@@ -576,6 +579,12 @@ def _build_problem(state: RigState, detections: list[Detection], boards: dict[in
             problem.set_parameter_block_constant(arr)
         elif fixed:
             problem.set_manifold(arr, pyceres.SubsetManifold(N_INTR, fixed))
+        if not opt.fix_distortion and opt.distortion_prior is not None:
+            # A board near the image centre leaves d2 (and d1) almost unobserved; a weak
+            # zero-mean prior keeps them at lens-like values without biasing covered data.
+            problem.add_residual_block(
+                _make_prior_cost(N_INTR, [3, 4])(opt.prior_noise_px / opt.distortion_prior),
+                None, [arr])
     # Gauge: the reference camera centre stays at x = 0 and z = 0 (see module docstring).
     problem.set_manifold(state.cam_poses[reference_key(state)], pyceres.SubsetManifold(6, [3, 5]))
     if not opt.fit_angle_scale:
@@ -593,22 +602,27 @@ def _build_problem(state: RigState, detections: list[Detection], boards: dict[in
     return problem, n_res
 
 
-def _make_prior_cost():
+def _make_prior_cost(size: int = 1, which: Sequence[int] = (0,)):
     import pyceres
 
+    which = list(which)
+
     class PriorCost(pyceres.CostFunction):
-        """residual = weight * x for a 1-parameter block (zero-mean Gaussian prior)."""
+        """residual = weight * x[which] (zero-mean Gaussian prior on some entries)."""
 
         def __init__(self, weight: float):
             super().__init__()
             self.weight = float(weight)
-            self.set_num_residuals(1)
-            self.set_parameter_block_sizes([1])
+            self.set_num_residuals(len(which))
+            self.set_parameter_block_sizes([size])
 
         def Evaluate(self, parameters, residuals, jacobians):  # noqa: N802 - Ceres API
-            residuals[0] = self.weight * parameters[0][0]
+            x = np.asarray(parameters[0])
+            residuals[:] = self.weight * x[which]
             if jacobians is not None and jacobians[0] is not None:
-                jacobians[0][0] = self.weight
+                jac = np.zeros((len(which), size))
+                jac[np.arange(len(which)), which] = self.weight
+                jacobians[0][:] = jac.ravel()
             return True
 
     return PriorCost
@@ -868,13 +882,22 @@ def calibrate_turntable(detections: list[Detection], boards: dict[int, np.ndarra
                 opt.min_views, ", ".join(f"camera {c} tilt {t}: {n}"
                                          for (c, t), n in sorted(few.items()))))
     t0 = time.perf_counter()
+    coverage = {}
+    for cam, (w, h) in image_sizes.items():
+        uv = np.concatenate([d.uv for d in detections if d.camera == cam] or [np.zeros((0, 2))])
+        half_diag = math.hypot(w / 2.0, h / 2.0)
+        r = np.linalg.norm(uv - [(w - 1) / 2.0, (h - 1) / 2.0], axis=1) if len(uv) else [0.0]
+        coverage[cam] = float(np.max(r) / half_diag)
     state = initialise(detections, boards, image_sizes, opt)
     init_stats = residual_stats(state, detections, boards)
     quality: dict[str, Any] = {
         "method": "plane+circle initialisation" + (" + pyceres refinement" if opt.refine else ""),
         "initialisation": {"rms_px": init_stats["rms_px"], "max_px": init_stats["max_px"]},
         "detections": len(detections),
-        "flags": [],
+        "radial_coverage": coverage,
+        "flags": [f"camera {c}: board corners reach only {100 * v:.0f} % of the half-diagonal; "
+                  "lens distortion beyond is extrapolated" for c, v in coverage.items()
+                  if v < 0.6],
     }
     masks = None
     if opt.refine:

@@ -156,7 +156,8 @@ def board_texture(spec: BoardSpec, px_per_mm: float, margin_mm: float | None = N
 
 
 def render_board_view(camera, board_pose: Pose, spec: BoardSpec, texture: np.ndarray,
-                      px_per_mm: float, margin_mm: float, background: int = 128) -> np.ndarray:
+                      px_per_mm: float, margin_mm: float, background: int = 128,
+                      supersample: int = 1) -> np.ndarray:
     """(H, W) uint8 image of the board seen by a distortion-free ``camera`` (homography warp).
 
     ``board_pose`` maps board-frame mm (inner corner 0 at the origin, as
@@ -165,6 +166,15 @@ def render_board_view(camera, board_pose: Pose, spec: BoardSpec, texture: np.nda
     import cv2
 
     m = camera.model
+    if supersample > 1:
+        # Render finer and area-average: an anti-aliased image whose corners sit exactly
+        # where the camera model puts them (CameraModel.scaled keeps pixel centres).
+        big = m.scaled(supersample)
+        from plantscan_core.data import Camera
+
+        fine = render_board_view(Camera(big, camera.pose), board_pose, spec, texture, px_per_mm,
+                                 margin_mm, background, supersample=1)
+        return cv2.resize(fine, (m.width, m.height), interpolation=cv2.INTER_AREA)
     k = m.K
     r = camera.pose.R @ board_pose.R
     t = camera.pose.R @ board_pose.t + camera.pose.t
@@ -174,7 +184,7 @@ def render_board_view(camera, board_pose: Pose, spec: BoardSpec, texture: np.nda
     h_board_tex = np.array([[1 / px_per_mm, 0, 0.5 / px_per_mm - off],
                             [0, 1 / px_per_mm, 0.5 / px_per_mm - off], [0, 0, 1.0]])
     hmat = h_img_board @ h_board_tex
-    return cv2.warpPerspective(texture, hmat, (m.width, m.height), flags=cv2.INTER_AREA,
+    return cv2.warpPerspective(texture, hmat, (m.width, m.height), flags=cv2.INTER_LINEAR,
                                borderMode=cv2.BORDER_CONSTANT, borderValue=background)
 
 
@@ -203,9 +213,9 @@ def write_board_scan(root, rig: SyntheticRig, angles_deg, noise: float = 2.0, se
                 view_dir = xw.mean(axis=0) - camera.pose.centre
                 if bp.R[:, 2] @ view_dir <= 0:  # back of the board
                     continue
-                layer = render_board_view(camera, bp, rig.spec, tex, px_per_mm, margin, 0)
+                layer = render_board_view(camera, bp, rig.spec, tex, px_per_mm, margin, 0, 2)
                 cover = render_board_view(camera, bp, rig.spec, np.full_like(tex, 255),
-                                          px_per_mm, margin, 0)
+                                          px_per_mm, margin, 0, 2)
                 img = np.where(cover > 127, layer, img)
             img = np.clip(img + rng.normal(0, noise, img.shape), 0, 255).astype(np.uint8)
             name = f"images/calibration/{cam}_t{ti:02d}_a{ai:03d}.png"
