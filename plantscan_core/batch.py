@@ -153,6 +153,7 @@ def process_plant(scan_dir: str, recipe_path: str, overrides: Sequence[str], run
     t0 = time.perf_counter()
     outcome = PlantOutcome(scan=str(scan_dir), run_dir=str(run_dir), worker=_worker_name())
     try:
+        (Path(run_dir) / ERROR_TXT).unlink(missing_ok=True)  # from an earlier failed attempt
         import cv2
 
         cv2.setNumThreads(threads)  # one plant per core: no oversubscription inside OpenCV
@@ -205,13 +206,16 @@ def _describe(exc: BaseException) -> str:
 # --------------------------------------------------------------------------- the batch
 def _run_dirs(scans: list[Path], out_dir: Path) -> list[Path]:
     """One run folder per scan, named after the scan folder (suffixed when names repeat)."""
-    seen: dict[str, int] = {}
+    used: set[str] = set()
     out = []
     for scan in scans:
-        name = scan.resolve().name or "scan"
-        n = seen.get(name, 0)
-        seen[name] = n + 1
-        out.append(out_dir / (name if n == 0 else f"{name}-{n + 1}"))
+        base = scan.resolve().name or "scan"
+        name, n = base, 1
+        while name in used:
+            n += 1
+            name = f"{base}-{n}"
+        used.add(name)
+        out.append(out_dir / name)
     return out
 
 

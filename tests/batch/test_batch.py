@@ -56,9 +56,9 @@ def _check_two_good_one_corrupt(out: Path, scans: dict[str, Path]) -> list[dict[
 
 # --------------------------------------------------------------------------- fast
 def test_run_folders_are_named_after_scans_and_never_collide(tmp_path: Path):
-    dirs = _run_dirs([tmp_path / "a" / "p1", tmp_path / "b" / "p1", tmp_path / "p2"],
-                     tmp_path / "out")
-    assert [d.name for d in dirs] == ["p1", "p1-2", "p2"]
+    dirs = _run_dirs([tmp_path / "a" / "p1", tmp_path / "p1-2", tmp_path / "b" / "p1",
+                      tmp_path / "p2"], tmp_path / "out")
+    assert [d.name for d in dirs] == ["p1", "p1-2", "p1-3", "p2"]
 
 
 def test_a_broken_recipe_fails_once_before_any_work(tmp_path: Path, batch_recipe):
