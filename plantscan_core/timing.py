@@ -17,7 +17,8 @@ Timing parameters come from each plugin's ``Params``, by name:
 
 * cameras: ``capture_s`` (shutter release to image in the camera) and
   ``download_s`` (to the computer);
-* axes: ``velocity_deg_s``, ``acceleration_deg_s2`` and ``settle_s``.
+* axes: ``velocity_deg_s``, ``acceleration_deg_s2``, ``settle_s`` and optionally
+  ``approach_deg`` (backward moves overshoot and come back: anti-backlash).
 
 A plugin without them (e.g. the virtual scanner) counts as instantaneous and
 is listed in ``unmodelled``.  Operator time between roles is not modelled.
@@ -54,12 +55,17 @@ class AxisTiming:
     velocity_deg_s: float = math.inf
     acceleration_deg_s2: float = math.inf
     settle_s: float = 0.0
+    approach_deg: float = 0.0  # backward moves overshoot by this, then come back
 
     def move_s(self, distance_deg: float) -> float:
         if distance_deg == 0.0:
             return 0.0
-        return move_time_s(distance_deg, self.velocity_deg_s, self.acceleration_deg_s2) + (
-            self.settle_s)
+        t = move_time_s(distance_deg, self.velocity_deg_s, self.acceleration_deg_s2)
+        if distance_deg < 0 and self.approach_deg > 0:
+            a = self.approach_deg
+            t = (move_time_s(abs(distance_deg) + a, self.velocity_deg_s, self.acceleration_deg_s2)
+                 + move_time_s(a, self.velocity_deg_s, self.acceleration_deg_s2))
+        return t + self.settle_s
 
 
 @dataclass(frozen=True)
@@ -154,7 +160,8 @@ def _axis_timing(spec: StageSpec | None, what: str, registry, unmodelled: list[s
     if v is None or a is None:
         unmodelled.append(f"{what} ({spec.plugin})")
         return AxisTiming()
-    return AxisTiming(float(v), float(a), float(getattr(p, "settle_s", 0.0) or 0.0))
+    return AxisTiming(float(v), float(a), float(getattr(p, "settle_s", 0.0) or 0.0),
+                      float(getattr(p, "approach_deg", 0.0) or 0.0))
 
 
 def _camera_timing(spec, registry, unmodelled: list[str]) -> CameraTiming:

@@ -67,6 +67,8 @@ class PhidgetParams(StageParams):
     holding_current_a: float | None = None
     homing: str = Field(default="zero", pattern="^(zero|none)$")
     settle_s: float = Field(default=0.3, ge=0.0, description="wait after stopping (vibration)")
+    approach_deg: float = Field(default=0.0, ge=0.0, description="anti-backlash: reach every "
+                                "stop going forwards, overshooting backward moves by this")
     attach_timeout_s: float = Field(default=5.0, gt=0.0)
     move_timeout_s: float | None = Field(default=None, description="default: 2x the profile + 5 s")
     position_tolerance_deg: float = Field(default=0.01, ge=0.0)
@@ -226,8 +228,21 @@ class PhidgetAxis(MotionAxis):
             self.port.zero_here()
 
     def move_to(self, deg: float) -> float:
+        """Move to ``deg`` (axis degrees); return the position read back from the controller.
+
+        With ``approach_deg`` > 0, a move that would end going backwards first goes
+        ``approach_deg`` past the target, so every stop is reached going forwards and the
+        gearbox backlash is taken up the same way at every view.
+        """
         if self.port is None:
             self.open()
+        p = self.params
+        here = self._sign * self.port.position()
+        if p.approach_deg > 0 and deg < here - 1e-9:
+            self._go(deg - p.approach_deg, settle=False)
+        return self._go(deg)
+
+    def _go(self, deg: float, settle: bool = True) -> float:
         p = self.params
         target = self._sign * deg
         start = self.port.position()
@@ -255,7 +270,7 @@ class PhidgetAxis(MotionAxis):
                     f"{self.label}: move to {deg:g} deg not finished after {timeout:.1f} s "
                     f"(at {self._sign * self.port.position():g} deg); check the load, the "
                     "current limit and that the motor is not stalled")
-        if p.settle_s:
+        if p.settle_s and settle:
             time.sleep(p.settle_s)
         return self._sign * self.port.position()
 

@@ -104,6 +104,8 @@ class GrblParams(StageParams):
     # Timing model only (plantscan scan --dry-run): the controller's $120.. acceleration.
     acceleration_deg_s2: float = Field(default=30.0, gt=0.0)
     settle_s: float = Field(default=0.3, ge=0.0)
+    approach_deg: float = Field(default=0.0, ge=0.0, description="anti-backlash: reach every "
+                                "stop going forwards, overshooting backward moves by this")
 
     @property
     def velocity_deg_s(self) -> float:
@@ -330,6 +332,15 @@ class GrblAxis(MotionAxis):
             self._lost(exc, "homing")
 
     def move_to(self, deg: float) -> float:
+        """Move to ``deg``; return the position read back (``approach_deg``: see PhidgetAxis)."""
+        p = self.params
+        if p.approach_deg > 0:
+            here = self.position()
+            if here is not None and deg < here - 1e-9:
+                self._go(deg - p.approach_deg)
+        return self._go(deg)
+
+    def _go(self, deg: float) -> float:
         conn = self._link()
         p = self.params
         target = deg * p.units_per_degree

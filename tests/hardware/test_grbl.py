@@ -244,3 +244,16 @@ def test_real_grbl_controller_moves(request):
         assert axis.move_to(0.0) == pytest.approx(0.0, abs=0.05)
     finally:
         axis.close()
+
+
+def test_backward_moves_end_going_forwards(tcp):
+    axis = _axis(tcp.url, approach_deg=1.5)
+    axis.open()
+    try:
+        axis.home()
+        axis.move_to(20.0)
+        assert axis.move_to(5.0) == pytest.approx(5.0, abs=0.001)
+        moves = [line for line in tcp.machine.lines if line.startswith("G1X")]
+        assert [m.split("F")[0] for m in moves] == ["G1X20.0000", "G1X3.5000", "G1X5.0000"]
+    finally:
+        axis.close()

@@ -180,3 +180,18 @@ def test_real_phidget_stepper_moves(request):
         assert axis.move_to(0.0) == pytest.approx(0.0, abs=0.01)
     finally:
         axis.close()
+
+
+def test_backward_moves_end_going_forwards():
+    """approach_deg: every stop is reached going forwards (gear backlash taken up alike)."""
+    axis = _axis(approach_deg=2.0)
+    axis.open()
+    axis.home()
+    targets = []
+    real = axis.port.set_target
+    axis.port.set_target = lambda pos: (targets.append(pos), real(pos))[1]
+    axis.move_to(30.0)  # forwards: one leg
+    axis.move_to(10.0)  # backwards: past it to 8, then forwards to 10
+    assert targets == [30.0, 8.0, 10.0]
+    assert axis.position() == pytest.approx(10.0, abs=axis.params.deg_per_microstep())
+    axis.close()

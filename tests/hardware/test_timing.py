@@ -92,3 +92,15 @@ def test_table_and_unmodelled_devices(registry):
     assert est.total_s == 0.0
     est = estimate_scan_time(_recipe(registry), registry)
     assert "saves" in str(est) and "min" in str(est)
+
+
+def test_approach_adds_the_overshoot_to_backward_moves(registry):
+    tt = {"velocity_deg_s": 10.0, "acceleration_deg_s2": 1e12, "settle_s": 0.0}
+    cam = {"capture_s": 0.0, "download_s": 0.0}
+    roles = {"calibration": {"images_per_revolution": 2}, "background": {"enabled": False},
+             "plant": {"images_per_revolution": 2}}
+    plain = estimate_scan_time(_recipe(registry, cam=cam, turntable=tt, roles=roles), registry)
+    tt["approach_deg"] = 5.0
+    anti = estimate_scan_time(_recipe(registry, cam=cam, turntable=tt, roles=roles), registry)
+    # calibration 0 -> 180, then plant starts with 180 -> 0 (backwards): +2 x 5 deg at 10 deg/s
+    assert anti.total_s - plain.total_s == pytest.approx(1.0, abs=1e-6)
