@@ -267,6 +267,21 @@ class GrblConnection:
         mpos = dict(zip(letters, map(float, parts.get("MPos", "").split(",")), strict=False))
         return {k: v - self.wco.get(k, 0.0) for k, v in mpos.items()}
 
+    def refresh_offsets(self) -> None:
+        """Learn the work offset (G54 + G92) with ``$#``: status reports carry ``WCO`` only
+        every few reports, and positions must be right from the first one."""
+        g54 = g92 = None
+        for line in self.command("$#"):
+            m = re.match(r"\[(G54|G92):([-\d.,]+)\]", line)
+            if m:
+                values = dict(zip("XYZABC", map(float, m.group(2).split(",")), strict=False))
+                if m.group(1) == "G54":
+                    g54 = values
+                else:
+                    g92 = values
+        if g54 is not None:
+            self.wco = {k: v + (g92 or {}).get(k, 0.0) for k, v in g54.items()}
+
     def realtime(self, byte: bytes) -> None:
         """Send a real-time command without waiting (safe from another thread)."""
         try:
@@ -307,7 +322,8 @@ class GrblAxis(MotionAxis):
                 raise GrblError(f"{self.label}: the controller is in Alarm state; home it ($H) "
                                 "or set params.unlock_on_alarm: true")
             self.conn.command("$X")
-        self.conn.command("G21 G90")  # units as configured, absolute moves
+        self.conn.command("G21 G90 G54")  # units as configured, absolute moves, G54 offsets
+        self.conn.refresh_offsets()
 
     def close(self) -> None:
         if self.conn is not None:
@@ -325,9 +341,10 @@ class GrblAxis(MotionAxis):
         try:
             if p.homing == "cycle":
                 conn.command("$H", timeout_s=p.timeout_s)
-                conn.command("G21 G90")
+                conn.command("G21 G90 G54")
             if p.homing in ("cycle", "zero"):
                 conn.command(f"G10 L20 P1 {p.axis}0")  # here is 0 in work coordinates
+            conn.refresh_offsets()
         except GrblError as exc:
             self._lost(exc, "homing")
 

@@ -2,7 +2,7 @@
 
 It implements what the ``grbl`` axis uses, with GRBL's answers: the banner,
 ``?`` status reports (``<Idle|MPos:..|FS:..|WCO:..>``), ``!``/``~``/``0x18``
-real-time commands, ``$X``, ``$H`` (when homing is enabled), ``G21``,
+real-time commands, ``$X``, ``$H`` (when homing is enabled), ``$#``, ``G21``,
 ``G90``, ``G10 L20 P1``, ``G0``/``G1`` absolute moves that take time at the
 feed rate, ``error:N`` for what it does not understand and ``ALARM:N`` for
 soft-limit and reset-in-motion.  Faults: ``disconnect_on_move=N`` drops the
@@ -41,6 +41,7 @@ class GrblMachine:
         self.disconnect_on_move = disconnect_on_move
         self.lines: list[str] = []
         self.lock = threading.Lock()
+        self.wco_counter = 3  # the first reports after a (re)connection carry no WCO
 
     # motion ------------------------------------------------------------------------
     def _update(self) -> None:
@@ -64,11 +65,16 @@ class GrblMachine:
         return "Run" if self.moving() else "Idle"
 
     def status(self) -> str:
+        # Like GRBL 1.1: WCO only in every 10th report, or in the first one after it changed.
         self._update()
         st = self.state()
         m = ",".join(f"{self.mpos[k]:.3f}" for k in LETTERS)
-        w = ",".join(f"{self.wco[k]:.3f}" for k in LETTERS)
-        return f"<{st}|MPos:{m}|FS:0,0|WCO:{w}>"
+        report = f"<{st}|MPos:{m}|FS:0,0"
+        if self.wco_counter <= 0:
+            report += "|WCO:" + ",".join(f"{self.wco[k]:.3f}" for k in LETTERS)
+            self.wco_counter = 10
+        self.wco_counter -= 1
+        return report + ">"
 
     def start_move(self, target: dict[str, float], feed_per_min: float) -> None:
         self._update()
@@ -96,6 +102,11 @@ class GrblMachine:
                 time.sleep(0.005)
             self.wco = dict.fromkeys(LETTERS, 0.0)
             return ["ok"]
+        if text == "$#":
+            g54 = ",".join(f"{self.wco[k]:.3f}" for k in LETTERS)
+            return [f"[G54:{g54}]", "[G55:0.000,0.000,0.000]", "[G28:0.000,0.000,0.000]",
+                    "[G30:0.000,0.000,0.000]", "[G92:0.000,0.000,0.000]", "[TLO:0.000]",
+                    "[PRB:0.000,0.000,0.000:0]", "ok"]
         if text.startswith("$"):
             return ["error:3"]
         if self.alarm:
@@ -109,6 +120,7 @@ class GrblMachine:
             self._update()
             for k, v in axes.items():
                 self.wco[k] = self.mpos[k] - v
+            self.wco_counter = 0  # reported in the next status
             return ["ok"]
         if any(g in (0, 1) for g in gs) or (axes and not gs):
             feed = next((float(v) for k, v in words if k == "F"), 1800.0)

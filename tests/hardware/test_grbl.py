@@ -257,3 +257,16 @@ def test_backward_moves_end_going_forwards(tcp):
         assert [m.split("F")[0] for m in moves] == ["G1X20.0000", "G1X3.5000", "G1X5.0000"]
     finally:
         axis.close()
+
+
+def test_work_offset_is_known_before_any_status_carries_it(tcp):
+    """GRBL sends WCO only every few reports: the axis reads G54/G92 with $# on open."""
+    tcp.machine.mpos["X"], tcp.machine.wco["X"] = 15.0, 5.0  # set by an earlier session
+    axis = _axis(tcp.url, homing="none")
+    axis.open()
+    try:
+        assert axis.position() == pytest.approx(10.0, abs=1e-6)
+        assert axis.move_to(12.0) == pytest.approx(12.0, abs=0.001)
+        assert tcp.machine.mpos["X"] == pytest.approx(17.0, abs=1e-6)
+    finally:
+        axis.close()
