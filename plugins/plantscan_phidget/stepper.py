@@ -136,13 +136,25 @@ class Phidget22Port:
             ) from exc
 
     def configure(self, rescale, velocity, acceleration, current, holding) -> None:
+        from Phidget22.PhidgetException import PhidgetException
+
         s = self.stepper
-        s.setRescaleFactor(rescale)
-        s.setCurrentLimit(current)
-        if holding is not None:
-            s.setHoldingCurrentLimit(holding)
-        s.setAcceleration(acceleration)
-        s.setVelocityLimit(velocity)
+        steps = [("rescale_factor", s.setRescaleFactor, rescale),
+                 ("current_limit_a", s.setCurrentLimit, current),
+                 ("holding_current_a", s.setHoldingCurrentLimit, holding),
+                 ("acceleration_deg_s2", s.setAcceleration, acceleration),
+                 ("velocity_deg_s", s.setVelocityLimit, velocity)]
+        for name, setter, value in steps:
+            if value is None:
+                continue
+            try:
+                setter(value)
+            except PhidgetException as exc:
+                raise PhidgetAxisError(
+                    f"Phidget stepper (serial {s.getDeviceSerialNumber()}): params.{name} = "
+                    f"{value:g} refused ({getattr(exc, 'details', exc)}); velocity and "
+                    "acceleration are in axis degrees, so their limits scale with the gear ratio"
+                ) from exc
         self.velocity = velocity
 
     def set_engaged(self, on: bool) -> None:
