@@ -1,0 +1,67 @@
+"""Real corners of another lab's turntable (PhenoArch maize plant 1, two boards, side + top)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from plantscan_calib.phenoarch import load_corners, load_original_calibration, project_original
+from plantscan_calib.solver import SolveOptions, calibrate_turntable
+
+DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "phenoarch_maize_plant1"
+
+
+@pytest.fixture(scope="module")
+def corners():
+    if not (DATA / "chessboard" / "points").exists():
+        pytest.skip(f"{DATA} not available")
+    return load_corners(DATA / "chessboard" / "points")
+
+
+def _errors(cal, boards_world, dets, boards):
+    out = []
+    for d in dets:
+        r, t = boards_world[d.board]
+        uv = cal.camera_at(d.camera, d.tilt_index, d.angle_deg).project(boards[d.board] @ r.T + t)
+        out.append(np.linalg.norm(uv - d.uv, axis=1))
+    return np.concatenate(out)
+
+
+def test_real_corners_calibrate_better_than_the_original(corners):
+    dets, boards, sizes = corners
+    assert {d.camera for d in dets} == {"side", "top"} and set(boards) == {1, 2}
+    # The original rig model: principal point at (W/2, H/2), no distortion; its turntable
+    # has a gear-ratio error (angle_factor), so the angle scale is fitted.
+    pp = {c: (w / 2.0, h / 2.0) for c, (w, h) in sizes.items()}
+    opt = SolveOptions(fix_principal_point=True, principal_points=pp, fix_distortion=True,
+                       fit_angle_scale=True, min_views=1,
+                       # ~7 % of the corners sit in views whose turntable stop was off by a
+                       # fraction of a degree (whole views shifted by ~1 px) or mis-detected.
+                       max_rejected_fraction=0.1)
+    cal = calibrate_turntable(dets, boards, sizes, {0: 0.0}, opt, symmetric_boards=True)
+    q = cal.quality
+    boards_world = {int(b): (np.array(v["R"]), np.array(v["t"])) for b, v in q["boards"].items()}
+    ours = _errors(cal, boards_world, dets, boards)
+
+    orig, orig_boards = load_original_calibration(
+        DATA / "calibration" / "calibration_cameras.json", boards)
+    theirs = np.concatenate([np.linalg.norm(project_original(orig, orig_boards, d, boards) - d.uv,
+                                            axis=1) for d in dets])
+    theirs_seed_model = _errors(orig, {b: (p.R, p.t) for b, p in orig_boards.items()}, dets,
+                                boards)
+    # README: the original calibration gives ~0.26 px mean on these corners.
+    assert theirs.mean() == pytest.approx(0.26, abs=0.01)
+    # In the seed's camera model (one focal length) we beat the original on every corner
+    # (mean and median), and on the corners the fit keeps we are well below 0.26 px.
+    assert ours.mean() < theirs_seed_model.mean()
+    assert np.median(ours) < np.median(theirs_seed_model)
+    assert q["mean_px"] < 0.2
+    # The original also fits fx != fy (aspect 1.0006), which plantscan's CameraModel lacks;
+    # over all corners, outliers included, we are then within 3 % of its figure.
+    assert ours.mean() < 1.03 * theirs.mean()
+    # The report says what was rejected and how noisy the corners are.
+    assert 0.05 < q["rejected_fraction"] < 0.1
+    assert 0.05 < q["corner_noise_px"] < 0.2
+    assert abs(cal.angle_scale - 1.0) < 5e-4
