@@ -48,7 +48,10 @@ def scan_recipe(
     overrides: Sequence[str] = (),
 ) -> dict[str, Any]:
     """The raw recipe dict ``make_scan`` would run (shipped recipe + these changes)."""
-    path = resolve_recipe_path(recipe or PRESET_RECIPES.get(preset, preset))
+    if recipe is None and preset not in PRESET_RECIPES:
+        raise RecipeError([("scan.scene.params.preset", f"unknown plant preset {preset!r}; "
+                            f"valid: {', '.join(PRESET_RECIPES)}")], "make_scan")
+    path = resolve_recipe_path(recipe or PRESET_RECIPES[preset])
     raw = copy.deepcopy(read_recipe_file(path))
     s = raw.setdefault("scan", {})
     sc = s.setdefault("scene", {"plugin": "sim", "params": {}})

@@ -78,6 +78,7 @@ class Lighting:
     key: float = 0.8
     ambient: float = 0.3
     miss_colour: tuple[float, float, float] = (0.04, 0.04, 0.045)
+    gamma: float = 2.2  # tone curve of the camera: 8-bit value = 255 * radiance ** (1/gamma)
 
 
 def _raycasting_scene(mesh: TriMesh):
@@ -204,7 +205,7 @@ class Renderer:
                 fg[r, c] = ((cls == CLASS_PLANT) | (cls == CLASS_POT)).reshape(
                     len(r), n_ss).mean(axis=1)
             self.last_edge_fraction = float(edge.mean())
-        img = 255.0 * np.power(np.clip(radiance, 0.0, 1.0), 1.0 / 2.2)
+        img = 255.0 * np.power(np.clip(radiance, 0.0, 1.0), 1.0 / self.lighting.gamma)
         if noise_sigma > 0:
             rng = rng if rng is not None else np.random.default_rng(0)
             img += rng.normal(0.0, noise_sigma, img.shape).astype(np.float32)

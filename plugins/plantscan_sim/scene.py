@@ -62,7 +62,7 @@ class SimSceneParams(StageParams):
     mesh_scale: float = Field(1.0, gt=0, description="mesh units -> mm")
     leaf_thickness_mm: float = Field(0.5, gt=0.0, le=5.0)
     supersampling: int = Field(3, ge=1, le=8, description="samples per pixel side (plant, bg)")
-    calibration_supersampling: int = Field(4, ge=1, le=8,
+    calibration_supersampling: int = Field(6, ge=1, le=8,
                                            description="samples per pixel side (board views)")
     noise_sigma: float = Field(2.0, ge=0.0, le=50.0, description="sensor noise, 8-bit DN")
     target_height_mm: float = Field(220.0, description="aim point / tilt axis height")
@@ -70,6 +70,7 @@ class SimSceneParams(StageParams):
     light_position_mm: tuple[float, float, float] = (1100.0, 800.0, 1700.0)
     key_light: float = Field(0.8, ge=0.0)
     ambient: float = Field(0.3, ge=0.0)
+    gamma: float = Field(2.2, ge=1.0, le=3.0, description="camera tone curve exponent")
     board: Literal["chessboard", "charuco"] = "chessboard"
     board_squares: tuple[int, int] = (10, 7)
     board_square_mm: float = Field(22.0, gt=0.0)
@@ -281,7 +282,7 @@ class SimScene(Scene):
             Material((0.30, 0.30, 0.30)),            # board post
             Material(plant.stem_colour, CLASS_PLANT),
         ] + [Material(plant.leaf_colours[lid], CLASS_PLANT) for lid in leaf_ids]
-        light = Lighting(np.array(p.light_position_mm, float), p.key_light, p.ambient)
+        light = Lighting(np.array(p.light_position_mm, float), p.key_light, p.ambient, gamma=p.gamma)
         self.renderer = Renderer(world, self._backdrop(), materials, light, tex, M_BOARD)
 
     # ------------------------------------------------------------------ axes
