@@ -99,26 +99,41 @@ def touching_faces(occupied: np.ndarray) -> list[str]:
 
 def auto_box(views: Sequence[ViewField], k: int, margin_mm: float, coarse: int = 128,
              grow: float = 0.25, attempts: int = 3, backend: str = "numpy",
+             min_seen: int = 0, floor_z: float | None = None,
              ) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Initial frustum box, refined by a ``coarse``-voxel carve; returns ``(lo, hi, info)``."""
+    """Initial frustum box, refined by a ``coarse``-voxel carve; returns ``(lo, hi, info)``.
+
+    ``floor_z`` (mm): nothing is below it (the turntable plate); cameras above
+    the plate cannot carve under the pot, so the box stops there.
+    """
     lo0, hi0 = frustum_box(views)
+    if floor_z is not None:
+        lo0[2] = max(lo0[2], floor_z)
+        hi0[2] = max(hi0[2], floor_z + 1.0)
     lo, hi = lo0.copy(), hi0.copy()
     for attempt in range(attempts):
         ext = hi - lo
         lo_big, hi_big = lo - grow * ext - margin_mm, hi + grow * ext + margin_mm
+        if floor_z is not None:
+            lo_big[2] = max(lo_big[2], floor_z)
         grid = Grid.from_box(lo_big, hi_big, coarse)
-        phi, stats = carve_octree(views, grid, k, top_cell=16, backend=backend)
+        phi, stats = carve_octree(views, grid, k, top_cell=16, backend=backend,
+                                  min_seen=min_seen)
         occ = phi > -0.5
         if not occ.any():
             raise BoundingBoxError(
                 "the quick carve removed everything: the silhouettes do not agree on any "
                 f"point (k={k}); check the calibration or the masks")
         faces = touching_faces(occ)
+        if floor_z is not None and lo_big[2] <= floor_z:
+            faces = [f for f in faces if f != "z-"]  # resting on the plate is not clipping
         if not faces:
             idx = np.argwhere(occ)
             s = grid.voxel_size
             lo_f = grid.centres(idx.min(axis=0)) - s - margin_mm
             hi_f = grid.centres(idx.max(axis=0)) + s + margin_mm
+            if floor_z is not None:
+                lo_f[2] = max(lo_f[2], floor_z)
             info = {"frustum_box_mm": [lo0.tolist(), hi0.tolist()],
                     "coarse_voxel_mm": s, "attempts": attempt + 1}
             return lo_f, hi_f, info

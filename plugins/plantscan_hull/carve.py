@@ -98,7 +98,7 @@ class CarveStats:
 
 # --------------------------------------------------------------------------- fine voxels
 def voxel_field(views: Sequence[ViewField], points: np.ndarray, voxel_size: float, k: int,
-                stats: CarveStats | None = None) -> np.ndarray:
+                stats: CarveStats | None = None, min_seen: int = 0) -> np.ndarray:
     """Clamped (k+1)-th smallest cone distance, in voxels, at ``points``.
 
     Parameters
@@ -108,6 +108,9 @@ def voxel_field(views: Sequence[ViewField], points: np.ndarray, voxel_size: floa
     voxel_size : float, mm
     k : int
         Outside tolerance: a voxel outside in at most ``k`` views is kept.
+    min_seen : int
+        A voxel seen by fewer views is removed (nothing supports it: without
+        this, space that few views see could never be carved).
 
     Returns
     -------
@@ -115,6 +118,7 @@ def voxel_field(views: Sequence[ViewField], points: np.ndarray, voxel_size: floa
     """
     n = len(points)
     kept = np.full((n, k + 1), np.inf, dtype=np.float32)
+    seen_count = np.zeros(n, dtype=np.int32)
     active = np.arange(n)
     pts = points
     tests = 0
@@ -125,6 +129,7 @@ def voxel_field(views: Sequence[ViewField], points: np.ndarray, voxel_size: floa
         tests += len(pts)
         seen = (z > 0) & (uv[:, 0] >= -0.5) & (uv[:, 0] <= view.width - 0.5) \
             & (uv[:, 1] >= -0.5) & (uv[:, 1] <= view.height - 0.5)
+        seen_count[active] += seen
         sd = sample_bilinear(view, uv)
         dist = np.where(seen, sd * (z / (view.focal * voxel_size)), np.inf).astype(np.float32)
         kk = kept[active]
@@ -140,12 +145,15 @@ def voxel_field(views: Sequence[ViewField], points: np.ndarray, voxel_size: floa
             pts = points[active]
     if stats is not None:
         stats.voxel_view_tests += tests
-    return np.clip(kept.max(axis=1), -1.0, 1.0).astype(np.float32)
+    out = np.clip(kept.max(axis=1), -1.0, 1.0).astype(np.float32)
+    out[seen_count < min_seen] = -1.0
+    return out
 
 
 # --------------------------------------------------------------------------- octree cells
 def classify_cells(views: Sequence[ViewField], centres: np.ndarray, half_size: float,
-                   voxel_size: float, k: int, stats: CarveStats | None = None) -> np.ndarray:
+                   voxel_size: float, k: int, stats: CarveStats | None = None,
+                   min_seen: int = 0) -> np.ndarray:
     """Conservative per-cell decision: 0 removed, 1 full, 2 subdivide.
 
     A cell is *out* in a view when its whole projected footprint is on the
@@ -153,7 +161,9 @@ def classify_cells(views: Sequence[ViewField], centres: np.ndarray, half_size: f
     ``sd(centre) > r + one voxel + slack`` (every voxel then has a cone
     distance beyond +-1 voxel, the clamp), ignored when its footprint is off
     the image, ambiguous otherwise.  Removed: out in more than ``k`` views;
-    full: out or ambiguous in at most ``k`` views.  So the clamped field of
+    full: out or ambiguous in at most ``k`` views and wholly on at least
+    ``min_seen`` images (removed too when off more than ``V - min_seen``
+    images).  So the clamped field of
     every voxel of a decided cell is exactly what ``voxel_field`` would give.
 
     Parameters
@@ -165,6 +175,9 @@ def classify_cells(views: Sequence[ViewField], centres: np.ndarray, half_size: f
     rho = half_size * math.sqrt(3.0)
     n_out = np.zeros(m, dtype=np.int32)
     n_amb = np.zeros(m, dtype=np.int32)
+    n_on = np.zeros(m, dtype=np.int32)
+    n_off = np.zeros(m, dtype=np.int32)
+    max_off = len(views) - min_seen
     active = np.arange(m)
     pts = centres
     tests = 0
@@ -192,15 +205,17 @@ def classify_cells(views: Sequence[ViewField], centres: np.ndarray, half_size: f
         amb = ~(out | inside | off_image)
         n_out[active] += out
         n_amb[active] += amb
+        n_on[active] += on_image
+        n_off[active] += off_image
         if (i + 1) % COMPACT_EVERY == 0:
-            alive = n_out[active] <= k
+            alive = (n_out[active] <= k) & (n_off[active] <= max_off)
             active = active[alive]
             pts = centres[active]
     if stats is not None:
         stats.cell_view_tests += tests
     decision = np.full(m, 2, dtype=np.int8)
-    decision[n_out + n_amb <= k] = 1
-    decision[n_out > k] = 0
+    decision[(n_out + n_amb <= k) & (n_on >= min_seen)] = 1
+    decision[(n_out > k) | (n_off > max_off)] = 0
     return decision
 
 
@@ -211,7 +226,7 @@ BACKENDS = ("auto", "numpy", "numba")
 class _Kernels:
     """The two hot loops, from numpy (reference) or numba (compiled)."""
 
-    def __init__(self, views: Sequence[ViewField], backend: str):
+    def __init__(self, views: Sequence[ViewField], backend: str, min_seen: int = 0):
         from plantscan_hull import kernels
 
         if backend not in BACKENDS:
@@ -222,19 +237,22 @@ class _Kernels:
         use_numba = backend == "numba" or (backend == "auto" and kernels.supported(views))
         self.name = "numba" if use_numba else "numpy"
         self.views = views
+        self.min_seen = int(min_seen)
         self._kernels = kernels
         self._packed = kernels.pack(views) if use_numba else None
 
     def voxel_field(self, points, voxel_size, k, stats):
         if self._packed is not None:
-            return self._kernels.voxel_field(self._packed, points, voxel_size, k, stats)
-        return voxel_field(self.views, points, voxel_size, k, stats)
+            return self._kernels.voxel_field(self._packed, points, voxel_size, k, stats,
+                                             self.min_seen)
+        return voxel_field(self.views, points, voxel_size, k, stats, self.min_seen)
 
     def classify_cells(self, centres, half_size, voxel_size, k, stats):
         if self._packed is not None:
             return self._kernels.classify_cells(self._packed, centres, half_size, voxel_size, k,
-                                                CELL_SLACK_PX, stats)
-        return classify_cells(self.views, centres, half_size, voxel_size, k, stats)
+                                                CELL_SLACK_PX, stats, self.min_seen)
+        return classify_cells(self.views, centres, half_size, voxel_size, k, stats,
+                              self.min_seen)
 
 
 # --------------------------------------------------------------------------- thin parts
@@ -273,7 +291,7 @@ def _finish(phi: np.ndarray, stats: CarveStats, keep_thin: bool, thin_value: flo
 
 def carve_dense(views: Sequence[ViewField], grid: Grid, k: int, keep_thin: bool = True,
                 thin_value: float = 0.15, chunk: int = 1 << 20, backend: str = "numpy",
-                ) -> tuple[np.ndarray, CarveStats]:
+                min_seen: int = 0) -> tuple[np.ndarray, CarveStats]:
     """Full-grid reference: ``voxel_field`` at every voxel centre.
 
     Returns
@@ -283,7 +301,7 @@ def carve_dense(views: Sequence[ViewField], grid: Grid, k: int, keep_thin: bool 
     """
     t0 = time.perf_counter()
     stats = CarveStats()
-    kern = _Kernels(views, backend)
+    kern = _Kernels(views, backend, min_seen)
     stats.backend = kern.name
     nx, ny, nz = grid.shape
     phi = np.empty(nx * ny * nz, dtype=np.float32)
@@ -306,7 +324,7 @@ def _children(cells: np.ndarray, size: int) -> np.ndarray:
 
 def carve_octree(views: Sequence[ViewField], grid: Grid, k: int, top_cell: int = 32,
                  keep_thin: bool = True, thin_value: float = 0.15, backend: str = "numpy",
-                 ) -> tuple[np.ndarray, CarveStats]:
+                 min_seen: int = 0) -> tuple[np.ndarray, CarveStats]:
     """Coarse-to-fine carving; same field as ``carve_dense`` with far fewer tests.
 
     Cells of ``top_cell`` voxels (a power of two) are classified with
@@ -317,7 +335,7 @@ def carve_octree(views: Sequence[ViewField], grid: Grid, k: int, top_cell: int =
         raise ValueError(f"top_cell must be a power of two, got {top_cell}")
     t0 = time.perf_counter()
     stats = CarveStats()
-    kern = _Kernels(views, backend)
+    kern = _Kernels(views, backend, min_seen)
     stats.backend = kern.name
     shape = np.array(grid.shape)
     s = grid.voxel_size

@@ -252,7 +252,8 @@ def import_recipe(camera_names: list[str], plant_id: str) -> dict:
         },
         "calibrate": {"plugin": "fixed", "params": {}},
         "segment": {"plugin": "given-masks", "params": {}},
-        "reconstruct": {"plugin": "octree-hull", "params": {}},
+        # COLMAP's frame has no turntable plate at z = 0.
+        "reconstruct": {"plugin": "octree-hull", "params": {"floor_z_mm": None}},
         "mesh": {"plugin": "marching-cubes", "params": {"pot": "none"}},
     }
 

@@ -115,7 +115,7 @@ if HAVE_NUMBA:
         return tables[int(p[28]) + iv * w + iu]
 
     @njit(cache=True, parallel=True)
-    def _voxel_field(points, params, tables, voxel_size, k):
+    def _voxel_field(points, params, tables, voxel_size, k, min_seen):
         n = points.shape[0]
         nv = params.shape[0]
         out = np.empty(n, dtype=np.float32)
@@ -124,6 +124,7 @@ if HAVE_NUMBA:
             kept = np.full(k + 1, np.inf, dtype=np.float32)
             x, y, z = points[i, 0], points[i, 1], points[i, 2]
             count = 0
+            seen = 0
             for j in range(nv):
                 p = params[j]
                 count += 1
@@ -131,6 +132,7 @@ if HAVE_NUMBA:
                 if not (zc > 0 and u >= -0.5 and u <= p[17] - 0.5 and v >= -0.5
                         and v <= p[18] - 0.5):
                     continue
+                seen += 1
                 d = np.float32(_bilinear(p, tables, u, v) * (zc / (p[12] * voxel_size)))
                 worst = 0
                 for q in range(1, k + 1):
@@ -147,11 +149,13 @@ if HAVE_NUMBA:
             for q in range(1, k + 1):
                 m = max(m, kept[q])
             out[i] = min(max(m, np.float32(-1.0)), np.float32(1.0))
+            if seen < min_seen and m > -1.0:
+                out[i] = -1.0
             tests[i] = count
         return out, tests.sum()
 
     @njit(cache=True, parallel=True)
-    def _classify(centres, half_size, voxel_size, params, tables, k, slack):
+    def _classify(centres, half_size, voxel_size, params, tables, k, slack, min_seen):
         m = centres.shape[0]
         nv = params.shape[0]
         rho = half_size * np.sqrt(3.0)
@@ -161,6 +165,8 @@ if HAVE_NUMBA:
             x, y, z = centres[i, 0], centres[i, 1], centres[i, 2]
             n_out = 0
             n_amb = 0
+            n_on = 0
+            n_off = 0
             count = 0
             for j in range(nv):
                 p = params[j]
@@ -168,7 +174,10 @@ if HAVE_NUMBA:
                 u, v, zc = _project(p, x, y, z)
                 near = zc - rho
                 if zc + rho <= 0:
-                    continue  # wholly behind the camera: not seen
+                    n_off += 1  # wholly behind the camera: not seen
+                    if n_off > nv - min_seen:
+                        break
+                    continue
                 if near <= 0:
                     n_amb += 1
                     continue
@@ -176,10 +185,14 @@ if HAVE_NUMBA:
                 r = rho * inv
                 lo_u, hi_u, lo_v, hi_v = -0.5, p[17] - 0.5, -0.5, p[18] - 0.5
                 if u + r < lo_u or u - r > hi_u or v + r < lo_v or v - r > hi_v:
-                    continue  # footprint off the image: not seen
+                    n_off += 1  # footprint off the image: not seen
+                    if n_off > nv - min_seen:
+                        break
+                    continue
                 if not (u - r >= lo_u and u + r <= hi_u and v - r >= lo_v and v + r <= hi_v):
                     n_amb += 1
                     continue
+                n_on += 1
                 margin = r + voxel_size * inv + slack
                 sd = _nearest(p, tables, u, v)
                 if sd < -margin:
@@ -189,32 +202,33 @@ if HAVE_NUMBA:
                 elif not sd > margin:
                     n_amb += 1
             tests[i] = count
-            if n_out > k:
+            if n_out > k or n_off > nv - min_seen:
                 decision[i] = 0
-            elif n_out + n_amb <= k:
+            elif n_out + n_amb <= k and n_on >= min_seen:
                 decision[i] = 1
             else:
                 decision[i] = 2
         return decision, tests.sum()
 
 
-def voxel_field(packed, points: np.ndarray, voxel_size: float, k: int, stats=None) -> np.ndarray:
+def voxel_field(packed, points: np.ndarray, voxel_size: float, k: int, stats=None,
+                min_seen: int = 0) -> np.ndarray:
     """Compiled ``carve.voxel_field`` (``packed`` from ``pack``)."""
     params, tables = packed
     out, tests = _voxel_field(np.ascontiguousarray(points, dtype=np.float64), params, tables,
-                              float(voxel_size), int(k))
+                              float(voxel_size), int(k), int(min_seen))
     if stats is not None:
         stats.voxel_view_tests += int(tests)
     return out
 
 
 def classify_cells(packed, centres: np.ndarray, half_size: float, voxel_size: float, k: int,
-                   slack: float, stats=None) -> np.ndarray:
+                   slack: float, stats=None, min_seen: int = 0) -> np.ndarray:
     """Compiled ``carve.classify_cells``."""
     params, tables = packed
     decision, tests = _classify(np.ascontiguousarray(centres, dtype=np.float64),
                                 float(half_size), float(voxel_size), params, tables, int(k),
-                                float(slack))
+                                float(slack), int(min_seen))
     if stats is not None:
         stats.cell_view_tests += int(tests)
     return decision

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import time
 from typing import Literal
 
@@ -42,6 +43,12 @@ class HullParams(StageParams):
     keep_thin: bool = Field(True, description="keep parts thinner than a voxel (thin leaves)")
     thin_value: float = Field(0.15, gt=0, le=0.5,
                               description="field value of a rescued thin voxel (voxels)")
+    floor_z_mm: float | None = Field(
+        0.0, description="nothing is below this height (the turntable plate, turntable frame); "
+        "null for rigs without one (imports)")
+    min_seen_fraction: float = Field(
+        0.5, ge=0, le=1, description="a voxel seen (projecting on the image) by fewer than "
+        "this fraction of the views, or by at most k, is removed: nothing supports it")
     backend: Literal["auto", "numpy", "numba"] = Field(
         "auto", description="hot loops: numba when installed (auto), or the numpy reference")
 
@@ -80,16 +87,21 @@ class _HullBase(Reconstructor):
         t0 = time.perf_counter()
         views = prepare_views(list(silhouettes), calibration)
         t_prep = time.perf_counter() - t0
-        info: dict = {}
+        self.min_seen = max(p.k + 1, math.ceil(p.min_seen_fraction * len(views)))
+        info: dict = {"min_views_seen": self.min_seen}
         if p.bbox is None:
-            lo, hi, info = auto_box(views, p.k, p.bbox_margin_mm,
-                                    coarse=min(128, p.resolution), backend=p.backend)
+            lo, hi, box_info = auto_box(views, p.k, p.bbox_margin_mm,
+                                        coarse=min(128, p.resolution), backend=p.backend,
+                                        min_seen=self.min_seen, floor_z=p.floor_z_mm)
+            info.update(box_info)
         else:
             lo, hi = np.array(p.bbox[:3]), np.array(p.bbox[3:])
         t_box = time.perf_counter() - t0 - t_prep
         grid = Grid.from_box(lo, hi, p.resolution)
         phi, stats = self._carve(views, grid)
         faces = touching_faces(phi > 0)
+        if p.floor_z_mm is not None and grid.lo[2] <= p.floor_z_mm + 1e-6:
+            faces = [f for f in faces if f != "z-"]  # resting on the plate is not clipping
         if faces:
             where = "reconstruct.params.bbox" if p.bbox is not None else "the automatic box"
             raise BoundingBoxError(
@@ -122,7 +134,7 @@ class OctreeHull(_HullBase):
     def _carve(self, views, grid):
         p = self.params
         return carve_octree(views, grid, p.k, p.top_cell, p.keep_thin, p.thin_value,
-                            backend=p.backend)
+                            backend=p.backend, min_seen=self.min_seen)
 
 
 class DenseHull(_HullBase):
@@ -133,7 +145,8 @@ class DenseHull(_HullBase):
 
     def _carve(self, views, grid):
         p = self.params
-        return carve_dense(views, grid, p.k, p.keep_thin, p.thin_value, backend=p.backend)
+        return carve_dense(views, grid, p.k, p.keep_thin, p.thin_value, backend=p.backend,
+                           min_seen=self.min_seen)
 
 
 class MarchingCubesMesher(Mesher):

@@ -71,7 +71,7 @@ def _exact_sphere_hull(cal, vl, sphere: Sphere, points: np.ndarray) -> np.ndarra
 
 def test_sphere_hull_volume(rig, sphere_sils):
     cal, vl = rig
-    vol = OctreeHull(OctreeHull.Params(resolution=80, k=0)).reconstruct(sphere_sils, cal)
+    vol = OctreeHull(OctreeHull.Params(resolution=80, k=0, floor_z_mm=None)).reconstruct(sphere_sils, cal)
     mesh = marching_cubes(vol.field, vol.origin, vol.voxel_size)
     # Exact hull volume by sampling a 0.8 mm lattice (sampling error ~0.2 %).
     ax = [np.arange(c - 50, c + 50, 0.8) for c in SPHERE.centre]
@@ -171,7 +171,7 @@ def leaf_hull_volumes(rig):
 def test_thin_leaf_survives(rig, leaf_sils, leaf_hull_volumes, k):
     cal, vl = rig
     sils = leaf_sils
-    vol = OctreeHull(OctreeHull.Params(resolution=64, k=k)).reconstruct(sils, cal)
+    vol = OctreeHull(OctreeHull.Params(resolution=64, k=k, floor_z_mm=None)).reconstruct(sils, cal)
     s = vol.voxel_size
     assert s > 2 * 0.5  # the leaf is less than half a voxel thick
     mesh = marching_cubes(vol.field, vol.origin, vol.voxel_size)
@@ -190,7 +190,7 @@ def test_thin_leaf_lost_without_rescue(rig, leaf_sils):
     # The failure the rescue exists for: centre tests at k = 0 leave holes in the leaf.
     cal, vl = rig
     sils = leaf_sils
-    vol = OctreeHull(OctreeHull.Params(resolution=64, k=0, keep_thin=False)).reconstruct(
+    vol = OctreeHull(OctreeHull.Params(resolution=64, k=0, keep_thin=False, floor_z_mm=None)).reconstruct(
         sils, cal)
     mesh = marching_cubes(vol.field, vol.origin, vol.voxel_size)
     d = _outside_distance(mesh, _leaf_points()) / vol.voxel_size

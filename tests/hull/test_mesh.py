@@ -37,7 +37,7 @@ def potted(rig):
 @pytest.fixture(scope="module")
 def potted_volume(rig, potted):
     cal, _ = rig
-    return OctreeHull(OctreeHull.Params(resolution=72)).reconstruct(potted, cal)
+    return OctreeHull(OctreeHull.Params(resolution=72, floor_z_mm=None)).reconstruct(potted, cal)
 
 
 def test_mesh_is_watertight_and_manifold(potted_volume):
@@ -99,7 +99,7 @@ def test_no_pot_found_on_a_plant_without_pot(rig):
     cal, vl = rig
     sils = render(cal, vl, [Sphere((0.0, 0.0, 0.0), 5.0),
                             Box((0.0, 0.0, 0.0), np.eye(3), (30.0, 6.0, 0.5))])
-    vol = OctreeHull(OctreeHull.Params(resolution=48)).reconstruct(sils, cal)
+    vol = OctreeHull(OctreeHull.Params(resolution=48, floor_z_mm=None)).reconstruct(sils, cal)
     assert fit_pot(vol) == []
 
 
@@ -122,8 +122,10 @@ def test_numba_matches_numpy_and_dense(rig, potted, k):
 
 def test_dense_and_octree_stages_agree(rig, potted):
     cal, _ = rig
-    a = OctreeHull(OctreeHull.Params(resolution=40, bbox=[-40, -40, -70, 45, 40, 25]))
-    b = DenseHull(DenseHull.Params(resolution=40, bbox=[-40, -40, -70, 45, 40, 25]))
+    a = OctreeHull(OctreeHull.Params(resolution=40, bbox=[-40, -40, -70, 45, 40, 25],
+                                     floor_z_mm=None))
+    b = DenseHull(DenseHull.Params(resolution=40, bbox=[-40, -40, -70, 45, 40, 25],
+                                  floor_z_mm=None))
     va, vb = a.reconstruct(potted, cal), b.reconstruct(potted, cal)
     assert np.array_equal(va.field > 0, vb.field > 0)
     assert va.stats["voxel_view_tests"] < vb.stats["voxel_view_tests"]
@@ -149,7 +151,8 @@ def test_empty_or_full_silhouette_names_the_view(rig, potted, fill, word):
 
 def test_clipping_box_is_reported(rig, potted):
     cal, _ = rig
-    hull = OctreeHull(OctreeHull.Params(resolution=32, bbox=[-40, -40, -40, 40, 40, 10]))
+    hull = OctreeHull(OctreeHull.Params(resolution=32, bbox=[-40, -40, -40, 40, 40, 10],
+                                         floor_z_mm=None))
     with pytest.raises(BoundingBoxError, match=r"z-.*reconstruct.params.bbox.*clips the plant"):
         hull.reconstruct(potted, cal)
 
