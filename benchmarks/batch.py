@@ -75,7 +75,7 @@ def main() -> int:
         summary = run_batch(scans, recipe, out, overrides=overrides, workers=workers,
                             progress=False)
         rows.append(("run_batch, local cluster", workers, time.perf_counter() - t0,
-                     summary.succeeded))
+                     summary.succeeded, sum(p.seconds for p in summary.plants)))
         if summary.failed:
             print(summary)
             return 1
