@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from plantscan_core.data import Camera, Mesh
+from plantscan_core.data import Calibration, Camera, Mesh, Silhouettes
 from plantscan_hull.views import signed_distance
 
 RIM_PX = 1.0
@@ -171,3 +171,25 @@ def evaluate_hull(run_dir: Path, truth_dir: Path) -> dict[str, Any] | None:
                         "r_top_error_mm": top["r_top_mm"] - pot["r_top_mm"],
                         "mode": fit.get("pot_mode")}
     return out
+
+
+def truth_silhouettes(scan) -> tuple[Silhouettes, Calibration]:
+    """The truth masks of a virtual scan with each view's exact camera.
+
+    The exact per-view cameras of ``cameras.jsonl`` (backlash and sway
+    included) become a calibration with one camera name per view
+    (``v<index>``, tilt index 0, angle 0), so any reconstructor can use them
+    through the ordinary ``Calibration.camera_for_view``.
+    """
+    from plantscan_core.data import Silhouette, ViewRecord
+
+    by_index = {v.index: v for v in scan.views}
+    models, poses, items = {}, {}, []
+    for index, cam, mask_path in truth_views(scan.ground_truth_dir):
+        name = f"v{index}"
+        models[name], poses[(name, 0)] = cam.model, cam.pose
+        view = by_index[index]
+        record = ViewRecord(index, view.role, name, 0, 0.0, view.angle_index, 0.0, None,
+                            view.file, view.captured_at)
+        items.append(Silhouette(record, _read_mask(mask_path)))
+    return Silhouettes(items), Calibration(models, poses, {0: 0.0})
