@@ -426,3 +426,57 @@ def _typed(widget, value: str, gp) -> Any:
     if t == gp.GP_WIDGET_RANGE:
         return float(value)
     return value
+
+
+# --------------------------------------------------------------------------- CLI
+def list_cameras(show_config: bool = False, out=None) -> int:
+    """Print every camera libgphoto2 detects: model, port, serial (and its settings).
+
+    Backs ``plantscan gphoto2-cameras``: the values to put in a recipe's
+    ``params.port`` / ``params.serial`` and the spelling of each setting's choices.
+    """
+    import sys
+
+    out = out or sys.stdout
+    gp = _gp()
+    detected = [(str(m), str(p)) for m, p in gp.Camera.autodetect()]
+    if not detected:
+        print("no camera detected (on, PC/PTP mode, cable, permissions: "
+              "docs/hardware/gphoto2.md)", file=out)
+        return 1
+    for model, port in detected:
+        cam = GPhotoCamera(GPhotoParams(port=port, model=model, capture_target=None))
+        try:
+            handle = cam._open_port(model, port)
+        except GPhotoError as exc:
+            print(f"{model} on {port}: cannot open: {exc}", file=out)
+            continue
+        try:
+            print(f"{model} on {port}: serial {cam._serial_of(handle)}", file=out)
+            if show_config:
+                for line in _config_lines(handle.get_config(), gp):
+                    print(f"  {line}", file=out)
+        finally:
+            handle.exit()
+    return 0
+
+
+def _config_lines(widget, gp, prefix: str = "") -> list[str]:
+    lines = []
+    for i in range(widget.count_children()):
+        child = widget.get_child(i)
+        name = str(child.get_name())
+        if child.get_type() in (gp.GP_WIDGET_SECTION, gp.GP_WIDGET_WINDOW):
+            lines += _config_lines(child, gp, prefix)
+            continue
+        try:
+            value = child.get_value()
+        except gp.GPhoto2Error:
+            value = "?"
+        line = f"{name} = {value}"
+        if child.get_type() in (gp.GP_WIDGET_RADIO, gp.GP_WIDGET_MENU):
+            line += f"  [{', '.join(str(c) for c in child.get_choices())}]"
+        if child.get_readonly():
+            line += "  (read-only)"
+        lines.append(line)
+    return lines

@@ -406,3 +406,42 @@ class GrblAxis(MotionAxis):
 
 def _is_number(v) -> bool:
     return isinstance(v, float) and v == v
+
+
+# --------------------------------------------------------------------------- CLI
+GRBL_SETTINGS = {
+    20: "soft limits", 21: "hard limits", 22: "homing cycle", 100: "X steps/unit",
+    101: "Y steps/unit", 102: "Z steps/unit", 110: "X max rate (units/min)",
+    111: "Y max rate (units/min)", 112: "Z max rate (units/min)",
+    120: "X acceleration (units/s^2)", 121: "Y acceleration (units/s^2)",
+    122: "Z acceleration (units/s^2)", 130: "X max travel", 131: "Y max travel",
+    132: "Z max travel",
+}
+
+
+def print_status(port: str, baudrate: int = 115200, out=None) -> int:
+    """Print a GRBL controller's state, work position and settings (``plantscan grbl-status``).
+
+    The figures to put in a recipe: ``units_per_degree`` follows from ``$100``...,
+    ``feed_rate`` must stay under ``$110``..., ``acceleration_deg_s2`` is ``$120``...
+    divided by ``units_per_degree``.
+    """
+    import sys
+
+    out = out or sys.stdout
+    conn = GrblConnection(port, baudrate, 5.0)
+    try:
+        conn.command("G54")
+        conn.refresh_offsets()
+        state, pos = conn.status()
+        print(f"{port}: {state}; work position "
+              + ", ".join(f"{k} {v:g}" for k, v in pos.items()), file=out)
+        for line in conn.command("$$"):
+            m = re.match(r"\$(\d+)=(\S+)", line)
+            if m:
+                meaning = GRBL_SETTINGS.get(int(m.group(1)), "")
+                print(f"  ${m.group(1)} = {m.group(2)}" + (f"  ({meaning})" if meaning else ""),
+                      file=out)
+    finally:
+        conn.ser.close()
+    return 0

@@ -99,10 +99,23 @@ def probe(cases_file: str) -> None:
     print(json.dumps(results))
 
 
+def command(argv: list[str]) -> None:
+    """Run the plugin's CLI sub-command as ``plantscan`` would (parser from the hook)."""
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="plantscan")
+    sub = parser.add_subparsers()
+    gphoto_plugin.plantscan_add_commands(subparsers=sub)
+    args = parser.parse_args(argv)
+    sys.exit(args.func(args))
+
+
 def main() -> None:
     if sys.argv[1] == "--probe":
         probe(sys.argv[2])
         return
+    if sys.argv[1] == "--command":
+        command(sys.argv[2:])
     raw = json.loads(Path(sys.argv[1]).read_text())
     out = Path(sys.argv[2])
     m = new_manager()

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -207,3 +208,16 @@ def test_camera_selection_settings_and_size(probe_results, case):
             assert probe_results[case]["values"] == READ_BACK
     else:
         assert error is not None and all(part in error for part in expected), error
+
+
+def test_list_cameras_command_shows_what_a_recipe_needs(tmp_path, vcamdir):
+    env = {**os.environ, "VCAMERADIR": str(vcamdir)}
+    res = subprocess.run([sys.executable, str(HERE / "gphoto_runner.py"), "--command",
+                          "gphoto2-cameras", "--config"], env=env, capture_output=True,
+                         text=True, timeout=60)
+    assert res.returncode == 0, res.stderr
+    out = res.stdout
+    assert "Nikon DSC D750 on usb:001,001: serial 0.1" in out
+    assert "f-number = f/2.8  [f/2.8, f/3.5," in out  # the exact spelling for params.aperture
+    assert re.search(r"capturetarget = .+  \[Internal RAM, Memory card\]", out)
+    assert "serialnumber = 0.1  (read-only)" in out

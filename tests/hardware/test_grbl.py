@@ -270,3 +270,21 @@ def test_work_offset_is_known_before_any_status_carries_it(tcp):
         assert tcp.machine.mpos["X"] == pytest.approx(17.0, abs=1e-6)
     finally:
         axis.close()
+
+
+def test_status_command(tcp):
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="plantscan")
+    serial_plugin.plantscan_add_commands(subparsers=parser.add_subparsers())
+    args = parser.parse_args(["grbl-status", tcp.url])
+    tcp.machine.mpos["X"] = 3.0
+    import contextlib
+    import io
+
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        assert args.func(args) == 0
+    out = buf.getvalue()
+    assert f"{tcp.url}: Idle; work position X 3, Y 0, Z 0" in out
+    assert "$100 = 884.510  (X steps/unit)" in out and "$120 = 30.000" in out
