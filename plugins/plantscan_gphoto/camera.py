@@ -207,22 +207,21 @@ class GPhotoCamera(CameraBackend):
                 f"{self.label}: no connected camera matches "
                 f"{_selector(p)} (connected: {_list(detected)})"
             )
-        if p.serial is None and len(free) > 1 and not (p.port or p.model):
+        if p.serial is None and p.port is None and len(free) > 1:
+            # Taking "the first" would swap the rig's cameras between scans.
             raise GPhotoError(
-                f"{self.label}: {len(free)} cameras connected ({_list(free)}); set params.port, "
-                "params.serial or params.model to say which one this is"
+                f"{self.label}: {len(free)} connected cameras match ({_list(free)}); set "
+                "params.serial (see `plantscan gphoto2-cameras`) to say which one this is"
             )
-        last_error: Exception | None = None
         for model, port in free:
             cam = self._open_port(model, port)
             if p.serial is None or self._serial_of(cam) == p.serial:
                 return cam, port
             self._call("exit", cam.exit)
-            last_error = None
         raise GPhotoError(
             f"{self.label}: no connected camera has serial number {p.serial!r} "
             f"(connected: {_list(free)})"
-        ) from last_error
+        )
 
     def _new_camera(self):
         """A fresh ``gphoto2.Camera`` (tests wrap it to inject faults)."""
