@@ -63,8 +63,7 @@ def accuracy_synthetic(seeds=(0, 1, 2)) -> list[dict]:
 
 def accuracy_real() -> list[dict]:
     """Real PhenoArch corners: mean reprojection over all corners (no truth there)."""
-    from plantscan_calib.phenoarch import load_corners, load_original_calibration, \
-        project_original
+    from plantscan_calib.phenoarch import load_corners, load_original_calibration, project_original
 
     data = ROOT.parent / "shared" / "data" / "phenoarch_maize_plant1"
     if not data.exists():
@@ -80,7 +79,8 @@ def accuracy_real() -> list[dict]:
         t0 = time.perf_counter()
         cal = calibrate_turntable(dets, boards, sizes, {0: 0.0}, o, symmetric_boards=True)
         dt = time.perf_counter() - t0
-        bw = {int(b): (np.array(v["R"]), np.array(v["t"])) for b, v in cal.quality["boards"].items()}
+        bw = {int(b): (np.array(v["R"]), np.array(v["t"]))
+              for b, v in cal.quality["boards"].items()}
         err = np.concatenate([np.linalg.norm(cal.camera_at(d.camera, 0, d.angle_deg).project(
             boards[d.board] @ bw[d.board][0].T + bw[d.board][1]) - d.uv, axis=1) for d in dets])
         rows.append({"method": label, "mean_px": float(err.mean()),
@@ -135,8 +135,8 @@ def detection_speed(out: Path, n_images: int, n_plain: int) -> dict:
         elif (a is None) != (b is None):
             agree.append(float("inf"))
     frac = len(with_board) / len(views)
-    per_pyr = [np.mean([t for t, v in zip(t_pyr, pick, strict=True) if (v.index in with_board) == k])
-               for k in (True, False)]
+    per_pyr = [np.mean([t for t, v in zip(t_pyr, pick, strict=True)
+                        if (v.index in with_board) == k]) for k in (True, False)]
     per_plain = [np.mean([t for t, v in zip(t_plain, pick, strict=True)
                           if (v.index in with_board) == k]) for k in (True, False)]
     return {"images": len(views), "found": len(dets), "t_detect_all": t_detect,

@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
+from plantscan_calib.solver import Detection
 from plantscan_core.data import Calibration, CameraModel, Pose, rotation_x, rotation_y, rotation_z
 from plantscan_core.errors import DataError
-from plantscan_calib.solver import Detection
 
 
 def board_points(shape: tuple[int, int], square_mm: float) -> np.ndarray:

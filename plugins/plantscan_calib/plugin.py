@@ -11,12 +11,12 @@ import cv2
 import numpy as np
 from pydantic import Field
 
+from plantscan_calib.detect import BoardSpec, detect_charuco, detect_chessboard
+from plantscan_calib.solver import CalibrationError, Detection, SolveOptions, calibrate_turntable
 from plantscan_core.data import Calibration, ViewRecord
 from plantscan_core.errors import DataError
 from plantscan_core.hookspecs import hookimpl
 from plantscan_core.stages import Calibrator, StageParams
-from plantscan_calib.detect import BoardSpec, detect_charuco, detect_chessboard
-from plantscan_calib.solver import CalibrationError, Detection, SolveOptions, calibrate_turntable
 
 __all__ = ["TurntableCalibrator", "FixedCalibrator", "CalibrationError", "detect_views"]
 
@@ -122,9 +122,9 @@ def detect_views(scan, views: list[ViewRecord], spec: BoardSpec, max_side_px: in
     for view, size, hit in results:
         if view.camera in sizes and sizes[view.camera] != size:
             raise DataError(
-                f"camera {view.camera}: calibration images of different sizes: {first[view.camera].file}"
-                f" is {sizes[view.camera][0]}x{sizes[view.camera][1]}, {view.file} is "
-                f"{size[0]}x{size[1]}")
+                f"camera {view.camera}: calibration images of different sizes: "
+                f"{first[view.camera].file} is {sizes[view.camera][0]}x{sizes[view.camera][1]}, "
+                f"{view.file} is {size[0]}x{size[1]}")
         sizes.setdefault(view.camera, size)
         first.setdefault(view.camera, view)
         if hit is None:

@@ -597,8 +597,8 @@ def _build_problem(state: RigState, detections: list[Detection], boards: dict[in
         else:
             # Gaussian prior: a stop's error is ~N(0, angle_jitter_deg), in units of the
             # corner noise so that it weighs like that many pixels of evidence.
-            problem.add_residual_block(_make_prior_cost()(opt.prior_noise_px / opt.angle_jitter_deg),
-                                       None, [block])
+            weight = opt.prior_noise_px / opt.angle_jitter_deg
+            problem.add_residual_block(_make_prior_cost()(weight), None, [block])
     return problem, n_res
 
 
@@ -877,10 +877,9 @@ def calibrate_turntable(detections: list[Detection], boards: dict[int, np.ndarra
         counts[(d.camera, d.tilt_index)] += 1
     few = {k: n for k, n in counts.items() if n < opt.min_views}
     if few:
-        raise CalibrationError(
-            "too few board detections (need at least %d per camera and tilt): %s" % (
-                opt.min_views, ", ".join(f"camera {c} tilt {t}: {n}"
-                                         for (c, t), n in sorted(few.items()))))
+        listing = ", ".join(f"camera {c} tilt {t}: {n}" for (c, t), n in sorted(few.items()))
+        raise CalibrationError(f"too few board detections (need at least {opt.min_views} per "
+                               f"camera and tilt): {listing}")
     t0 = time.perf_counter()
     coverage = {}
     for cam, (w, h) in image_sizes.items():

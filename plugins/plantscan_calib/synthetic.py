@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from plantscan_calib.detect import BoardSpec
+from plantscan_calib.solver import Detection
 from plantscan_core.data import (
     Calibration,
     CameraModel,
@@ -23,8 +25,6 @@ from plantscan_core.data import (
     rotation_x,
     rotation_z,
 )
-from plantscan_calib.detect import BoardSpec
-from plantscan_calib.solver import Detection
 
 
 @dataclass

@@ -1,4 +1,4 @@
-"""Make ``plantscan_calib`` importable when the editable install predates ``plugins/plantscan_calib``.
+"""Make ``plantscan_calib`` importable when the editable install predates its folder.
 
 The editable finder maps only the packages that existed at ``pip install -e``
 time; re-installing fixes it (see docs/calibration.md).  Until then the

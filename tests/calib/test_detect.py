@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-
 from plantscan_calib.detect import (
     BoardSpec,
     detect_charuco,
@@ -12,6 +11,7 @@ from plantscan_calib.detect import (
     detect_chessboard_plain,
 )
 from plantscan_calib.synthetic import board_texture, render_board_view
+
 from plantscan_core.data import Camera, CameraModel, Pose, rotation_x, rotation_z
 
 

@@ -7,12 +7,12 @@ import shutil
 import cv2
 import numpy as np
 import pytest
-from pydantic import ValidationError
-
 from plantscan_calib import plugin as calib_plugin
 from plantscan_calib.evaluate import compare_calibrations, evaluate_run
 from plantscan_calib.plugin import CalibrationError, FixedCalibrator, TurntableCalibrator
 from plantscan_calib.synthetic import make_rig, volume_points, write_board_scan
+from pydantic import ValidationError
+
 from plantscan_core.errors import DataError
 from plantscan_core.plugins import new_manager
 from plantscan_core.scanfolder import ScanFolder

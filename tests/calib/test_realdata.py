@@ -6,7 +6,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from plantscan_calib.phenoarch import load_corners, load_original_calibration, project_original
 from plantscan_calib.solver import SolveOptions, calibrate_turntable
 

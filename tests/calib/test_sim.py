@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import pytest
-
 from plantscan_calib.evaluate import evaluate_run
 from plantscan_calib.plugin import TurntableCalibrator
 

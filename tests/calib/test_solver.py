@@ -6,10 +6,10 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-
 from plantscan_calib.evaluate import compare_calibrations
 from plantscan_calib.solver import CalibrationError, SolveOptions, calibrate_turntable
 from plantscan_calib.synthetic import make_rig, synthetic_detections, volume_points
+
 from plantscan_core.data import Calibration
 
 ANGLES_36 = np.arange(0.0, 360.0, 10.0)
