@@ -187,8 +187,7 @@ class GPhotoCamera(CameraBackend):
         """Find the camera the params select; return it initialised, with its port."""
         gp = _gp()
         p = self.params
-        detected = list(self._call("autodetect", gp.Camera.autodetect))
-        detected = [(str(m), str(port)) for m, port in detected]
+        detected = self._detect()
         if not detected:
             raise GPhotoError(
                 f"{self.label}: no camera detected; check it is on, in PC/PTP mode and connected, "
@@ -222,6 +221,11 @@ class GPhotoCamera(CameraBackend):
             f"{self.label}: no connected camera has serial number {p.serial!r} "
             f"(connected: {_list(free)})"
         )
+
+    def _detect(self) -> list[tuple[str, str]]:
+        """(model, port) of every connected camera."""
+        gp = _gp()
+        return [(str(m), str(port)) for m, port in self._call("autodetect", gp.Camera.autodetect)]
 
     def _new_camera(self):
         """A fresh ``gphoto2.Camera`` (tests wrap it to inject faults)."""

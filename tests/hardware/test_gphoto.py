@@ -221,3 +221,18 @@ def test_list_cameras_command_shows_what_a_recipe_needs(tmp_path, vcamdir):
     assert "f-number = f/2.8  [f/2.8, f/3.5," in out  # the exact spelling for params.aperture
     assert re.search(r"capturetarget = .+  \[Internal RAM, Memory card\]", out)
     assert "serialnumber = 0.1  (read-only)" in out
+
+
+def test_two_identical_cameras_need_a_serial():
+    """Picking 'the first' of two matching cameras could swap cam0 and cam1 between scans."""
+    from plantscan_gphoto.camera import GPhotoCamera, GPhotoError
+
+    class TwoCanons(GPhotoCamera):
+        def _detect(self):
+            return [("Canon EOS 600D", "usb:001,004"), ("Canon EOS 600D", "usb:001,005")]
+
+    cam = TwoCanons(GPhotoCamera.Params(model="600D"))
+    cam.camera_name = "cam1"
+    with pytest.raises(GPhotoError, match=r"camera 'cam1': 2 connected cameras match .*"
+                                          r"params.serial"):
+        cam.open()
