@@ -185,7 +185,6 @@ class GPhotoCamera(CameraBackend):
     # ------------------------------------------------------------------ connection
     def _connect(self):
         """Find the camera the params select; return it initialised, with its port."""
-        gp = _gp()
         p = self.params
         detected = self._detect()
         if not detected:
