@@ -73,7 +73,7 @@ class SimSceneParams(StageParams):
     gamma: float = Field(2.2, ge=1.0, le=3.0, description="camera tone curve exponent")
     board: Literal["chessboard", "charuco"] = "chessboard"
     board_squares: tuple[int, int] = (10, 7)
-    board_square_mm: float = Field(22.0, gt=0.0)
+    board_square_mm: float = Field(25.0, gt=0.0)
     board_tilt_deg: float = Field(40.0, ge=0.0, le=80.0,
                                   description="board leans back from vertical by this much")
     board_height_mm: float | None = Field(None, description="board centre height (default: "
