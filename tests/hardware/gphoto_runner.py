@@ -26,6 +26,7 @@ import gphoto2 as gp  # noqa: E402  (after VCAMERADIR, which the parent sets)
 import hwfakes  # noqa: E402
 from plantscan_gphoto import plugin as gphoto_plugin  # noqa: E402
 from plantscan_gphoto.camera import GPhotoCamera  # noqa: E402
+from plantscan_serial import plugin as serial_plugin  # noqa: E402
 
 from plantscan_core.acquire import acquire  # noqa: E402
 from plantscan_core.errors import PlantScanError  # noqa: E402
@@ -121,6 +122,7 @@ def main() -> None:
     m = new_manager()
     m.register(hwfakes)
     m.register(gphoto_plugin, name="gphoto")
+    m.register(serial_plugin, name="serial")
     m.register(_FaultyPlugin(), name="gphoto-faulty")
     recipe = validate_recipe(raw, m.registry)
     error = None

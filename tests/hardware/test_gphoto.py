@@ -236,3 +236,22 @@ def test_two_identical_cameras_need_a_serial():
     with pytest.raises(GPhotoError, match=r"camera 'cam1': 2 connected cameras match .*"
                                           r"params.serial"):
         cam.open()
+
+
+def test_virtual_camera_with_a_grbl_turntable(tmp_path, vcamdir):
+    """The real-rig stack without hardware: libgphoto2 capture + G-code over a socket."""
+    from grbl_emulator import TcpGrbl
+
+    emu = TcpGrbl()
+    try:
+        raw = _recipe(n_angles=4)  # one camera: libgphoto2 has one virtual camera
+        raw["scan"]["cameras"][0]["params"]["port"] = "usb:001,001"
+        raw["scan"]["turntable"] = {"plugin": "grbl", "params": {
+            "port": emu.url, "poll_interval_s": 0.01, "feed_rate": 6000}}
+        summary = _run(raw, tmp_path / "scan", vcamdir)
+    finally:
+        emu.close()
+    assert summary["error"] is None and len(summary["views"]) == 2 + 4
+    for v in summary["views"]:  # angles read back from the controller's status reports
+        assert v["measured_angle_deg"] == pytest.approx(v["commanded_angle_deg"], abs=0.002)
+    assert emu.machine.moves == 2 + 4  # one G1 per stop: calibration 0, 180; plant 0..270
