@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import dataclasses
+import errno
 import os
 import signal
 import threading
@@ -469,7 +470,16 @@ class _Run:
                         first = (p, exc)
                     continue
                 view = dataclasses.replace(p.view, index=len(self.scan.views))
-                self.scan.append_view(view, lambda tmp, src=p.tmp: os.replace(src, tmp))
+                try:
+                    self.scan.append_view(view, lambda tmp, src=p.tmp: os.replace(src, tmp))
+                except OSError as exc:
+                    p.tmp.unlink(missing_ok=True)
+                    raise AcquisitionError(
+                        f"cannot store {view.file} in {self.scan.root}: {exc.strerror or exc}"
+                        + (" (the disk is full)" if exc.errno == errno.ENOSPC else "")
+                        + f"; {self._kept()}",
+                        device="scan folder", captured=len(self.scan.views),
+                    ) from exc
                 if self.bar is not None:
                     self.bar[0].advance(self.bar[1])
             except BaseException:
@@ -490,7 +500,12 @@ class _Run:
     def _raise_camera_error(self, view: ViewRecord, exc: BaseException) -> None:
         where = (f"{view.role} view tilt {view.tilt_index} angle {view.commanded_angle_deg:g} "
                  f"({view.file})")
-        msg = str(exc) if isinstance(exc, PlantScanError) else f"{type(exc).__name__}: {exc}"
+        if isinstance(exc, PlantScanError):
+            msg = str(exc)
+        elif isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
+            msg = f"the disk of {self.scan.root} is full ({exc})"
+        else:
+            msg = f"{type(exc).__name__}: {exc}"
         raise AcquisitionError(
             f"camera {view.camera!r} failed on {where}: {msg}; {self._kept()}",
             device=f"camera {view.camera}", captured=len(self.scan.views),

@@ -215,3 +215,33 @@ def _count_lines(path: Path) -> int:
         return path.read_bytes().count(b"\n")
     except FileNotFoundError:
         return 0
+
+
+def test_full_disk_is_a_named_error_and_keeps_the_scan(manager, tmp_path, monkeypatch):
+    import errno
+
+    import plantscan_core.scanfolder as sf
+
+    raw, recipe = _recipe(manager, n_angles=6)
+    real_fsync, calls = sf.os.fsync, []
+
+    def fsync(fd):  # from the 5th image on, the disk is full
+        if ".partial" in os.readlink(f"/proc/self/fd/{fd}"):
+            calls.append(fd)
+            if len(calls) >= 5:
+                raise OSError(errno.ENOSPC, "No space left on device")
+        return real_fsync(fd)
+
+    monkeypatch.setattr(sf.os, "fsync", fsync)
+    with pytest.raises(AcquisitionError, match="disk is full") as err:
+        acquire(recipe, tmp_path / "s", manager, raw_recipe=raw)
+    assert err.value.device == "scan folder"
+    monkeypatch.setattr(sf.os, "fsync", real_fsync)
+    from plantscan_core.scanfolder import ScanFolder
+
+    scan = ScanFolder.open(tmp_path / "s")
+    assert len(scan.views) == err.value.captured == 4
+    for v in scan.views:
+        scan.read_image(v)
+    acquire(recipe, tmp_path / "s", manager, raw_recipe=raw, resume=True)
+    check_scan(tmp_path / "s", recipe)
