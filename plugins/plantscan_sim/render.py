@@ -157,13 +157,15 @@ class Renderer:
     # ------------------------------------------------------------------ render
     def render(self, role: str, camera: Camera, angle_deg: float, ss: int = 3,
                noise_sigma: float = 0.0, rng: np.random.Generator | None = None,
-               want_coverage: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+               want_coverage: bool = False, adaptive: bool = True,
+               ) -> tuple[np.ndarray, np.ndarray | None]:
         """Render ``role`` seen by ``camera`` (world frame, turntable at ``angle_deg``).
 
         Adaptive anti-aliasing: one ray through every pixel centre first; every
         pixel whose 3 x 3 neighbourhood is not uniform (another surface, a shadow
         edge or a board square edge) is rendered again with ``ss x ss`` rays and
-        box-filtered.  Uniform pixels are exact with one ray.
+        box-filtered.  Uniform pixels are exact with one ray.  ``adaptive=False``
+        casts ``ss x ss`` rays through every pixel (the plain reference).
 
         Returns
         -------
@@ -183,14 +185,18 @@ class Renderer:
         radiance = np.empty((h, w, 3), dtype=np.float32)
         fg = np.empty((h, w), dtype=np.float32)
         key = np.empty((h, w), dtype=np.int32)
-        for r0, r1, dirs_cam in self._centre_bands(model):
-            rad, cls, k = self._shade(layer, centre, _mul3(dirs_cam, rot), rz, light_w)
-            radiance[r0:r1] = rad.reshape(r1 - r0, w, 3)
-            fg[r0:r1] = ((cls == CLASS_PLANT) | (cls == CLASS_POT)).reshape(r1 - r0, w)
-            key[r0:r1] = k.reshape(r1 - r0, w)
+        if adaptive or ss == 1:
+            for r0, r1, dirs_cam in self._centre_bands(model):
+                rad, cls, k = self._shade(layer, centre, _mul3(dirs_cam, rot), rz, light_w)
+                radiance[r0:r1] = rad.reshape(r1 - r0, w, 3)
+                fg[r0:r1] = ((cls == CLASS_PLANT) | (cls == CLASS_POT)).reshape(r1 - r0, w)
+                key[r0:r1] = k.reshape(r1 - r0, w)
         if ss > 1:
-            edge = maximum_filter(key, size=3, mode="nearest") != minimum_filter(
-                key, size=3, mode="nearest")
+            if adaptive:
+                edge = maximum_filter(key, size=3, mode="nearest") != minimum_filter(
+                    key, size=3, mode="nearest")
+            else:
+                edge = np.ones((h, w), dtype=bool)
             rows, cols = np.nonzero(edge)
             offs = (np.arange(ss) + 0.5) / ss - 0.5
             du, dv = (a.ravel() for a in np.meshgrid(offs, offs))

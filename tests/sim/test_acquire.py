@@ -127,3 +127,30 @@ def test_backlash_is_recorded_in_the_truth(tmp_path):
     errs = [d["true_angle_deg"] - d["commanded_angle_deg"] for d in lines]
     assert all(v.measured_angle_deg is None for v in scan.views)
     assert np.std(errs) > 0.05 and abs(np.mean(errs) + 1.0) < 0.5  # lag of half the band
+
+
+def test_tilt_arm_jpeg_and_encoder_axes(tmp_path):
+    # Two tilts through a sim tilt arm, JPEG images, a turntable that reports its position:
+    # the views carry the measured (true) angle, the truth calibration's tilt-axis model
+    # gives every image's exact camera, and the images are JPEG files.
+    scan = make_scan(tmp_path / "t", image_size=(320, 214), images_per_revolution=3,
+                     tilts_deg=[0.0, 20.0], image_format="jpg", roles=["plant"], overrides=[
+                         "scan.turntable.params.report_position=true",
+                         "scan.turntable.params.error_sigma_deg=0.5"])
+    from plantscan_core.data import Calibration, Camera
+
+    gt = scan.ground_truth_dir
+    cal = Calibration.load(gt / "calibration.yaml")
+    lines = {json.loads(x)["index"]: json.loads(x)
+             for x in (gt / "cameras.jsonl").read_text().splitlines()}
+    pts = np.random.default_rng(1).uniform([-200, -200, 0], [200, 200, 400], (40, 3))
+    assert {v.tilt_index for v in scan.views} == {0, 1}
+    for v in scan.views:
+        assert (scan.root / v.file).read_bytes()[:2] == b"\xff\xd8"  # JPEG magic
+        truth = lines[v.index]
+        assert v.measured_angle_deg == pytest.approx(truth["true_angle_deg"])
+        exact = Camera.from_dict(truth["camera"])
+        assert np.abs(cal.camera_for_view(v).project(pts) - exact.project(pts)).max() < 1e-6
+        # and through the tilt-axis model from the reference tilt
+        via_axis = cal.camera_at_tilt(v.camera, v.tilt_deg, v.measured_angle_deg)
+        assert np.abs(via_axis.project(pts) - exact.project(pts)).max() < 1e-6
