@@ -26,7 +26,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from plantscan_hull.views import ViewField, project, sample_bilinear, sample_nearest
+from plantscan_hull.views import (
+    DISTANCE_LIPSCHITZ,
+    ViewField,
+    project,
+    sample_bilinear,
+    sample_nearest,
+)
 
 # Slack (px) of the conservative cell tests: the cell test reads the pixel nearest
 # the projected centre (<= 0.71 px away), a voxel's value interpolates pixels
@@ -190,7 +196,7 @@ def classify_cells(views: Sequence[ViewField], centres: np.ndarray, half_size: f
         with np.errstate(divide="ignore", invalid="ignore"):
             inv = np.where(near > 0, view.gain / near, np.inf)
         r = rho * inv
-        margin = r + voxel_size * inv + CELL_SLACK_PX
+        margin = DISTANCE_LIPSCHITZ * r + voxel_size * inv + CELL_SLACK_PX
         u = np.nan_to_num(uv[:, 0], nan=-1e9)
         v = np.nan_to_num(uv[:, 1], nan=-1e9)
         lo_u, hi_u = -0.5, view.width - 0.5
@@ -250,7 +256,8 @@ class _Kernels:
     def classify_cells(self, centres, half_size, voxel_size, k, stats):
         if self._packed is not None:
             return self._kernels.classify_cells(self._packed, centres, half_size, voxel_size, k,
-                                                CELL_SLACK_PX, stats, self.min_seen)
+                                                CELL_SLACK_PX, stats, self.min_seen,
+                                                DISTANCE_LIPSCHITZ)
         return classify_cells(self.views, centres, half_size, voxel_size, k, stats,
                               self.min_seen)
 

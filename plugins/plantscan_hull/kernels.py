@@ -155,7 +155,7 @@ if HAVE_NUMBA:
         return out, tests.sum()
 
     @njit(cache=True, parallel=True)
-    def _classify(centres, half_size, voxel_size, params, tables, k, slack, min_seen):
+    def _classify(centres, half_size, voxel_size, params, tables, k, slack, min_seen, lip):
         m = centres.shape[0]
         nv = params.shape[0]
         rho = half_size * np.sqrt(3.0)
@@ -193,7 +193,7 @@ if HAVE_NUMBA:
                     n_amb += 1
                     continue
                 n_on += 1
-                margin = r + voxel_size * inv + slack
+                margin = lip * r + voxel_size * inv + slack
                 sd = _nearest(p, tables, u, v)
                 if sd < -margin:
                     n_out += 1
@@ -223,12 +223,13 @@ def voxel_field(packed, points: np.ndarray, voxel_size: float, k: int, stats=Non
 
 
 def classify_cells(packed, centres: np.ndarray, half_size: float, voxel_size: float, k: int,
-                   slack: float, stats=None, min_seen: int = 0) -> np.ndarray:
+                   slack: float, stats=None, min_seen: int = 0, lipschitz: float = 1.0,
+                   ) -> np.ndarray:
     """Compiled ``carve.classify_cells``."""
     params, tables = packed
     decision, tests = _classify(np.ascontiguousarray(centres, dtype=np.float64),
                                 float(half_size), float(voxel_size), params, tables, int(k),
-                                float(slack), int(min_seen))
+                                float(slack), int(min_seen), float(lipschitz))
     if stats is not None:
         stats.cell_view_tests += int(tests)
     return decision

