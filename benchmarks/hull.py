@@ -136,8 +136,9 @@ def run_case(folder: Path, case: str, res: int, k: int) -> dict:
         out.update(carve_s=time.perf_counter() - t0, voxel_view_tests=st.voxel_view_tests,
                    cell_view_tests=st.cell_view_tests, inside=int((phi > 0).sum()))
         t0 = time.perf_counter()
-        from plantscan_core.data import Volume
         from plantscan_hull.stages import MarchingCubesMesher
+
+        from plantscan_core.data import Volume
 
         mesher = MarchingCubesMesher(MarchingCubesMesher.Params(pot="auto"))
         mesh = mesher.mesh(Volume(phi, grid.origin, grid.voxel_size))

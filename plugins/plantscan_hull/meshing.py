@@ -120,7 +120,8 @@ def postprocess(mesh: Mesh, smooth_iterations: int, target_faces: int | None) ->
     import pymeshlab
 
     ms = pymeshlab.MeshSet()
-    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=mesh.vertices, face_matrix=mesh.faces.astype(np.int32)))
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=mesh.vertices,
+                               face_matrix=mesh.faces.astype(np.int32)))
     if smooth_iterations > 0:
         ms.apply_coord_taubin_smoothing(stepsmoothnum=int(smooth_iterations))
     if target_faces and target_faces < len(mesh.faces):

@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from hull_phantoms import Box, Cylinder, Sphere, render, ring_calibration, views
-
-from plantscan_core.data import Silhouettes, rotation_x, rotation_z
 from plantscan_hull.carve import Grid, carve_dense, carve_octree
 from plantscan_hull.meshing import marching_cubes, signed_volume
 from plantscan_hull.stages import OctreeHull
 from plantscan_hull.views import prepare_views
+
+from plantscan_core.data import Silhouettes, rotation_x, rotation_z
 
 ELEVATIONS = (0.0, 30.0)
 SPHERE = Sphere((5.0, -3.0, 10.0), 40.0)
@@ -71,7 +71,8 @@ def _exact_sphere_hull(cal, vl, sphere: Sphere, points: np.ndarray) -> np.ndarra
 
 def test_sphere_hull_volume(rig, sphere_sils):
     cal, vl = rig
-    vol = OctreeHull(OctreeHull.Params(resolution=80, k=0, floor_z_mm=None)).reconstruct(sphere_sils, cal)
+    hull = OctreeHull(OctreeHull.Params(resolution=80, k=0, floor_z_mm=None))
+    vol = hull.reconstruct(sphere_sils, cal)
     mesh = marching_cubes(vol.field, vol.origin, vol.voxel_size)
     # Exact hull volume by sampling a 0.8 mm lattice (sampling error ~0.2 %).
     ax = [np.arange(c - 50, c + 50, 0.8) for c in SPHERE.centre]
@@ -190,8 +191,8 @@ def test_thin_leaf_lost_without_rescue(rig, leaf_sils):
     # The failure the rescue exists for: centre tests at k = 0 leave holes in the leaf.
     cal, vl = rig
     sils = leaf_sils
-    vol = OctreeHull(OctreeHull.Params(resolution=64, k=0, keep_thin=False, floor_z_mm=None)).reconstruct(
-        sils, cal)
+    hull = OctreeHull(OctreeHull.Params(resolution=64, k=0, keep_thin=False, floor_z_mm=None))
+    vol = hull.reconstruct(sils, cal)
     mesh = marching_cubes(vol.field, vol.origin, vol.voxel_size)
     d = _outside_distance(mesh, _leaf_points()) / vol.voxel_size
     assert d.max() > 1.5 or np.mean(d < 1.0) < 0.99
@@ -202,8 +203,9 @@ def test_views_that_miss_a_voxel_do_not_carve_it(rig):
     # that column is unseen by them and must not be carved by them.
     from dataclasses import replace
 
-    from plantscan_core.data import Camera, Silhouette
     from plantscan_hull.views import prepare_view
+
+    from plantscan_core.data import Camera, Silhouette
 
     cal, vl = rig
     sils = render(cal, vl, [SPHERE])

@@ -8,10 +8,6 @@ import cv2
 import numpy as np
 import pytest
 from hull_phantoms import Sphere, render, ring_calibration, views
-
-from plantscan_core.data import Calibration
-from plantscan_core.errors import DataError
-from plantscan_core.scanfolder import ScanFolder
 from plantscan_hull.colmap import (
     add_import_command,
     export_colmap_text,
@@ -20,6 +16,10 @@ from plantscan_hull.colmap import (
     quaternion_to_matrix,
     read_cameras,
 )
+
+from plantscan_core.data import Calibration
+from plantscan_core.errors import DataError
+from plantscan_core.scanfolder import ScanFolder
 
 
 @pytest.fixture(scope="module")

@@ -5,9 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from hull_phantoms import Box, Cylinder, Sphere, render, ring_calibration, views
-
-from plantscan_core.data import Silhouette, Silhouettes, Volume
-from plantscan_core.errors import DataError
 from plantscan_hull import kernels
 from plantscan_hull.bbox import BoundingBoxError
 from plantscan_hull.carve import Grid, carve_dense, carve_octree
@@ -15,6 +12,9 @@ from plantscan_hull.meshing import marching_cubes, signed_volume, topology_repor
 from plantscan_hull.pot import TaperedCylinder, fit_pot
 from plantscan_hull.stages import DenseHull, MarchingCubesMesher, OctreeHull
 from plantscan_hull.views import prepare_views
+
+from plantscan_core.data import Silhouette, Silhouettes, Volume
+from plantscan_core.errors import DataError
 
 ELEVATIONS = (0.0, 35.0)
 POT = Cylinder(-60.0, -20.0, 22.0, 28.0)  # tapered pot, wider at the top
@@ -181,8 +181,9 @@ def test_empty_volume_is_an_error():
 
 
 def test_plugin_registers_its_stages():
-    from plantscan_core.plugins import new_manager
     from plantscan_hull import plugin
+
+    from plantscan_core.plugins import new_manager
 
     manager = new_manager()
     manager.register(plugin, name="hull")

@@ -69,12 +69,13 @@ def test_colmap_roundtrip_of_truth_cameras(scan, tmp_path):
 
 def test_full_chain_through_the_pipeline(scan, tmp_path):
     """calibrate (truth, nominal angles) -> truth masks -> octree-hull -> marching-cubes."""
-    from plantscan_core.pipeline import process
-    from plantscan_core.plugins import new_manager
-    from plantscan_core.recipe import validate_recipe
     from plantscan_hull import plugin as hull_plugin
     from plantscan_hull.evaluate import evaluate_hull
     from plantscan_sim import plugin as sim_plugin
+
+    from plantscan_core.pipeline import process
+    from plantscan_core.plugins import new_manager
+    from plantscan_core.recipe import validate_recipe
 
     manager = new_manager()
     manager.register(sim_plugin, name="sim")
