@@ -1,4 +1,5 @@
-"""`plantscan scan` on the virtual scanner, killed with SIGKILL 10 times, then resumed."""
+"""`plantscan scan` on the virtual scanner, killed with SIGKILL 10 times and interrupted with
+Ctrl-C once, then resumed."""
 
 from __future__ import annotations
 
@@ -69,6 +70,17 @@ def test_cli_scan_survives_ten_sigkills(tmp_path):
             assert seen.setdefault(v.file, (st.st_ino, st.st_mtime_ns)) == (
                 st.st_ino, st.st_mtime_ns), f"{v.file} rewritten after kill {i}"
     assert kills == 10, "the scan finished before all kills landed"
+    # Ctrl-C: the command says so and exits 130, the folder stays consistent.
+    proc = subprocess.Popen(cmd + ["--resume"], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE)
+    start = _lines(out / "views.jsonl")
+    while proc.poll() is None and _lines(out / "views.jsonl") <= start:
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    if _lines(out / "views.jsonl") < len(plan(recipe)):  # the scan was not already over
+        assert proc.returncode == 130, err.decode()[-2000:]
+        assert b"interrupted; everything finished so far is kept" in err
     res = subprocess.run(cmd + ["--resume"], capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr[-2000:]
     scan = ScanFolder.open(out)
