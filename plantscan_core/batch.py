@@ -154,14 +154,12 @@ def process_plant(scan_dir: str, recipe_path: str, overrides: Sequence[str], run
     outcome = PlantOutcome(scan=str(scan_dir), run_dir=str(run_dir), worker=_worker_name())
     try:
         (Path(run_dir) / ERROR_TXT).unlink(missing_ok=True)  # from an earlier failed attempt
-        import cv2
-
-        cv2.setNumThreads(threads)  # one plant per core: no oversubscription inside OpenCV
         from plantscan_core.pipeline import process
         from plantscan_core.recipe import apply_overrides, load_recipe, read_recipe_file
         from plantscan_core.scanfolder import ScanFolder
 
         manager = _worker_manager()
+        _limit_threads(threads)  # after the plugins imported their numerical libraries
         recipe = load_recipe(recipe_path, list(overrides), manager.registry)
         raw = apply_overrides(read_recipe_file(Path(recipe_path)), list(overrides))
         outcome.plant_id = str(ScanFolder.open(Path(scan_dir)).info.get("plant_id")
@@ -186,6 +184,18 @@ def process_plant(scan_dir: str, recipe_path: str, overrides: Sequence[str], run
             pass  # the error is still in the summary
     outcome.seconds = round(time.perf_counter() - t0, 3)
     return outcome
+
+
+def _limit_threads(threads: int) -> None:
+    """At most ``threads`` threads inside OpenCV and numba for this plant (one plant per core)."""
+    import cv2
+
+    cv2.setNumThreads(threads)
+    if "numba" in sys.modules:  # only when a plugin uses it; importing it costs ~0.5 s
+        import numba
+
+        # Thread-local in numba: set in the thread that runs the stages (this one).
+        numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
 
 
 def _float_or_none(v: Any) -> float | None:
@@ -307,8 +317,11 @@ def run_batch(
         client = Client(scheduler, timeout=connect_timeout_s)
         where = f"scheduler {scheduler}"
     else:
+        # One plant per single-threaded worker process: numba's parallel loops (hull) would
+        # otherwise start one thread per core in every worker and oversubscribe the cores
+        # (Dask already pins OMP/MKL/OpenBLAS to 1 thread in its workers).
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                               dashboard_address=None)
+                               dashboard_address=None, env={"NUMBA_NUM_THREADS": "1"})
         client = Client(cluster)
         where = f"local cluster ({workers} worker{'s' if workers > 1 else ''})"
     outcomes: dict[int, PlantOutcome] = {}
