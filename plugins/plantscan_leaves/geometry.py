@@ -170,3 +170,43 @@ def smooth_polyline(points: np.ndarray, sigma_mm: float, closed: bool = False) -
     tail = 2 * res[-1] - res[-pad - 1:-1][::-1]
     ext = np.concatenate([head, res, tail])
     return gaussian_filter1d(ext, sig, axis=0, mode="nearest")[pad:pad + n]
+
+
+def cell_normal_tensors(points: np.ndarray, normals: np.ndarray, weights: np.ndarray,
+                        cell: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Area-weighted normal tensors ``sum w n n^T`` over 3x3x3 blocks of cubic cells.
+
+    Parameters
+    ----------
+    points, normals : (N, 3) arrays (mm; unit vectors)
+    weights : (N,) array (e.g. face areas, mm²)
+    cell : float, mm
+
+    Returns
+    -------
+    keys : (C,) int64, sorted keys of the occupied cells
+    tensors : (C, 3, 3), the sum over each cell and its 26 neighbours
+    cell_of : (N,) int64, index into ``keys`` of each point's cell
+    grid : (6,) float, ``lo`` (mm) and ``dims`` of the key layout
+    """
+    lo = points.min(axis=0) - cell
+    ijk = np.floor((points - lo) / cell).astype(np.int64)
+    dims = ijk.max(axis=0) + 3
+    key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
+    keys, inv = np.unique(key, return_inverse=True)
+    nc = len(keys)
+    comps = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
+    t = np.stack([np.bincount(inv, weights * normals[:, a] * normals[:, b], nc)
+                  for a, b in comps], axis=1)
+    ci = np.stack([keys // (dims[1] * dims[2]), (keys // dims[2]) % dims[1], keys % dims[2]], 1)
+    acc = np.zeros_like(t)
+    for d in np.array(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1])).reshape(3, -1).T:
+        q = ci + d
+        qk = (q[:, 0] * dims[1] + q[:, 1]) * dims[2] + q[:, 2]
+        pos = np.clip(np.searchsorted(keys, qk), 0, nc - 1)
+        hit = keys[pos] == qk
+        acc[hit] += t[pos[hit]]
+    m = np.zeros((nc, 3, 3))
+    for c, (a, b) in enumerate(comps):
+        m[:, a, b] = m[:, b, a] = acc[:, c]
+    return keys, m, inv, np.concatenate([lo, dims.astype(float)])

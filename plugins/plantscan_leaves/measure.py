@@ -16,8 +16,9 @@ those of its **mid-surface**, measured without building it:
   flat slab of any thickness and edge profile, and exact to first order in
   ``thickness / bend radius`` for a bent one.
 * **perimeter** = length of the ``n . N = 0`` iso-line (marching triangles on
-  a lightly smoothed surface), plus half the length of open borders (where
-  the leaf was cut from the stem: the cut spans both sides).
+  a lightly smoothed surface, chained and smoothed by ``outline_smoothing_mm``);
+  where the leaf was cut from the stem or petiole the line is open, and is
+  closed by the straight chord between its ends.
 * **length**: base (where the leaf meets the stem, or one end of the leaf's
   geodesic diameter when there is no stem) to tip (the geodesically
   farthest point): the shortest path over each side of the slab, smoothed
@@ -93,30 +94,18 @@ def _cell_sheet_axes(points: np.ndarray, normals: np.ndarray, weights: np.ndarra
     Returns ``keys`` (C,) sorted cell keys, ``axes`` (C, 3) unit vectors and
     the grid description ``(lo, dims)`` packed as an array of 6 floats.
     """
-    lo = points.min(axis=0) - cell
-    ijk = np.floor((points - lo) / cell).astype(np.int64)
-    dims = ijk.max(axis=0) + 3
-    key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
-    keys, inv = np.unique(key, return_inverse=True)
+    keys, m, _, grid = geo.cell_normal_tensors(points, normals, weights, cell)
     nc = len(keys)
-    comps = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
-    t = np.stack([np.bincount(inv, weights * normals[:, a] * normals[:, b], nc)
-                  for a, b in comps], axis=1)
-    # add the 26 neighbouring cells (a 3x3x3 box filter on the sparse grid)
+    dims = grid[3:].astype(np.int64)
     ci = np.stack([keys // (dims[1] * dims[2]), (keys // dims[2]) % dims[1], keys % dims[2]], 1)
-    acc = np.zeros_like(t)
     nbr_of = []
     for d in np.array(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1])).reshape(3, -1).T:
+        if not np.any(d != 0):
+            continue
         q = ci + d
         qk = (q[:, 0] * dims[1] + q[:, 1]) * dims[2] + q[:, 2]
         pos = np.clip(np.searchsorted(keys, qk), 0, nc - 1)
-        hit = keys[pos] == qk
-        acc[hit] += t[pos[hit]]
-        if np.any(d != 0):
-            nbr_of.append(np.where(hit, pos, -1))
-    m = np.zeros((nc, 3, 3))
-    for c, (a, b) in enumerate(comps):
-        m[:, a, b] = m[:, b, a] = acc[:, c]
+        nbr_of.append(np.where(keys[pos] == qk, pos, -1))
     _, vec = np.linalg.eigh(m)
     axes = vec[:, :, 2].copy()
     # orient: breadth-first over neighbouring cells, each cell agreeing with its parent
@@ -137,7 +126,6 @@ def _cell_sheet_axes(points: np.ndarray, normals: np.ndarray, weights: np.ndarra
                             axes[n] = -axes[n]
                         nxt.append(n)
             frontier = nxt
-    grid = np.concatenate([lo, dims.astype(float)])
     return keys, axes, grid
 
 
@@ -223,7 +211,7 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
     rim_length = _iso_line_length(v, f, topo, side, p.outline_smoothing_mm)
     border = topo.edges[topo.edge_face_count == 1]
     border_length = float(np.linalg.norm(v[border[:, 0]] - v[border[:, 1]], axis=1).sum())
-    perimeter = rim_length + 0.5 * border_length
+    perimeter = rim_length
 
     # mean slab thickness: enclosed volume over planform area (exact for a flat slab; an
     # open cut at the stem leaves this an estimate, used only by the rim correction)
@@ -330,6 +318,7 @@ def _iso_line_length(v: np.ndarray, f: np.ndarray, topo: geo.MeshTopology, value
     point_of_edge = np.full(len(e), -1)
     point_of_edge[ce] = np.arange(len(ce))
     pts = v[e[ce, 0]] + t[:, None] * (v[e[ce, 1]] - v[e[ce, 0]])
+    on_border = topo.edge_face_count[ce] == 1
     fe = point_of_edge[topo.face_edges]  # (F, 3) crossing point on each side or -1
     two = (fe >= 0).sum(axis=1) == 2
     links = np.sort(fe[two], axis=1)[:, 1:]  # the two crossing points of each such face
@@ -356,9 +345,16 @@ def _iso_line_length(v: np.ndarray, f: np.ndarray, topo: geo.MeshTopology, value
             seen[cur] = True
             chain.append(cur)
         closed = len(chain) > 2 and start in nbr[chain[-1]]
-        poly = pts[chain + ([start] if closed else [])]
-        total += geo.polyline_length(geo.smooth_polyline(poly, sigma, closed=closed)
-                                     if not closed else _closed_smooth(pts[chain], sigma))
+        if closed:
+            total += geo.polyline_length(_closed_smooth(pts[chain], sigma))
+        else:
+            poly = pts[chain]
+            length = geo.polyline_length(geo.smooth_polyline(poly, sigma))
+            chord = float(np.linalg.norm(poly[-1] - poly[0]))
+            total += length
+            if on_border[chain[0]] and on_border[chain[-1]] and chord < 0.2 * length:
+                # an outline broken where the leaf was cut from the stem: close it by the chord
+                total += chord
     return total
 
 

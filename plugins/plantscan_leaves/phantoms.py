@@ -114,6 +114,19 @@ def cylinder_field(radius: float, z0: float, z1: float, centre=(0.0, 0.0)) -> Fi
     return field
 
 
+def capsule_field(p0: Sequence[float], p1: Sequence[float], radius: float) -> Field:
+    """Tube of ``radius`` around the segment ``p0``-``p1`` with round ends (a petiole)."""
+    a = np.asarray(p0, float)
+    d = np.asarray(p1, float) - a
+    dd = float(d @ d)
+
+    def field(p: np.ndarray) -> np.ndarray:
+        t = np.clip(((p - a) @ d) / dd, 0.0, 1.0)
+        return radius - np.linalg.norm(p - a - t[..., None] * d, axis=-1)
+
+    return field
+
+
 def union(*fields: Field) -> Field:
     def out(p: np.ndarray) -> np.ndarray:
         return np.max(np.stack([f(p) for f in fields]), axis=0)
@@ -215,7 +228,9 @@ class MockPlant:
     def part_of(self, points: np.ndarray) -> np.ndarray:
         """(N,) truth part of points near the surface: -1 stem, i for leaf i (largest field)."""
         values = np.stack([f(points) for f in self.parts])
-        return np.argmax(values, axis=0) - 1
+        part = np.argmax(values, axis=0) - 1
+        part[part >= len(self.leaves)] = -1  # petioles are stem
+        return part
 
     def mesh(self, voxel_mm: float = 0.6, **kwargs) -> Mesh:
         return mesh_field(self.field, self.lo, self.hi, voxel_mm,
@@ -223,13 +238,16 @@ class MockPlant:
 
 
 def mock_plant(n_leaves: int = 5, stem_radius: float = 3.0, thickness: float = 1.5,
-               seed: int = 1) -> MockPlant:
+               seed: int = 1, petiole_mm: float = 0.0, petiole_radius: float = 1.5) -> MockPlant:
     """Stem + ``n_leaves`` elliptical leaves in a spiral, their bases sunk into the stem.
 
     Each leaf points outwards and upwards (20–35 deg) from a node on the stem;
     leaves are 60–90 mm long, 30–45 mm wide.  A leaf starts half a stem
     radius from the axis, so its first ``stem_radius / 2`` mm are inside the
-    stem (visible length ``2 a - stem_radius / 2``).
+    stem (visible length ``2 a - stem_radius / 2``).  With ``petiole_mm`` > 0
+    each blade sits instead at the end of a petiole (a tube, part of the stem
+    in the truth) that long from the stem surface, and its whole ``2 a`` shows.
+    Parts: ``parts[0]`` stem, ``parts[1 + i]`` leaf i, then the petioles.
     """
     rng = np.random.default_rng(seed)
     height = 40.0 + 25.0 * n_leaves
@@ -237,6 +255,7 @@ def mock_plant(n_leaves: int = 5, stem_radius: float = 3.0, thickness: float = 1
     boxes = [(np.array([-stem_radius, -stem_radius, 0.0]),
               np.array([stem_radius, stem_radius, height]))]
     leaves = []
+    petioles = []
     for i in range(n_leaves):
         a = rng.uniform(30.0, 45.0)
         b = rng.uniform(15.0, 22.0)
@@ -249,14 +268,71 @@ def mock_plant(n_leaves: int = 5, stem_radius: float = 3.0, thickness: float = 1
         rot = (rotation_about_axis((0, 0, 1), azimuth)
                @ rotation_about_axis((0, 1, 0), -elevation)
                @ rotation_about_axis((1, 0, 0), roll))
-        # the leaf base sits half a stem radius inside the stem axis' surface
-        centre = np.array([stem_radius * 0.5 + a, 0.0, 0.0])
+        x0 = stem_radius * 0.5 if petiole_mm <= 0 else stem_radius + petiole_mm
+        centre = np.array([x0 + a, 0.0, 0.0])
         t = rot @ centre + np.array([0.0, 0.0, z])
+        if petiole_mm > 0:
+            # from the stem axis to 1 mm into the blade's base
+            ends = np.array([[0.0, 0.0, 0.0], [x0 + 1.0, 0.0, 0.0]]) @ rot.T + [0.0, 0.0, z]
+            petioles.append((capsule_field(ends[0], ends[1], petiole_radius),
+                             (ends.min(axis=0) - petiole_radius, ends.max(axis=0) + petiole_radius)))
         fields.append(placed(ellipse_slab_field(a, b, thickness), rot, t))
         corners = np.array(np.meshgrid([-a, a], [-b, b], [-thickness, thickness])).reshape(3, -1).T
         world = corners @ rot.T + t
         boxes.append((world.min(axis=0), world.max(axis=0)))
-    reach = 2 * 45.0 + stem_radius + 5
+    for field, box in petioles:
+        fields.append(field)
+        boxes.append(box)
+    reach = 2 * 45.0 + stem_radius + 5 + petiole_mm
     lo = np.array([-reach, -reach, -1.0])
     hi = np.array([reach, reach, height + 60.0])
     return MockPlant(union(*fields), leaves, lo, hi, fields, boxes)
+
+
+def voxelise_mesh(vertices: np.ndarray, faces: np.ndarray, voxel_mm: float, offset_mm: float,
+                  sigma_noise_mm: float = 0.0, seed: int = 0) -> Mesh:
+    """A marching-cubes surface at ``offset_mm`` around a (thin) mesh: a hull-like slab.
+
+    The unsigned distance to the mesh is computed (Open3D ray-casting scene) in
+    a narrow band of voxels around its surface; the 0 level of
+    ``offset_mm - distance`` is meshed.  A 0.5 mm leaf becomes a
+    ``0.5 + 2 offset`` mm slab with rounded edges whose outline lies
+    ``offset_mm`` outside the leaf's (so its flat-leaf traits are those of
+    the leaf grown by ``offset_mm``: length and width ``+ 2 offset``,
+    perimeter ``+ 2 pi offset``, area ``+ perimeter x offset + pi offset^2``).
+    """
+    import open3d as o3d
+    from skimage.measure import marching_cubes
+
+    v = np.asarray(vertices, float)
+    f = np.asarray(faces, np.int64)
+    lo = v.min(axis=0) - offset_mm - 3 * voxel_mm
+    n = np.ceil((v.max(axis=0) + offset_mm + 3 * voxel_mm - lo) / voxel_mm).astype(int) + 1
+    # narrow band: voxels near points sampled on every triangle at < voxel spacing
+    tri = v[f]
+    edge = np.max(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2), axis=1)
+    k = np.maximum(np.ceil(edge / (0.5 * voxel_mm)).astype(int), 1)
+    band = []
+    for kk in np.unique(k):
+        sel = tri[k == kk]
+        u, w = np.meshgrid(np.arange(kk + 1), np.arange(kk + 1), indexing="ij")
+        keep = (u + w) <= kk
+        bary = np.stack([u[keep], w[keep]], axis=1) / kk
+        pts = (sel[:, None, 0] + bary[None, :, 0, None] * (sel[:, None, 1] - sel[:, None, 0])
+               + bary[None, :, 1, None] * (sel[:, None, 2] - sel[:, None, 0])).reshape(-1, 3)
+        band.append(np.unique(np.round((pts - lo) / voxel_mm).astype(np.int64), axis=0))
+    centre = np.unique(np.concatenate(band), axis=0)
+    reach = int(np.ceil(offset_mm / voxel_mm)) + 1
+    offs = np.array(np.meshgrid(*[np.arange(-reach, reach + 1)] * 3)).reshape(3, -1).T
+    cand = np.unique((centre[:, None, :] + offs[None]).reshape(-1, 3), axis=0)
+    cand = cand[np.all((cand >= 0) & (cand < n), axis=1)]
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)), o3d.core.Tensor(f.astype(np.uint32)))
+    d = scene.compute_distance(o3d.core.Tensor((lo + cand * voxel_mm).astype(np.float32))).numpy()
+    field = np.full(tuple(n), -voxel_mm, np.float32)
+    field[cand[:, 0], cand[:, 1], cand[:, 2]] = np.maximum(offset_mm - d, -voxel_mm)
+    verts, tris, _, _ = marching_cubes(field, 0.0, spacing=(voxel_mm,) * 3)
+    verts = verts + lo
+    if sigma_noise_mm > 0:
+        verts = verts + np.random.default_rng(seed).normal(0.0, sigma_noise_mm, verts.shape)
+    return Mesh(verts, tris[:, ::-1])

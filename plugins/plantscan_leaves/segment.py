@@ -60,6 +60,16 @@ class CurvatureRegionsParams(StageParams):
     )
     stem_min_elongation: float = Field(
         2.5, gt=0, description="a stem piece is at least this many times longer than thick")
+    petiole_scale_mm: float = Field(
+        2.0, gt=0,
+        description="cell size of the tube test that moves petioles and stem pieces grown "
+                    "into a leaf back to the stem (tested over 3x3x3 cells), mm; about the "
+                    "petiole/stem diameter")
+    petiole_tube_ratio: float = Field(
+        0.45, gt=0, le=1,
+        description="faces whose neighbourhood's normals spread this much around one axis "
+                    "(2nd/1st eigenvalue) are tube-like; tube-like parts of a leaf touching "
+                    "the stem are stem (petioles); 1 disables")
     max_faces: int = Field(
         0, ge=0,
         description="if > 0 and the mesh has more faces, curvature is estimated on a "
@@ -208,24 +218,73 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
     # small non-tube pieces join the region they share most edges with
     if crumbs.any():
         labels = _merge_crumbs(labels, crumbs, topo.face_pairs, nlab)
-    region_kind = np.where(tube, "stem", "leaf")
-    leaf_regions = [r for r in range(nlab) if leafy[r]]
+    leaf_face = np.isin(labels, np.flatnonzero(leafy))
+    stem_face = np.isin(labels, np.flatnonzero(tube))
+    moved = np.zeros(nf, bool)
+    if p.petiole_tube_ratio < 1:
+        moved = _petioles_to_stem(v, f, normals, areas, topo.face_pairs, leaf_face, stem_face,
+                                  p.petiole_scale_mm, p.petiole_tube_ratio, p.min_leaf_area_mm2)
+    info["petiole_faces"] = int(np.count_nonzero(moved))
+    stem_face |= moved
+    leaf_face &= ~moved
+    # a leaf region that lost its petiole or a stem piece may fall apart: its connected
+    # pieces are leaves again if big enough, crumbs of the neighbouring leaf otherwise
+    leaf_lab = np.where(leaf_face, labels, -1)
+    a, b = topo.face_pairs[:, 0], topo.face_pairs[:, 1]
+    same = (leaf_lab[a] == leaf_lab[b]) & (leaf_lab[a] >= 0)
+    pieces = _regions_of(nf, topo.face_pairs[same], leaf_face)
+    pieces = _relabel(pieces)
+    n_pieces = int(pieces.max()) + 1 if leaf_face.any() else 0
+    piece_area = np.bincount(pieces[leaf_face], areas[leaf_face], n_pieces) / 2.0
+    small = piece_area < p.min_leaf_area_mm2
+    if small.any() and (~small).any():
+        merged = _merge_crumbs(np.where(leaf_face, pieces, n_pieces), np.append(small, False),
+                               topo.face_pairs, n_pieces + 1)
+        pieces = np.where(leaf_face, merged, -1)
     out = np.full(nf, STEM_LABEL, np.int32)
     kinds: dict[int, str] = {}
-    if (np.isin(labels, np.flatnonzero(region_kind == "stem"))).any() or not leaf_regions:
-        kinds[STEM_LABEL] = "stem"
-    for new, r in enumerate(leaf_regions, start=1):
-        out[labels == r] = new
+    leaf_pieces = [r for r in range(n_pieces) if not small[r]]
+    for new, r in enumerate(leaf_pieces, start=1):
+        out[pieces == r] = new
         kinds[new] = "leaf"
-    if STEM_LABEL not in kinds and (out == STEM_LABEL).any():
+    if (out == STEM_LABEL).any() or not leaf_pieces:
         kinds[STEM_LABEL] = "stem"
-    if not leaf_regions:
+    if not leaf_pieces:
         msg = "no leaf-like region found on the mesh (everything looks like stem or crumbs)"
         log.warning(msg)
         info["warnings"].append(msg)
-    info["leaves"] = len(leaf_regions)
+    info["leaves"] = len(leaf_pieces)
     info["stem_pieces"] = int(tube.sum())
     return LabelledMesh(mesh, out, kinds), info
+
+
+def _petioles_to_stem(v: np.ndarray, f: np.ndarray, normals: np.ndarray, areas: np.ndarray,
+                      pairs: np.ndarray, leaf_face: np.ndarray, stem_face: np.ndarray,
+                      scale: float, ratio: float, min_area: float) -> np.ndarray:
+    """Faces of leaf regions that belong to tubes touching the stem (petioles, stem tops).
+
+    A petiole meets its blade without a concave crease (the blade narrows into
+    it), so region growing gives it to the leaf.  Its surface is a tube: over a
+    few millimetres its normals turn all round one axis, while a slab's normals
+    stay near +-N even at its rounded rim (the rim is a small part of any
+    neighbourhood).  Tube-like parts of leaves that touch the stem, or are
+    big (``min_area`` of surface: a stem grown into a leaf), go to the stem;
+    small ones elsewhere (narrow blade tips) stay.
+    """
+    c = v[f].mean(axis=1)
+    _, tens, cell_of, _ = geo.cell_normal_tensors(c, normals, areas, scale)
+    ev = np.linalg.eigvalsh(tens)  # ascending
+    spread = ev[:, 1] / np.maximum(ev[:, 2], 1e-12)
+    tube_face = (spread[cell_of] > ratio) & leaf_face
+    if not tube_face.any():
+        return tube_face
+    comp = _regions_of(len(f), pairs, tube_face)
+    a, b = pairs[:, 0], pairs[:, 1]
+    touch = np.zeros(int(comp.max()) + 1, bool)
+    touch[comp[a[(comp[a] >= 0) & stem_face[b]]]] = True
+    touch[comp[b[(comp[b] >= 0) & stem_face[a]]]] = True
+    big = np.bincount(comp[comp >= 0], areas[comp >= 0], len(touch)) >= min_area
+    return (comp >= 0) & (touch | big)[np.maximum(comp, 0)]
 
 
 def _merge_crumbs(labels: np.ndarray, crumbs: np.ndarray, pairs: np.ndarray, nlab: int
