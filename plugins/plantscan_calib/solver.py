@@ -100,6 +100,8 @@ class SolveOptions:
         Tilt whose pose anchors the tilt-axis model (default: lowest index).
     max_rms_px, max_rejected_fraction : float
         Above these the calibration is refused (``CalibrationError``).
+    max_init_rms_px : float
+        An initialisation worse than this means the board spec is wrong: refused at once.
     angle_jitter_deg : float or None
         When set, each turntable stop gets its own angle error (backlash,
         missed steps), estimated with a zero-mean Gaussian prior of this
@@ -127,6 +129,7 @@ class SolveOptions:
     reference_tilt_index: int | None = None
     max_rms_px: float = 2.0
     max_rejected_fraction: float = 0.05
+    max_init_rms_px: float = 50.0
     angle_jitter_deg: float | None = None
     distortion_prior: float | None = 0.3
     prior_noise_px: float = 0.2
@@ -889,6 +892,12 @@ def calibrate_turntable(detections: list[Detection], boards: dict[int, np.ndarra
         coverage[cam] = float(np.max(r) / half_diag)
     state = initialise(detections, boards, image_sizes, opt)
     init_stats = residual_stats(state, detections, boards)
+    if not np.isfinite(init_stats["rms_px"]) or init_stats["rms_px"] > opt.max_init_rms_px:
+        # Far beyond any lens model: the object points do not describe the detected board.
+        raise CalibrationError(
+            f"the initial calibration leaves {init_stats['rms_px']:.3g} px RMS (limit "
+            f"max_init_rms_px {opt.max_init_rms_px}); the board spec (cols, rows, square size) "
+            "does not match the detections")
     quality: dict[str, Any] = {
         "method": "plane+circle initialisation" + (" + pyceres refinement" if opt.refine else ""),
         "initialisation": {"rms_px": init_stats["rms_px"], "max_px": init_stats["max_px"]},
