@@ -66,10 +66,20 @@ class BoardSpec:
         return np.stack([i.ravel() * self.square_mm, j.ravel() * self.square_mm,
                          np.zeros(self.n_corners)], axis=1).astype(float)
 
-    def charuco_board(self):
+    @property
+    def n_markers(self) -> int:
+        """ArUco markers on one ChArUco board (the white squares)."""
+        return (self.cols + 1) * (self.rows + 1) // 2
+
+    def charuco_board(self, index: int = 0):
+        """OpenCV ``CharucoBoard``; board ``index`` uses the next ``n_markers`` marker ids.
+
+        Several ChArUco boards on one turntable are told apart by their ids.
+        """
         d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
+        ids = np.arange(index * self.n_markers, (index + 1) * self.n_markers, dtype=np.int32)
         return cv2.aruco.CharucoBoard((self.cols + 1, self.rows + 1), self.square_mm,
-                                      self.marker_mm, d)
+                                      self.marker_mm, d, ids)
 
 
 def to_gray(image: np.ndarray) -> np.ndarray:
@@ -84,9 +94,11 @@ def pyramid(gray: np.ndarray, max_side_px: int) -> list[np.ndarray]:
     return levels
 
 
-def _subpix(img: np.ndarray, corners: np.ndarray, spacing_px: float) -> np.ndarray:
-    # A window of ~40 % of a square stays inside the square's X junction.
-    win = int(np.clip(0.4 * spacing_px, 2, 15))
+def _subpix(img: np.ndarray, corners: np.ndarray, spacing_px: float,
+            fraction: float = 0.4) -> np.ndarray:
+    # A window of ~40 % of a square stays inside the square's X junction (less on ChArUco,
+    # whose markers would pull the corner).
+    win = int(np.clip(fraction * spacing_px, 2, 15))
     c = corners.reshape(-1, 1, 2).astype(np.float32)
     crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 40, 0.001)
     cv2.cornerSubPix(img, c, (win, win), (-1, -1), crit)
@@ -187,7 +199,7 @@ def detect_chessboard_plain(image: np.ndarray, cols: int, rows: int) -> np.ndarr
 
 
 def detect_charuco(image: np.ndarray, spec: BoardSpec, max_side_px: int = 2048,
-                   min_corners: int = 6) -> tuple[np.ndarray, np.ndarray] | None:
+                   min_corners: int = 6, index: int = 0) -> tuple[np.ndarray, np.ndarray] | None:
     """ChArUco corners: ids identify each corner, so partial and oblique views are usable.
 
     Markers are found on a reduced level (long side <= 1.5 * ``max_side_px``),
@@ -200,7 +212,7 @@ def detect_charuco(image: np.ndarray, spec: BoardSpec, max_side_px: int = 2048,
     """
     gray = to_gray(image)
     levels = pyramid(gray, max_side_px)
-    detector = cv2.aruco.CharucoDetector(spec.charuco_board())
+    detector = cv2.aruco.CharucoDetector(spec.charuco_board(index))
     corners, ids, _, _ = detector.detectBoard(levels[-1])
     if ids is None or len(ids) < min_corners:
         return None
@@ -212,11 +224,11 @@ def detect_charuco(image: np.ndarray, spec: BoardSpec, max_side_px: int = 2048,
         d = np.linalg.norm(c[:, None] - c[None], axis=-1)
         d[d == 0] = np.inf
         spacing = float(np.median(d.min(axis=1)))
-    for k in range(len(levels) - 1, -1, -1):
-        if k != len(levels) - 1:
-            c = 2.0 * c
-            spacing *= 2.0
-        c = _subpix(levels[k], c, spacing)
+    # detectBoard already refines at its own level; only finer levels need cornerSubPix.
+    for k in range(len(levels) - 2, -1, -1):
+        c = 2.0 * c
+        spacing *= 2.0
+        c = _subpix(levels[k], c, spacing, fraction=0.2)
     del scale
     # OpenCV ChArUco corner id = row * (squares_x - 1) + col: the same row-major layout
     # as object_points(); its origin differs by one square, which the board pose absorbs.

@@ -53,6 +53,8 @@ class TurntableCalibrator(Calibrator):
         max_rejected_fraction: float = Field(0.05, ge=0, le=1)
         lowest_corner_height_mm: float = 0.0
         cross_validate: bool = True
+        boards: int = Field(1, ge=1, description="ChArUco boards on the turntable (board k "
+                            "uses the k-th block of marker ids); a chessboard must be alone")
         workers: int = Field(2, ge=1)
 
     def board_spec(self) -> BoardSpec:
@@ -79,10 +81,13 @@ class TurntableCalibrator(Calibrator):
             raise DataError(f"{scan.root}: the scan has no calibration views (role "
                             "'calibration' in views.jsonl)")
         spec = self.board_spec()
+        if self.params.boards > 1 and spec.kind != "charuco":
+            raise CalibrationError("calibrate.params.boards: identical chessboards cannot be "
+                                   "told apart; use ChArUco boards (board: charuco) for several")
         dets, sizes, found = detect_views(scan, views, spec, self.params.detect_max_side_px,
-                                          self.params.workers)
+                                          self.params.workers, self.params.boards)
         _check_detections(views, found, spec, self.params.min_views, scan.root)
-        boards = {0: spec.object_points()}
+        boards = {k: spec.object_points() for k in range(self.params.boards)}
         tilts = {v.tilt_index: v.tilt_deg for v in views}
         cal = calibrate_turntable(dets, boards, sizes, tilts, self.solve_options(),
                                   symmetric_boards=spec.symmetric)
@@ -95,8 +100,9 @@ class TurntableCalibrator(Calibrator):
 
 
 def detect_views(scan, views: list[ViewRecord], spec: BoardSpec, max_side_px: int = 800,
-                 workers: int = 2) -> tuple[list[Detection], dict[str, tuple[int, int]],
-                                            dict[tuple[str, int], int]]:
+                 workers: int = 2, boards: int = 1,
+                 ) -> tuple[list[Detection], dict[str, tuple[int, int]],
+                            dict[tuple[str, int], int]]:
     """Detect the board in each view (threads: OpenCV releases the GIL).
 
     Returns the detections, the image size of each camera and the number of
@@ -111,8 +117,10 @@ def detect_views(scan, views: list[ViewRecord], spec: BoardSpec, max_side_px: in
         size = (gray.shape[1], gray.shape[0])
         if spec.kind == "chessboard":
             uv = detect_chessboard(gray, spec.cols, spec.rows, max_side_px)
-            return view, size, None if uv is None else (np.arange(spec.n_corners), uv)
-        return view, size, detect_charuco(gray, spec, max(2 * max_side_px, 2048))
+            return view, size, [] if uv is None else [(0, np.arange(spec.n_corners), uv)]
+        hits = [(k, detect_charuco(gray, spec, max(2 * max_side_px, 2048), index=k))
+                for k in range(boards)]
+        return view, size, [(k, *h) for k, h in hits if h is not None]
 
     with ThreadPoolExecutor(max_workers=workers) as pool:
         results = list(pool.map(one, views))
@@ -128,12 +136,12 @@ def detect_views(scan, views: list[ViewRecord], spec: BoardSpec, max_side_px: in
                 f"{view.file} is {size[0]}x{size[1]}")
         sizes.setdefault(view.camera, size)
         first.setdefault(view.camera, view)
-        if hit is None:
+        if not hit:
             continue
-        ids, uv = hit
         found[(view.camera, view.tilt_index)] += 1
-        dets.append(Detection(view.camera, view.tilt_index, view.angle_deg, 0, ids, uv,
-                              view.index))
+        for board, ids, uv in hit:
+            dets.append(Detection(view.camera, view.tilt_index, view.angle_deg, board, ids, uv,
+                                  view.index))
     return dets, sizes, dict(found)
 
 

@@ -39,7 +39,8 @@ class SyntheticRig:
 
 def make_rig(image_size: tuple[int, int] = (5184, 3456), tilts_deg=(0.0, 20.0, 40.0),
              cameras: int = 2, boards: int = 1, cols: int = 9, rows: int = 6,
-             square_mm: float = 25.0, distortion: bool = True) -> SyntheticRig:
+             square_mm: float = 25.0, distortion: bool = True, kind: str = "chessboard",
+             marker_mm: float = 0.0) -> SyntheticRig:
     """A two-camera tilting-arm rig, tilt axis horizontal through the plant volume.
 
     Camera ``cam0`` looks at the plant from 700 mm at 150 mm height, ``cam1``
@@ -64,7 +65,7 @@ def make_rig(image_size: tuple[int, int] = (5184, 3456), tilts_deg=(0.0, 20.0, 4
             poses[(name, ti)] = Pose(base.R @ q.T, base.R @ (o - q.T @ o) + base.t)
     truth = Calibration(models, poses, {i: float(t) for i, t in enumerate(tilts_deg)}, 1.0,
                         axis if len(tilts_deg) > 1 else None)
-    spec = BoardSpec("chessboard", cols, rows, square_mm)
+    spec = BoardSpec(kind, cols, rows, square_mm, marker_mm)
     pts = spec.object_points()
     centre = pts.mean(axis=0)
     bp, bd = {}, {}
@@ -133,13 +134,18 @@ def volume_points(radius_mm: float = 120.0, z_range_mm=(0.0, 400.0), n: int = 60
 
 
 # --------------------------------------------------------------------------- rendered boards
-def board_texture(spec: BoardSpec, px_per_mm: float, margin_mm: float | None = None
-                  ) -> tuple[np.ndarray, float]:
-    """(H, W) uint8 image of a chessboard (``cols+1`` x ``rows+1`` squares) with a white margin.
+def board_texture(spec: BoardSpec, px_per_mm: float, margin_mm: float | None = None,
+                  index: int = 0) -> tuple[np.ndarray, float]:
+    """(H, W) uint8 image of a board (``cols+1`` x ``rows+1`` squares) with a white margin.
 
     Returns the image and the margin (mm) between the image edge and the
-    board's outer corner; inner corner 0 is one square further in.
+    board's outer corner; inner corner 0 is one square further in.  A ChArUco
+    board (board ``index``'s marker ids) comes from OpenCV, without margin.
     """
+    if spec.kind == "charuco":
+        w = int(round((spec.cols + 1) * spec.square_mm * px_per_mm))
+        h = int(round((spec.rows + 1) * spec.square_mm * px_per_mm))
+        return spec.charuco_board(index).generateImage((w, h), marginSize=0), 0.0
     m = spec.square_mm if margin_mm is None else margin_mm
     nx, ny = spec.cols + 1, spec.rows + 1
     w = int(round((nx * spec.square_mm + 2 * m) * px_per_mm))
@@ -200,7 +206,7 @@ def write_board_scan(root, rig: SyntheticRig, angles_deg, noise: float = 2.0, se
     from plantscan_core.scanfolder import ScanFolder
 
     rng = np.random.default_rng(seed)
-    tex, margin = board_texture(rig.spec, px_per_mm)
+    textures = {b: board_texture(rig.spec, px_per_mm, index=b) for b in rig.board_poses}
     scan = ScanFolder.create(root, {"plant_id": "synthetic-board", "rig": {
         "tilts_deg": [rig.truth.tilts_deg[i] for i in sorted(rig.truth.tilts_deg)]}})
     idx = 0
@@ -213,6 +219,7 @@ def write_board_scan(root, rig: SyntheticRig, angles_deg, noise: float = 2.0, se
                 view_dir = xw.mean(axis=0) - camera.pose.centre
                 if bp.R[:, 2] @ view_dir <= 0:  # back of the board
                     continue
+                tex, margin = textures[b]
                 layer = render_board_view(camera, bp, rig.spec, tex, px_per_mm, margin, 0, 2)
                 cover = render_board_view(camera, bp, rig.spec, np.full_like(tex, 255),
                                           px_per_mm, margin, 0, 2)

@@ -98,6 +98,22 @@ def test_mixed_image_sizes_are_refused(board_scan, tmp_path):
         TurntableCalibrator(_params()).calibrate(scan)
 
 
+def test_two_charuco_boards(tmp_path):
+    """Two ChArUco boards (different marker ids) on the plate, told apart in every image."""
+    rig = make_rig(image_size=(960, 640), tilts_deg=(0.0,), distortion=False, boards=2,
+                   kind="charuco", marker_mm=18.0)
+    write_board_scan(tmp_path / "charuco", rig, np.arange(0.0, 360.0, 20.0), px_per_mm=6.0)
+    cal = TurntableCalibrator(_params(board="charuco", marker_mm=18.0, boards=2)).calibrate(
+        ScanFolder.open(tmp_path / "charuco"))
+    assert set(cal.quality["boards"]) == {"0", "1"}
+    err = compare_calibrations(cal, rig.truth, volume_points())
+    # Same image size and board as the chessboard scan above; partial views add corners.
+    assert err["camera_centre_error_mm"]["mean"] < 1.0
+    assert err["volume_reprojection_px_rms"] < 0.5
+    with pytest.raises(CalibrationError, match="identical chessboards"):
+        TurntableCalibrator(_params(boards=2)).calibrate(ScanFolder.open(tmp_path / "charuco"))
+
+
 def test_fixed_calibrator(board_scan, tmp_path):
     rig, root = board_scan
     copy = tmp_path / "imported"
