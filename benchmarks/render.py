@@ -18,13 +18,13 @@ import platform
 import time
 
 import numpy as np
-
-from plantscan_core.recipe import validate_recipe
-from plantscan_core.stages import StageContext
 from plantscan_sim.api import scan_recipe, sim_manager
 from plantscan_sim.plants import build_plant
 from plantscan_sim.rig import Rig
 from plantscan_sim.scene import SimScene
+
+from plantscan_core.recipe import validate_recipe
+from plantscan_core.stages import StageContext
 
 SIZES = {"1 MP": (1224, 816), "18 MP": (5184, 3456)}
 

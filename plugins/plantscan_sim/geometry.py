@@ -63,8 +63,8 @@ def revolve(profile_rz: np.ndarray, n: int = 96, attr: int = 0) -> TriMesh:
     prof = np.asarray(profile_rz, dtype=float)
     a = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
     ca, sa = np.cos(a), np.sin(a)
-    v = np.stack([prof[:, 0:1] * ca, prof[:, 0:1] * sa, np.broadcast_to(prof[:, 1:2], (len(prof), n))],
-                 axis=-1).reshape(-1, 3)
+    z = np.broadcast_to(prof[:, 1:2], (len(prof), n))
+    v = np.stack([prof[:, 0:1] * ca, prof[:, 0:1] * sa, z], axis=-1).reshape(-1, 3)
     rows, cols = len(prof), n
     faces = []
     for i in range(rows - 1):

@@ -19,9 +19,9 @@ from plantscan_core.errors import DataError, HardwareError
 from plantscan_core.hookspecs import hookimpl
 from plantscan_core.scanfolder import ScanFolder
 from plantscan_core.stages import (
+    Calibrator,
     CameraBackend,
     CaptureRequest,
-    Calibrator,
     MotionAxis,
     Segmenter,
     StageParams,
@@ -77,7 +77,7 @@ class SimCamera(CameraBackend):
 
 def _final_relpath(scan: ScanFolder, request: CaptureRequest) -> str:
     """The image's final path relative to the scan (the request names a temporary)."""
-    from plantscan_core.acquire import image_relpath, PlannedView
+    from plantscan_core.acquire import PlannedView, image_relpath
 
     v = PlannedView(request.role, request.camera, request.tilt_index, request.tilt_deg,
                     request.angle_index, request.commanded_angle_deg)

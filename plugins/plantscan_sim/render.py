@@ -120,8 +120,10 @@ class Renderer:
     lighting: Lighting
     board: BoardTexture | None = None
     board_material: int = -1
+    moving: dict[str, TriMesh] = field(default_factory=dict)
     _layers: dict = field(default_factory=dict, init=False)
     _lab: _Layer | None = field(default=None, init=False)
+    _moving: dict = field(default_factory=dict, init=False)
     _cache: dict = field(default_factory=dict, init=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, init=False)
     rays_cast: int = field(default=0, init=False)
@@ -132,6 +134,8 @@ class Renderer:
         for role, mesh in self.world.items():
             self._layers[role] = _Layer(mesh, _raycasting_scene(mesh), mesh.face_attr)
         self._lab = _Layer(self.lab, _raycasting_scene(self.lab), self.lab.face_attr)
+        for role, mesh in self.moving.items():
+            self._moving[role] = _Layer(mesh, _raycasting_scene(mesh), mesh.face_attr)
 
     # ------------------------------------------------------------------ rays
     def _centre_bands(self, model: CameraModel):
@@ -158,6 +162,7 @@ class Renderer:
     def render(self, role: str, camera: Camera, angle_deg: float, ss: int = 3,
                noise_sigma: float = 0.0, rng: np.random.Generator | None = None,
                want_coverage: bool = False, adaptive: bool = True,
+               sway: tuple[np.ndarray, np.ndarray] | None = None,
                ) -> tuple[np.ndarray, np.ndarray | None]:
         """Render ``role`` seen by ``camera`` (world frame, turntable at ``angle_deg``).
 
@@ -166,6 +171,8 @@ class Renderer:
         edge or a board square edge) is rendered again with ``ss x ss`` rays and
         box-filtered.  Uniform pixels are exact with one ray.  ``adaptive=False``
         casts ``ss x ss`` rays through every pixel (the plain reference).
+        ``sway = (S, pivot)`` displaces the role's moving geometry (the plant) by
+        the rotation ``S`` (3, 3) about ``pivot`` (3,) mm, world frame.
 
         Returns
         -------
@@ -178,6 +185,11 @@ class Renderer:
         model = camera.model
         w, h = model.width, model.height
         layer = self._layers[role]
+        moving = None
+        if role in self._moving:
+            s_rot, pivot = sway if sway is not None else (np.eye(3), np.zeros(3))
+            moving = (self._moving[role], np.asarray(s_rot, np.float32),
+                      np.asarray(pivot, np.float32))
         rz = rotation_z(angle_deg).astype(np.float32)
         rot = camera.pose.R.astype(np.float32)
         centre = camera.pose.centre.astype(np.float32)
@@ -187,7 +199,8 @@ class Renderer:
         key = np.empty((h, w), dtype=np.int32)
         if adaptive or ss == 1:
             for r0, r1, dirs_cam in self._centre_bands(model):
-                rad, cls, k = self._shade(layer, centre, _mul3(dirs_cam, rot), rz, light_w)
+                rad, cls, k = self._shade(layer, centre, _mul3(dirs_cam, rot), rz, light_w,
+                                          moving)
                 radiance[r0:r1] = rad.reshape(r1 - r0, w, 3)
                 fg[r0:r1] = ((cls == CLASS_PLANT) | (cls == CLASS_POT)).reshape(r1 - r0, w)
                 key[r0:r1] = k.reshape(r1 - r0, w)
@@ -206,7 +219,8 @@ class Renderer:
                 r, c = rows[i:i + chunk], cols[i:i + chunk]
                 uv = np.stack([(c[:, None] + du).ravel(), (r[:, None] + dv).ravel()], 1)
                 dirs_cam = model.unproject(uv).astype(np.float32)
-                rad, cls, _ = self._shade(layer, centre, _mul3(dirs_cam, rot), rz, light_w)
+                rad, cls, _ = self._shade(layer, centre, _mul3(dirs_cam, rot), rz, light_w,
+                                          moving)
                 radiance[r, c] = rad.reshape(len(r), n_ss, 3).mean(axis=1)
                 fg[r, c] = ((cls == CLASS_PLANT) | (cls == CLASS_POT)).reshape(
                     len(r), n_ss).mean(axis=1)
@@ -228,43 +242,54 @@ class Renderer:
         self.rays_cast += len(dirs)
         return {k: out[k].numpy() for k in ("t_hit", "primitive_ids", "primitive_normals")}
 
-    def _shade(self, layer: _Layer, centre, d_w, rz, light_w):
+    def _shade(self, layer: _Layer, centre, d_w, rz, light_w, moving=None):
         """Radiance (N, 3), class (N,) and a shading key (N,) of world rays ``d_w``.
 
         The key changes wherever the pixel value may change abruptly (surface,
-        shadow, board square); it drives the adaptive anti-aliasing.
+        shadow, board square); it drives the adaptive anti-aliasing.  ``moving``
+        is ``(layer, S, pivot)``: geometry displaced in this view by the rotation
+        ``S`` about ``pivot`` (plant sway), hit in its rest frame.
         """
         import open3d as o3d
 
         n_rays = len(d_w)
-        hw = self._cast(layer.scene, centre, d_w)
-        hl = self._cast(self._lab.scene, rz @ centre, _mul3(d_w, rz.T))
-        t_w, t_l = hw["t_hit"], hl["t_hit"]
-        use_lab = t_l < t_w
-        t = np.where(use_lab, t_l, t_w)
-        hit = np.isfinite(t)
+        # Each candidate: (layer, M) with rays mapped into the layer's frame by row @ M.
+        cands = [(layer, None, None), (self._lab, rz.T, None)]
+        if moving is not None:
+            cands.append((moving[0], moving[1], moving[2]))
+        t = np.full(n_rays, np.inf, dtype=np.float32)
         mat = np.full(n_rays, -1, dtype=np.int64)
-        ids_w, ids_l = hw["primitive_ids"].astype(np.int64), hl["primitive_ids"].astype(np.int64)
-        sel_w = hit & ~use_lab
-        sel_l = hit & use_lab
-        mat[sel_w] = layer.face_material[ids_w[sel_w]]
-        mat[sel_l] = self._lab.face_material[ids_l[sel_l]]
-        normal = hw["primitive_normals"]
-        normal[sel_l] = _mul3(hl["primitive_normals"][sel_l], rz)  # lab -> world: Rz^T n
+        normal = np.zeros((n_rays, 3), dtype=np.float32)
+        for lay, m, pivot in cands:
+            if m is None:
+                o, d = centre, d_w
+            elif pivot is None:
+                o, d = centre @ m, _mul3(d_w, m)
+            else:
+                o, d = pivot + (centre - pivot) @ m, _mul3(d_w, m)
+            h = self._cast(lay.scene, o.astype(np.float32), d)
+            closer = h["t_hit"] < t
+            if not closer.any():
+                continue
+            t[closer] = h["t_hit"][closer]
+            mat[closer] = lay.face_material[h["primitive_ids"][closer].astype(np.int64)]
+            n = h["primitive_normals"][closer]
+            normal[closer] = n if m is None else _mul3(n, m.T)  # back to the world frame
+        hit = np.isfinite(t)
         # Thin leaves are seen from both sides: face the normal towards the camera.
         flip = np.einsum("ij,ij->i", normal, d_w) > 0
         normal[flip] *= -1.0
 
         idx = np.flatnonzero(hit)
-        m = mat[idx]
-        albedo = self._albedo[m]
+        m_hit = mat[idx]
+        albedo = self._albedo[m_hit]
         cls = np.full(n_rays, CLASS_BACKGROUND, dtype=np.int8)
-        cls[idx] = self._klass[m]
+        cls[idx] = self._klass[m_hit]
         key = np.full(n_rays, -8, dtype=np.int32)
-        key[idx] = 8 * m.astype(np.int32)
+        key[idx] = 8 * m_hit.astype(np.int32)
         p = centre + t[idx, None] * d_w[idx]
         if self.board is not None:
-            on_board = m == self.board_material
+            on_board = m_hit == self.board_material
             if on_board.any():
                 a = self.board.albedo(p[on_board].astype(np.float64))
                 albedo[on_board] = a[:, None]
@@ -282,6 +307,12 @@ class Renderer:
             rays[:, 3:] = light_w - origin
             occluded = layer.scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0,
                                                    tfar=1.0).numpy()
+            if moving is not None:
+                lay, m, pivot = moving
+                rays[:, :3] = pivot + _mul3(origin - pivot, m)
+                rays[:, 3:] = _mul3(light_w - origin, m)
+                occluded |= lay.scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0,
+                                                      tfar=1.0).numpy()
             self.rays_cast += len(rays)
             vis[lit] = (~occluded).astype(np.float32)
         key[idx] += 2 * (vis > 0)

@@ -14,8 +14,15 @@ import math
 import numpy as np
 from pydantic import Field
 
-from plantscan_core.data import Calibration, Camera, CameraModel, Pose, TiltAxis, rotation_about_axis
-from plantscan_core.data import rotation_z
+from plantscan_core.data import (
+    Calibration,
+    Camera,
+    CameraModel,
+    Pose,
+    TiltAxis,
+    rotation_about_axis,
+    rotation_z,
+)
 from plantscan_core.stages import StageParams
 
 

@@ -86,6 +86,9 @@ class SimSceneParams(StageParams):
     soil_depth_mm: float = Field(8.0, ge=0.0)
     carrier_radius_mm: float = 60.0
     plate_radius_mm: float = 200.0
+    sway_deg: float = Field(0.0, ge=0.0, le=10.0, description="plant sway: per turntable stop "
+                            "the plant (not the pot) tilts about its stem base by a random "
+                            "angle of this standard deviation (seeded, in cameras.jsonl)")
     check_rig: bool = Field(True, description="refuse impossible rigs before rendering")
 
 
@@ -271,6 +274,10 @@ class SimScene(Scene):
             "calibration": TriMesh.concat([plate, carrier, *board_parts]),
             "plant": TriMesh.concat([plate, carrier, self.pot_mesh(), plant_mesh]),
         }
+        moving = {}
+        if p.sway_deg > 0:  # the plant is its own ray-casting scene, displaced per view
+            world["plant"] = TriMesh.concat([plate, carrier, self.pot_mesh()])
+            moving["plant"] = plant_mesh
         materials = [
             Material((0.62, 0.66, 0.72)),            # backdrop: light blue-grey sweep
             Material((0.20, 0.20, 0.21)),            # turntable plate
@@ -282,8 +289,10 @@ class SimScene(Scene):
             Material((0.30, 0.30, 0.30)),            # board post
             Material(plant.stem_colour, CLASS_PLANT),
         ] + [Material(plant.leaf_colours[lid], CLASS_PLANT) for lid in leaf_ids]
-        light = Lighting(np.array(p.light_position_mm, float), p.key_light, p.ambient, gamma=p.gamma)
-        self.renderer = Renderer(world, self._backdrop(), materials, light, tex, M_BOARD)
+        light = Lighting(np.array(p.light_position_mm, float), p.key_light, p.ambient,
+                         gamma=p.gamma)
+        self.renderer = Renderer(world, self._backdrop(), materials, light, tex, M_BOARD,
+                                 moving)
 
     # ------------------------------------------------------------------ axes
     def axis_moved(self, axis: str, true_deg: float) -> None:
@@ -319,12 +328,29 @@ class SimScene(Scene):
         ss = p.calibration_supersampling if request.role == "calibration" else p.supersampling
         rng = np.random.default_rng(self.view_seed(request.role, camera, request.tilt_index,
                                                    request.angle_index))
+        sway = self.plant_sway(request.tilt_index, request.angle_index) \
+            if request.role == "plant" and p.sway_deg > 0 else None
         image, cov = self.renderer.render(request.role, cam, angle, ss, p.noise_sigma, rng,
-                                          want_coverage=request.role == "plant")
+                                          want_coverage=request.role == "plant", sway=sway)
         truth = {"camera": cam.to_dict(), "true_angle_deg": angle, "true_tilt_deg": tilt,
                  "commanded_angle_deg": request.commanded_angle_deg,
                  "commanded_tilt_deg": request.tilt_deg}
+        if sway is not None:
+            truth["plant_sway"] = {"R": sway[0].tolist(), "pivot_mm": sway[1].tolist()}
         return image, cov, truth
+
+    def plant_sway(self, tilt_index: int, angle_index: int) -> tuple[np.ndarray, np.ndarray]:
+        """Rotation (3, 3) and pivot (3,) mm of the plant at one stop (same for all cameras).
+
+        The plant's vertices ``X`` (plant.npz, rest pose) are at ``pivot + R (X - pivot)``.
+        """
+        from plantscan_core.data import rotation_about_axis
+
+        rng = np.random.default_rng([self.params.seed, 7, tilt_index, angle_index])
+        a = rng.uniform(0.0, 2.0 * np.pi)
+        angle = float(rng.normal(0.0, self.params.sway_deg))
+        r = rotation_about_axis([math.cos(a), math.sin(a), 0.0], angle)
+        return r, np.array([0.0, 0.0, self.soil_z])
 
     # ------------------------------------------------------------------ checks
     def check_rig(self, planned) -> None:

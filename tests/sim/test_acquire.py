@@ -8,13 +8,14 @@ import cv2
 import numpy as np
 import pytest
 import yaml
+from plantscan_sim import RigError, make_scan, read_truth_cameras, scan_recipe
 
 from plantscan_core.acquire import plan
 from plantscan_core.errors import RecipeError, ScanFolderError
 from plantscan_core.recipe import validate_recipe
-from plantscan_sim import RigError, make_scan, read_truth_cameras, scan_recipe
-SMALL = dict(preset="plastic-dicot", image_size=(480, 320), images_per_revolution=6,
-             calibration_images_per_revolution=6)  # as conftest.small_scan
+
+SMALL = dict(preset="plastic-dicot", image_size=(360, 240), images_per_revolution=6,
+             calibration_images_per_revolution=2)  # as conftest.small_scan
 
 
 def test_interrupted_scan_resumes_to_exactly_the_protocol(small_scan, tmp_path):
@@ -120,7 +121,8 @@ def test_unwritable_output_is_refused(tmp_path):
 def test_backlash_is_recorded_in_the_truth(tmp_path):
     # A turntable with 2 deg of backlash and 0.3 deg random error: the images are taken at
     # the true angles (cameras.jsonl), the views keep the commanded ones (open loop).
-    scan = make_scan(tmp_path / "b", **SMALL, roles=["plant"], overrides=[
+    small = {**SMALL, "images_per_revolution": 4}
+    scan = make_scan(tmp_path / "b", **small, roles=["plant"], overrides=[
         "scan.turntable.params.backlash_deg=2.0", "scan.turntable.params.error_sigma_deg=0.3"])
     lines = [json.loads(x) for x in
              (scan.ground_truth_dir / "cameras.jsonl").read_text().splitlines()]

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from plantscan_sim.geometry import leaf_surface, mesh_area
 from plantscan_sim.plants import PLASTIC_DICOT_LEAVES, build_plant
 

@@ -6,11 +6,11 @@ import cv2
 import numpy as np
 import pytest
 import yaml
+from plantscan_sim import make_scan, read_truth_cameras
+from plantscan_sim.geometry import LeafPlacement, leaf_outline, leaf_surface, mesh_area
 
 from plantscan_core.data import Traits
 from plantscan_core.errors import DataError
-from plantscan_sim import make_scan, read_truth_cameras
-from plantscan_sim.geometry import LeafPlacement, leaf_outline, leaf_surface, mesh_area
 
 TINY = dict(image_size=(320, 214), images_per_revolution=2)
 

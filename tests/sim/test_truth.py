@@ -8,10 +8,10 @@ import cv2
 import numpy as np
 import pytest
 import yaml
-
-from plantscan_core.data import Calibration, Camera
 from plantscan_sim import read_truth_cameras
 from plantscan_sim.geometry import TriMesh, frustum
+
+from plantscan_core.data import Calibration, Camera
 
 
 def _truth_foreground_mesh(gt) -> TriMesh:
@@ -90,8 +90,9 @@ def test_truth_files_follow_the_format(small_scan):
 
 
 def test_truth_stages_give_the_truth(small_scan):
-    from plantscan_core.stages import StageContext
     from plantscan_sim.plugin import TruthCalibrator, TruthMaskSegmenter
+
+    from plantscan_core.stages import StageContext
 
     ctx = StageContext(scan=small_scan)
     cal = TruthCalibrator(None, ctx).calibrate(small_scan)
@@ -99,4 +100,38 @@ def test_truth_stages_give_the_truth(small_scan):
     seg = TruthMaskSegmenter(None, ctx)
     view = small_scan.views_by_role("plant")[3]
     mask = seg.segment(small_scan.read_image(view), None, view)
-    assert mask.dtype == bool and mask.shape == (320, 480) and 0.02 < mask.mean() < 0.6
+    assert mask.dtype == bool and mask.shape == (240, 360) and 0.02 < mask.mean() < 0.6
+
+
+def test_plant_sway_is_rendered_and_recorded(tmp_path):
+    # With sway, each stop's plant is the rest mesh turned by cameras.jsonl's plant_sway;
+    # the masks match that displaced mesh (IoU >= 0.99 edges aside) and not the rest pose.
+    from plantscan_sim import make_scan
+
+    scan = make_scan(tmp_path / "sway", image_size=(360, 240), images_per_revolution=3,
+                     roles=["plant"], scene={"sway_deg": 3.0})
+    gt = scan.ground_truth_dir
+    lines = {json.loads(x)["index"]: json.loads(x)
+             for x in (gt / "cameras.jsonl").read_text().splitlines()}
+    with np.load(gt / "plant.npz") as z:
+        plant = TriMesh(z["vertices"], z["faces"], z["face_leaf_id"])
+    pot = _truth_foreground_mesh(gt)
+    pot = TriMesh(pot.vertices, pot.faces[len(plant.faces):], pot.face_attr[len(plant.faces):])
+    kernel = np.ones((3, 3), np.uint8)
+    worse = 0
+    for view in scan.views:
+        d = lines[view.index]
+        r, pivot = np.array(d["plant_sway"]["R"]), np.array(d["plant_sway"]["pivot_mm"])
+        swayed = TriMesh(pivot + (plant.vertices - pivot) @ r.T, plant.faces, plant.face_attr)
+        cam = Camera.from_dict(d["camera"])
+        mask = cv2.imread(str(gt / "masks" / f"{view.index:05d}.png"), 0) > 127
+        m8 = mask.astype(np.uint8)
+        keep = ~(cv2.dilate(m8, kernel).astype(bool) & ~cv2.erode(m8, kernel).astype(bool))
+
+        def iou(mesh, mask=mask, keep=keep, cam=cam):
+            proj = _rasterise(TriMesh.concat([mesh, pot]), cam)
+            return np.sum(mask & proj & keep) / np.sum((mask | proj) & keep)
+
+        assert iou(swayed) >= 0.99
+        worse += iou(plant) < iou(swayed) - 0.005
+    assert worse >= len(scan.views) // 2
