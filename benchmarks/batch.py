@@ -57,7 +57,7 @@ def main() -> int:
     print(f"{args.plants} plants, hull resolution {args.resolution}, {os.cpu_count()} cores, "
           f"load average before: {os.getloadavg()[0]:.1f}")
 
-    rows = []  # (method, workers, wall s, plants ok, sum of per-plant task seconds)
+    rows = []  # (method, workers, wall s, plants ok, sum of plant seconds, CPU s per plant)
     manager = load_plugins()
     r = load_recipe(recipe, overrides, manager.registry)
     # Warm-up, untimed: compiles the numba kernels into their on-disk cache, which every
@@ -66,11 +66,12 @@ def main() -> int:
     process(scans[0], r, work / "warm-up", manager, overrides=overrides, workers=1)
     out = work / "serial"
     shutil.rmtree(out, ignore_errors=True)
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.process_time()
     for scan in scans:
         process(scan, r, out / scan.name, manager, overrides=overrides, workers=1)
     wall = time.perf_counter() - t0
-    rows.append(("serial (for loop, no Dask)", 1, wall, args.plants, wall))
+    rows.append(("serial (for loop, no Dask)", 1, wall, args.plants, wall,
+                 (time.process_time() - cpu0) / args.plants))
 
     for workers in (1, 2):
         out = work / f"dask-{workers}"
@@ -79,7 +80,8 @@ def main() -> int:
         summary = run_batch(scans, recipe, out, overrides=overrides, workers=workers,
                             progress=False)
         rows.append(("run_batch, local cluster", workers, time.perf_counter() - t0,
-                     summary.succeeded, sum(p.seconds for p in summary.plants)))
+                     summary.succeeded, sum(p.seconds for p in summary.plants),
+                     sum(p.cpu_seconds for p in summary.plants) / len(summary.plants)))
         if summary.failed:
             print(summary)
             return 1
@@ -87,12 +89,13 @@ def main() -> int:
     base = rows[1][2]
     # Concurrency = sum of the plants' own seconds / wall time: how many plants were being
     # processed at once on average (cluster start and plugin loading included in the wall).
+    # CPU s per plant: the work one plant costs; equal across rows = no overhead from Dask.
     print("\n| method | workers | plants ok | wall (s) | plants/min | speed-up vs dask-1 "
-          "| concurrency |")
-    print("|---|---|---|---|---|---|---|")
-    for name, workers, seconds, ok, task_s in rows:
+          "| concurrency | CPU s / plant |")
+    print("|---|---|---|---|---|---|---|---|")
+    for name, workers, seconds, ok, task_s, cpu in rows:
         print(f"| {name} | {workers} | {ok} | {seconds:.1f} | {60 * ok / seconds:.1f} | "
-              f"{base / seconds:.2f}x | {task_s / seconds:.2f} |")
+              f"{base / seconds:.2f}x | {task_s / seconds:.2f} | {cpu:.1f} |")
     print(f"\nload average after: {os.getloadavg()[0]:.1f}")
     return 0
 

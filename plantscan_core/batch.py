@@ -12,7 +12,8 @@ reported with its error; the others finish.  Results::
     OUT/
       <scan name>/            one run folder per plant (docs/formats.md)
       batch_summary.csv       one row per plant: scan, plant_id, status, error, seconds,
-                              leaf_count, total_leaf_area_mm2, height_mm, run_dir, worker
+                              cpu_seconds, leaf_count, total_leaf_area_mm2, height_mm,
+                              run_dir, worker
       traits_all.csv          every leaf of every plant that succeeded, with scan and plant_id
       <scan name>/batch_error.txt   the traceback of a failed plant
 """
@@ -38,7 +39,7 @@ from plantscan_core.scanfolder import atomic_write_text
 SUMMARY_CSV = "batch_summary.csv"
 TRAITS_CSV = "traits_all.csv"
 ERROR_TXT = "batch_error.txt"
-SUMMARY_COLUMNS = ("scan", "plant_id", "status", "error", "seconds", "leaf_count",
+SUMMARY_COLUMNS = ("scan", "plant_id", "status", "error", "seconds", "cpu_seconds", "leaf_count",
                    "total_leaf_area_mm2", "height_mm", "run_dir", "worker")
 TRAITS_COLUMNS = ("scan", "plant_id", *LEAF_TRAIT_COLUMNS)
 
@@ -52,6 +53,7 @@ class PlantOutcome:
     status: str = "failed"  # "ok" | "failed"
     error: str = ""
     seconds: float = 0.0
+    cpu_seconds: float = 0.0  # CPU time of the worker process while it ran this plant
     leaf_count: int | None = None
     total_leaf_area_mm2: float | None = None
     height_mm: float | None = None
@@ -150,7 +152,7 @@ def process_plant(scan_dir: str, recipe_path: str, overrides: Sequence[str], run
     threads : int
         Threads a plant may use inside its stages (1 when plants already fill the cores).
     """
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.process_time()
     outcome = PlantOutcome(scan=str(scan_dir), run_dir=str(run_dir), worker=_worker_name())
     try:
         (Path(run_dir) / ERROR_TXT).unlink(missing_ok=True)  # from an earlier failed attempt
@@ -183,6 +185,7 @@ def process_plant(scan_dir: str, recipe_path: str, overrides: Sequence[str], run
         except OSError:
             pass  # the error is still in the summary
     outcome.seconds = round(time.perf_counter() - t0, 3)
+    outcome.cpu_seconds = round(time.process_time() - cpu0, 3)
     return outcome
 
 
