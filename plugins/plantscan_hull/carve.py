@@ -225,6 +225,18 @@ def classify_cells(views: Sequence[ViewField], centres: np.ndarray, half_size: f
     return decision
 
 
+def interleaved(views: Sequence[ViewField]) -> list[ViewField]:
+    """Views in bit-reversed order: the first few look from very different directions.
+
+    The result is order-independent (a (k+1)-th smallest and counts); the order
+    only decides how soon a point's fate is sealed and its tests stop.
+    """
+    n = len(views)
+    bits = max(1, (n - 1).bit_length())
+    keys = [int(format(i, f"0{bits}b")[::-1], 2) for i in range(n)]
+    return [views[i] for i in sorted(range(n), key=keys.__getitem__)]
+
+
 # --------------------------------------------------------------------------- backends
 BACKENDS = ("auto", "numpy", "numba")
 
@@ -242,6 +254,7 @@ class _Kernels:
                              "model (CameraModel) for every view")
         use_numba = backend == "numba" or (backend == "auto" and kernels.supported(views))
         self.name = "numba" if use_numba else "numpy"
+        views = interleaved(views)
         self.views = views
         self.min_seen = int(min_seen)
         self._kernels = kernels

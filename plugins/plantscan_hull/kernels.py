@@ -29,6 +29,8 @@ except ImportError:  # pragma: no cover - exercised only without numba
 _R, _T, _F, _CU, _CV, _D1, _D2 = 0, 9, 12, 13, 14, 15, 16
 _W, _H, _GAIN, _U0, _V0, _TW, _TH, _BOX, _OFF = 17, 18, 19, 20, 21, 22, 23, 24, 28
 _NPARAM = 29
+# Points per chunk of the view-major loops (neighbours in the octree's order).
+CHUNK = 2048
 
 
 def supported(views: Sequence[ViewField]) -> bool:
@@ -115,99 +117,115 @@ if HAVE_NUMBA:
         return tables[int(p[28]) + iv * w + iu]
 
     @njit(cache=True, parallel=True)
-    def _voxel_field(points, params, tables, voxel_size, k, min_seen):
+    def _voxel_field(points, params, tables, voxel_size, k, min_seen, chunk):
+        # View-major inside a chunk of neighbouring points: they project to a small
+        # patch of each view's table, so the table reads stay in cache (point-major
+        # order reads a different table every test and is memory bound).
         n = points.shape[0]
         nv = params.shape[0]
+        nchunks = (n + chunk - 1) // chunk
         out = np.empty(n, dtype=np.float32)
-        tests = np.zeros(n, dtype=np.int64)
-        for i in prange(n):
-            kept = np.full(k + 1, np.inf, dtype=np.float32)
-            x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        tests = np.zeros(nchunks, dtype=np.int64)
+        for c in prange(nchunks):
+            a = c * chunk
+            m = min(n, a + chunk) - a
+            kept = np.full((m, k + 1), np.inf, dtype=np.float32)
+            seen = np.zeros(m, dtype=np.int32)
+            done = np.zeros(m, dtype=np.bool_)
             count = 0
-            seen = 0
             for j in range(nv):
                 p = params[j]
-                count += 1
-                u, v, zc = _project(p, x, y, z)
-                if not (zc > 0 and u >= -0.5 and u <= p[17] - 0.5 and v >= -0.5
-                        and v <= p[18] - 0.5):
-                    continue
-                seen += 1
-                d = np.float32(_bilinear(p, tables, u, v) * (zc / (p[12] * voxel_size)))
-                worst = 0
-                for q in range(1, k + 1):
-                    if kept[q] > kept[worst]:
-                        worst = q
-                if d < kept[worst]:
-                    kept[worst] = d
-                    m = kept[0]
+                for ii in range(m):
+                    if done[ii]:
+                        continue
+                    i = a + ii
+                    count += 1
+                    u, v, zc = _project(p, points[i, 0], points[i, 1], points[i, 2])
+                    if not (zc > 0 and u >= -0.5 and u <= p[17] - 0.5 and v >= -0.5
+                            and v <= p[18] - 0.5):
+                        continue
+                    seen[ii] += 1
+                    d = np.float32(_bilinear(p, tables, u, v) * (zc / (p[12] * voxel_size)))
+                    worst = 0
                     for q in range(1, k + 1):
-                        m = max(m, kept[q])
-                    if m <= -1.0:
-                        break
-            m = kept[0]
-            for q in range(1, k + 1):
-                m = max(m, kept[q])
-            out[i] = min(max(m, np.float32(-1.0)), np.float32(1.0))
-            if seen < min_seen and m > -1.0:
-                out[i] = -1.0
-            tests[i] = count
+                        if kept[ii, q] > kept[ii, worst]:
+                            worst = q
+                    if d < kept[ii, worst]:
+                        kept[ii, worst] = d
+                        mx = kept[ii, 0]
+                        for q in range(1, k + 1):
+                            mx = max(mx, kept[ii, q])
+                        if mx <= -1.0:
+                            done[ii] = True  # k+1 views at <= -1: final after clamping
+            for ii in range(m):
+                mx = kept[ii, 0]
+                for q in range(1, k + 1):
+                    mx = max(mx, kept[ii, q])
+                val = min(max(mx, np.float32(-1.0)), np.float32(1.0))
+                if seen[ii] < min_seen and mx > -1.0:
+                    val = np.float32(-1.0)
+                out[a + ii] = val
+            tests[c] = count
         return out, tests.sum()
 
     @njit(cache=True, parallel=True)
-    def _classify(centres, half_size, voxel_size, params, tables, k, slack, min_seen, lip):
-        m = centres.shape[0]
+    def _classify(centres, half_size, voxel_size, params, tables, k, slack, min_seen, lip,
+                  chunk):
+        m_all = centres.shape[0]
         nv = params.shape[0]
         rho = half_size * np.sqrt(3.0)
-        decision = np.empty(m, dtype=np.int8)
-        tests = np.zeros(m, dtype=np.int64)
-        for i in prange(m):
-            x, y, z = centres[i, 0], centres[i, 1], centres[i, 2]
-            n_out = 0
-            n_amb = 0
-            n_on = 0
-            n_off = 0
+        nchunks = (m_all + chunk - 1) // chunk
+        decision = np.empty(m_all, dtype=np.int8)
+        tests = np.zeros(nchunks, dtype=np.int64)
+        max_off = nv - min_seen
+        for c in prange(nchunks):
+            a = c * chunk
+            m = min(m_all, a + chunk) - a
+            n_out = np.zeros(m, dtype=np.int32)
+            n_amb = np.zeros(m, dtype=np.int32)
+            n_on = np.zeros(m, dtype=np.int32)
+            n_off = np.zeros(m, dtype=np.int32)
             count = 0
             for j in range(nv):
                 p = params[j]
-                count += 1
-                u, v, zc = _project(p, x, y, z)
-                near = zc - rho
-                if zc + rho <= 0:
-                    n_off += 1  # wholly behind the camera: not seen
-                    if n_off > nv - min_seen:
-                        break
-                    continue
-                if near <= 0:
-                    n_amb += 1
-                    continue
-                inv = p[19] / near
-                r = rho * inv
                 lo_u, hi_u, lo_v, hi_v = -0.5, p[17] - 0.5, -0.5, p[18] - 0.5
-                if u + r < lo_u or u - r > hi_u or v + r < lo_v or v - r > hi_v:
-                    n_off += 1  # footprint off the image: not seen
-                    if n_off > nv - min_seen:
-                        break
-                    continue
-                if not (u - r >= lo_u and u + r <= hi_u and v - r >= lo_v and v + r <= hi_v):
-                    n_amb += 1
-                    continue
-                n_on += 1
-                margin = lip * r + voxel_size * inv + slack
-                sd = _nearest(p, tables, u, v)
-                if sd < -margin:
-                    n_out += 1
-                    if n_out > k:
-                        break
-                elif not sd > margin:
-                    n_amb += 1
-            tests[i] = count
-            if n_out > k or n_off > nv - min_seen:
-                decision[i] = 0
-            elif n_out + n_amb <= k and n_on >= min_seen:
-                decision[i] = 1
-            else:
-                decision[i] = 2
+                for ii in range(m):
+                    if n_out[ii] > k or n_off[ii] > max_off:
+                        continue  # removed already
+                    i = a + ii
+                    count += 1
+                    u, v, zc = _project(p, centres[i, 0], centres[i, 1], centres[i, 2])
+                    if zc + rho <= 0:
+                        n_off[ii] += 1  # wholly behind the camera: not seen
+                        continue
+                    near = zc - rho
+                    if near <= 0:
+                        n_amb[ii] += 1
+                        continue
+                    inv = p[19] / near
+                    r = rho * inv
+                    if u + r < lo_u or u - r > hi_u or v + r < lo_v or v - r > hi_v:
+                        n_off[ii] += 1  # footprint off the image: not seen
+                        continue
+                    if not (u - r >= lo_u and u + r <= hi_u and v - r >= lo_v
+                            and v + r <= hi_v):
+                        n_amb[ii] += 1
+                        continue
+                    n_on[ii] += 1
+                    margin = lip * r + voxel_size * inv + slack
+                    sd = _nearest(p, tables, u, v)
+                    if sd < -margin:
+                        n_out[ii] += 1
+                    elif not sd > margin:
+                        n_amb[ii] += 1
+            for ii in range(m):
+                if n_out[ii] > k or n_off[ii] > max_off:
+                    decision[a + ii] = 0
+                elif n_out[ii] + n_amb[ii] <= k and n_on[ii] >= min_seen:
+                    decision[a + ii] = 1
+                else:
+                    decision[a + ii] = 2
+            tests[c] = count
         return decision, tests.sum()
 
 
@@ -216,7 +234,7 @@ def voxel_field(packed, points: np.ndarray, voxel_size: float, k: int, stats=Non
     """Compiled ``carve.voxel_field`` (``packed`` from ``pack``)."""
     params, tables = packed
     out, tests = _voxel_field(np.ascontiguousarray(points, dtype=np.float64), params, tables,
-                              float(voxel_size), int(k), int(min_seen))
+                              float(voxel_size), int(k), int(min_seen), CHUNK)
     if stats is not None:
         stats.voxel_view_tests += int(tests)
     return out
@@ -229,7 +247,7 @@ def classify_cells(packed, centres: np.ndarray, half_size: float, voxel_size: fl
     params, tables = packed
     decision, tests = _classify(np.ascontiguousarray(centres, dtype=np.float64),
                                 float(half_size), float(voxel_size), params, tables, int(k),
-                                float(slack), int(min_seen), float(lipschitz))
+                                float(slack), int(min_seen), float(lipschitz), CHUNK)
     if stats is not None:
         stats.cell_view_tests += int(tests)
     return decision
