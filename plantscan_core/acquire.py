@@ -36,6 +36,7 @@ Crash safety
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
 import dataclasses
 import errno
 import os
@@ -331,8 +332,8 @@ def acquire(
     todo = [v for v in plan(recipe) if v.key not in done]
     if stop_after is not None:
         todo = todo[: max(0, stop_after)]
-    run = _Run(recipe, scan, _Rig(cameras, turntable, tilt_arm), on_role_start)
-    with _sigterm_as_interrupt():
+    with _Signals() as signals:
+        run = _Run(recipe, scan, _Rig(cameras, turntable, tilt_arm), on_role_start, signals)
         run.execute(todo, progress)
     return scan
 
@@ -341,7 +342,8 @@ class _Run:
     """State of one ``acquire`` call: where the rig is, what is exposed but not committed."""
 
     def __init__(self, recipe: Recipe, scan: ScanFolder, rig: _Rig,
-                 on_role_start: Callable[[str], None] | None) -> None:
+                 on_role_start: Callable[[str], None] | None, signals: _Signals) -> None:
+        self.signals = signals
         self.recipe = recipe
         self.scan = scan
         self.rig = rig
@@ -458,6 +460,7 @@ class _Run:
         pending, self.pending = self.pending, []
         first: tuple[_Pending, BaseException] | None = None
         for i, p in enumerate(pending):
+            listed = False
             try:
                 try:
                     p.wait()
@@ -471,7 +474,10 @@ class _Run:
                     continue
                 view = dataclasses.replace(p.view, index=len(self.scan.views))
                 try:
-                    self.scan.append_view(view, lambda tmp, src=p.tmp: os.replace(src, tmp))
+                    with self.signals.critical_section():
+                        listed = False
+                        self.scan.append_view(view, lambda tmp, src=p.tmp: os.replace(src, tmp))
+                        listed = True
                 except OSError as exc:
                     p.tmp.unlink(missing_ok=True)
                     raise AcquisitionError(
@@ -483,7 +489,9 @@ class _Run:
                 if self.bar is not None:
                     self.bar[0].advance(self.bar[1])
             except BaseException:
-                self.pending = pending[i + 1:]  # still to be committed or cleaned up
+                # Still to be committed or cleaned up (this one too, unless it was listed
+                # before a deferred Ctrl-C surfaced).
+                self.pending = pending[i + 1:] if listed else pending[i:]
                 raise
         if first is not None:
             p, exc = first
@@ -516,26 +524,53 @@ class _Run:
                 "kept (fix the device, then continue with --resume)")
 
 
-class _sigterm_as_interrupt:
-    """While a scan runs in the main thread, SIGTERM behaves like Ctrl-C (motors stop)."""
+class _Signals:
+    """Ctrl-C (SIGINT) and SIGTERM while a scan runs in the main thread.
 
-    def __enter__(self):
-        self.old = None
+    Both raise ``KeyboardInterrupt`` (motors stop, see ``_Run.execute``), except
+    inside a critical section (listing one finished image: rename, line append),
+    where the interrupt is held until the section ends, so the folder on disk
+    and the scan's view list never disagree.
+    """
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self) -> None:
+        self.critical = 0
+        self.deferred: int | None = None
+        self.old: dict[int, Any] = {}
+
+    def __enter__(self) -> _Signals:
         if threading.current_thread() is threading.main_thread():
-            try:
-                self.old = signal.signal(signal.SIGTERM, _raise_interrupt)
-            except ValueError:
-                self.old = None
+            for sig in self.SIGNALS:
+                try:
+                    self.old[sig] = signal.signal(sig, self._handle)
+                except ValueError:  # not the main interpreter
+                    pass
         return self
 
-    def __exit__(self, *exc):
-        if self.old is not None:
-            signal.signal(signal.SIGTERM, self.old)
+    def __exit__(self, *exc) -> bool:
+        for sig, old in self.old.items():
+            signal.signal(sig, old)
+        self.old.clear()
         return False
 
+    def _handle(self, signum, frame) -> None:
+        if self.critical:
+            self.deferred = signum
+            return
+        raise KeyboardInterrupt(f"signal {signum}")
 
-def _raise_interrupt(signum, frame):
-    raise KeyboardInterrupt(f"signal {signum}")
+    @contextlib.contextmanager
+    def critical_section(self):
+        self.critical += 1
+        try:
+            yield
+        finally:
+            self.critical -= 1
+            if self.critical == 0 and self.deferred is not None:
+                signum, self.deferred = self.deferred, None
+                raise KeyboardInterrupt(f"signal {signum}")
 
 
 RESUME_IGNORED_PARAMS = frozenset({

@@ -202,6 +202,9 @@ def test_ctrl_c_in_a_real_process_stops_the_axes(manager, tmp_path, sig):
     from plantscan_core.scanfolder import ScanFolder
 
     scan = ScanFolder.open(out)
+    # The interrupt never lands between a line's append and its bookkeeping (critical
+    # section): indices stay 0..n-1 with no duplicate.
+    assert [v.index for v in scan.views] == list(range(len(scan.views)))
     before = {v.file: scan.path_of(v).stat().st_ino for v in scan.views}
     for v in scan.views:
         scan.read_image(v)
