@@ -48,13 +48,20 @@ def topology(faces: np.ndarray) -> MeshTopology:
     half.sort(axis=1)
     nv = int(f.max()) + 1 if nf else 0
     key = half[:, 0] * nv + half[:, 1]
-    uniq, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    # one sort does it all: edge ids, each half-edge's edge, and faces grouped by edge
+    order = np.argsort(key, kind="stable")
+    k_sorted = key[order]
+    first = np.empty(len(k_sorted), bool)
+    first[:1] = True
+    first[1:] = k_sorted[1:] != k_sorted[:-1]
+    e_sorted = np.cumsum(first) - 1
+    uniq = k_sorted[first]
+    counts = np.diff(np.append(np.flatnonzero(first), len(k_sorted)))
+    inverse = np.empty_like(e_sorted)
+    inverse[order] = e_sorted
     edges = np.stack([uniq // max(nv, 1), uniq % max(nv, 1)], axis=1)
     face_edges = inverse.reshape(nf, 3)
-    face_of_half = np.repeat(np.arange(nf), 3)
-    order = np.argsort(inverse, kind="stable")
-    e_sorted = inverse[order]
-    f_sorted = face_of_half[order]
+    f_sorted = order // 3  # the face of each sorted half-edge
     # pairs of consecutive half-edges on the same edge: manifold edges give one pair,
     # a non-manifold edge with k faces gives k-1 pairs (a chain, enough for connectivity)
     same = e_sorted[1:] == e_sorted[:-1]

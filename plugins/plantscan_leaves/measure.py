@@ -66,9 +66,11 @@ class LeafGeometryParams(StageParams):
     smoothing_mm: float = Field(0.8, ge=0, description="surface smoothing before measuring, mm")
     path_smoothing_mm: float = Field(
         3.0, ge=0, description="smoothing of midrib/width paths (removes mesh zig-zag), mm")
-    outline_smoothing_mm: float = Field(
-        1.5, ge=0, description="smoothing of the rim crest line (perimeter), mm: below the "
-                               "outline's smallest radius of curvature (leaf tips, teeth)")
+    outline_smoothing_mm: float | None = Field(
+        None, ge=0,
+        description="smoothing of the rim crest line (perimeter), mm; None: 8 mean edge "
+                    "lengths within 1.5-5 mm (a voxel hull's sharp rim zig-zags at a few "
+                    "voxels); keep it below the outline's smallest radius of curvature")
     width_stations: int = Field(5, ge=1, description="widest stations whose width is traced")
     graph_spacing_mm: float = Field(
         1.0, gt=0, description="spacing of the points geodesic paths run through, mm")
@@ -208,7 +210,9 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
     side = np.einsum("ij,ij->i", vn, vert_axis)
     # rim crest: the zero iso-line of side, by marching triangles, chained into loops and
     # smoothed (the raw iso-line wiggles at the voxel scale and is a few % too long)
-    rim_length = _iso_line_length(v, f, topo, side, p.outline_smoothing_mm)
+    outline_sigma = (p.outline_smoothing_mm if p.outline_smoothing_mm is not None
+                     else float(np.clip(8.0 * edge_mm, 1.5, 5.0)))
+    rim_length = _iso_line_length(v, f, topo, side, outline_sigma)
     border = topo.edges[topo.edge_face_count == 1]
     border_length = float(np.linalg.norm(v[border[:, 0]] - v[border[:, 1]], axis=1).sum())
     perimeter = rim_length
@@ -289,9 +293,12 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
         in_st = station == st
         li = valid[in_st & left][np.argmax(dv[in_st & left])]
         ri = valid[in_st & ~left][np.argmax(dv[in_st & ~left])]
-        w = _two_side_length([g_a, g_b], q, int(li), int(ri), sigma)
-        if np.isfinite(w):
-            width = max(width, w - rim_excess)
+        w = _two_side_length([g_a, g_b], q, int(li), int(ri), sigma) - rim_excess
+        # the rim-to-rim path cannot be much shorter than the two distances to the midrib
+        # (when a side's graph is broken by a rough surface it is): fall back to those
+        if not np.isfinite(w) or w < 0.9 * total[st]:
+            w = float(total[st])
+        width = max(width, w)
     midrib_idx = nodes[midrib_idx]
     base, tip = nodes[base], nodes[tip]
 
@@ -301,12 +308,13 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
 
 
 def _iso_line_length(v: np.ndarray, f: np.ndarray, topo: geo.MeshTopology, value: np.ndarray,
-                     sigma: float) -> float:
+                     sigma: float, min_share: float = 0.1) -> float:
     """Total length (mm) of the zero iso-line of the vertex field ``value`` after smoothing.
 
     Crossing points sit on mesh edges; each face with a sign change links two
     of them.  Chains are walked into polylines (closed when they close) and
-    smoothed by ``sigma`` mm of arclength before measuring.
+    smoothed by ``sigma`` mm of arclength before measuring.  Chains shorter
+    than ``min_share`` of the longest are dropped.
     """
     pos = value > 0
     e = topo.edges
@@ -328,7 +336,7 @@ def _iso_line_length(v: np.ndarray, f: np.ndarray, topo: geo.MeshTopology, value
         nbr[a].append(b)
         nbr[b].append(a)
     seen = np.zeros(n, bool)
-    total = 0.0
+    chains: list[float] = []
     # start open chains at their ends first, then the closed loops
     order = [i for i in range(n) if len(nbr[i]) == 1] + list(range(n))
     for start in order:
@@ -346,16 +354,20 @@ def _iso_line_length(v: np.ndarray, f: np.ndarray, topo: geo.MeshTopology, value
             chain.append(cur)
         closed = len(chain) > 2 and start in nbr[chain[-1]]
         if closed:
-            total += geo.polyline_length(_closed_smooth(pts[chain], sigma))
+            chains.append(geo.polyline_length(_closed_smooth(pts[chain], sigma)))
         else:
             poly = pts[chain]
             length = geo.polyline_length(geo.smooth_polyline(poly, sigma))
             chord = float(np.linalg.norm(poly[-1] - poly[0]))
-            total += length
             if on_border[chain[0]] and on_border[chain[-1]] and chord < 0.2 * length:
                 # an outline broken where the leaf was cut from the stem: close it by the chord
-                total += chord
-    return total
+                length += chord
+            chains.append(length)
+    if not chains:
+        return 0.0
+    # a leaf has one outline; small loops are islands where a rough surface turns edge-on
+    longest = max(chains)
+    return float(sum(c for c in chains if c >= min_share * longest))
 
 
 def _closed_smooth(loop: np.ndarray, sigma: float) -> np.ndarray:

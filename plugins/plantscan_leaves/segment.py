@@ -45,14 +45,14 @@ class CurvatureRegionsParams(StageParams):
 
     smoothing_mm: float = Field(1.5, gt=0, description="scale of the curvature estimate, mm")
     concave_curvature_per_mm: float = Field(
-        0.12, gt=0,
+        0.08, gt=0,
         description="faces more concave than this (1/mm) separate regions (leaf-stem and "
                     "leaf-leaf creases); lower splits more",
     )
     min_region_area_mm2: float = Field(
         20.0, ge=0, description="smaller seed regions are re-grown from their neighbours, mm²")
     min_leaf_area_mm2: float = Field(
-        150.0, ge=0, description="smallest leaf (one side, i.e. half its surface), mm²")
+        500.0, ge=0, description="smallest leaf (one side, i.e. half its surface), mm²")
     stem_tube_ratio: float = Field(
         0.35, gt=0, le=1,
         description="a region whose normals spread around its long axis this much "
@@ -70,11 +70,11 @@ class CurvatureRegionsParams(StageParams):
         description="faces whose neighbourhood's normals spread this much around one axis "
                     "(2nd/1st eigenvalue) are tube-like; tube-like parts of a leaf touching "
                     "the stem are stem (petioles); 1 disables")
-    max_faces: int = Field(
-        0, ge=0,
-        description="if > 0 and the mesh has more faces, curvature is estimated on a "
-                    "vertex-clustered copy of about this many faces (speed)",
-    )
+    ground_band_mm: float = Field(
+        12.0, ge=0,
+        description="leaf-like pieces lying entirely this close to the bottom of the mesh are "
+                    "remnants of the pot cut / soil, not leaves (0 for rosettes lying on the "
+                    "soil), mm")
 
 
 def _regions_of(nf: int, pairs: np.ndarray, keep: np.ndarray) -> np.ndarray:
@@ -91,6 +91,8 @@ def _regions_of(nf: int, pairs: np.ndarray, keep: np.ndarray) -> np.ndarray:
 def _grow(labels: np.ndarray, pairs: np.ndarray) -> np.ndarray:
     """Spread labels into unlabelled (-1) faces ring by ring until nothing changes."""
     labels = labels.copy()
+    # only pairs with an unlabelled face can ever change anything
+    pairs = pairs[(labels[pairs[:, 0]] < 0) | (labels[pairs[:, 1]] < 0)]
     a, b = pairs[:, 0], pairs[:, 1]
     while True:
         la, lb = labels[a], labels[b]
@@ -237,6 +239,25 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
     n_pieces = int(pieces.max()) + 1 if leaf_face.any() else 0
     piece_area = np.bincount(pieces[leaf_face], areas[leaf_face], n_pieces) / 2.0
     small = piece_area < p.min_leaf_area_mm2
+    if n_pieces:
+        # a piece left after the petiole test may itself be a stem piece (a thick stem is
+        # not tube-like at the petiole scale) or a remnant of the pot cut near the ground
+        ps = _region_shape(v, f, normals, areas, np.where(leaf_face, pieces, n_pieces),
+                           n_pieces + 1)
+        piece_tube = ((ps["spread"] > p.stem_tube_ratio) & (ps["axis_alignment"] > 0.8)
+                      & (ps["elongation"] > p.stem_min_elongation))[:n_pieces]
+        ground = np.zeros(n_pieces, bool)
+        if p.ground_band_mm > 0 and stem_face.any():  # a plant on a pot, not a lone leaf
+            zmax = np.full(n_pieces + 1, -np.inf)
+            np.maximum.at(zmax, np.where(leaf_face, pieces, n_pieces), v[f].max(axis=1)[:, 2])
+            ground = zmax[:n_pieces] < v[:, 2].min() + p.ground_band_mm
+        drop = piece_tube | ground
+        if drop.any():
+            info["stem_or_ground_pieces"] = int(drop.sum())
+            to_stem = leaf_face & drop[np.maximum(pieces, 0)]
+            leaf_face &= ~to_stem
+            pieces = np.where(leaf_face, pieces, -1)
+            small |= drop
     if small.any() and (~small).any():
         merged = _merge_crumbs(np.where(leaf_face, pieces, n_pieces), np.append(small, False),
                                topo.face_pairs, n_pieces + 1)

@@ -1,0 +1,45 @@
+"""Segmentation + measurement of the virtual scanner's truth plants (exact meshes, no hull).
+
+The truth mesh is the plant the virtual scanner renders: leaves are closed 0.5 mm
+solids on petioles/stems (separate, interpenetrating shells).  This checks the
+leaf stages alone; the full chain is in benchmarks/leaves.py.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from plantscan_core.data import Mesh
+
+plants = pytest.importorskip("plantscan_sim.plants")
+
+from plantscan_leaves.evaluate import match_leaves, trait_errors  # noqa: E402
+from plantscan_leaves.measure import measure_plant  # noqa: E402
+from plantscan_leaves.segment import segment_leaves  # noqa: E402
+
+
+def _run(preset: str, seed: int = 1):
+    plant = plants.build_plant(preset, seed, 0.0)
+    tm = plant.mesh
+    labelled, _ = segment_leaves(Mesh(tm.vertices, tm.faces))
+    traits, _, _ = measure_plant(labelled)
+    m = match_leaves(labelled, tm.vertices, tm.faces, tm.face_attr)
+    return plant, m, trait_errors(plant.traits(), traits, m["pairs"])["mean_relative_error"]
+
+
+def test_plastic_dicot_truth_mesh():
+    plant, m, err = _run("plastic-dicot")
+    assert len(m["truth_ids"]) == 12
+    assert len(m["pairs"]) == 12 and not m["merged"] and not m["missed"] and not m["extra"]
+    # exact surfaces (3.8 mm triangles, 0.5 mm thick): 1 % per trait, the issue's paper-360
+    # target for the whole chain, so the leaf stages alone must do at least that well
+    for name in ("length", "width", "area", "perimeter"):
+        assert err[name] < 0.01, (name, err)
+
+
+@pytest.mark.parametrize("preset", ["wheat", "sorghum"])
+def test_grass_truth_mesh(preset):
+    plant, m, err = _run(preset)
+    assert len(m["pairs"]) == len(m["truth_ids"]) and not m["merged"]
+    # the issue's grass targets (length 3 %, area 5 %) for the chain, met by the stages alone
+    assert err["length"] < 0.03 and err["area"] < 0.05, err
