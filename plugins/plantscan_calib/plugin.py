@@ -36,8 +36,8 @@ class TurntableCalibrator(Calibrator):
         board: Literal["chessboard", "charuco"] = "chessboard"
         cols: int = Field(9, ge=2, description="inner corners along the board's rows")
         rows: int = Field(6, ge=2, description="inner corners along the board's columns")
-        square_mm: float = Field(22.0, gt=0, description="square side, mm (the virtual "
-                                 "scanner's board: 22)")
+        square_mm: float = Field(25.0, gt=0, description="square side, mm (the virtual "
+                                 "scanner's board: 25)")
         marker_mm: float = Field(0.0, ge=0, description="ChArUco marker side, mm")
         dictionary: str = "DICT_5X5_100"
         detect_max_side_px: int = Field(800, ge=128,
