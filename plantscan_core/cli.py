@@ -101,7 +101,7 @@ def cmd_scan(args) -> int:
         except ImportError:
             print(f"{len(plan(recipe))} images planned")
             return 0
-        print(estimate_scan_time(recipe))
+        print(estimate_scan_time(recipe, manager.registry))
         return 0
     if args.out is None:
         raise PlantScanError("--out: required (the scan folder to write)")

@@ -15,6 +15,7 @@ The class is registered with ``registry.add(cls)`` from the hook
 from __future__ import annotations
 
 import abc
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
@@ -125,6 +126,16 @@ class CameraBackend(Stage):
     def capture(self, request: CaptureRequest) -> Path:
         """Take one image and write it to ``request.out_path``; return that path."""
 
+    def trigger(self, request: CaptureRequest) -> Callable[[], Path]:
+        """Release the shutter now; return a function that finishes (downloads) the image.
+
+        The orchestrator triggers every camera of a stop together and runs the
+        returned functions while the next move happens.  The default captures
+        completely here; a camera with a slow download overrides it.
+        """
+        self.capture(request)
+        return lambda: request.out_path
+
 
 class MotionAxis(Stage):
     """A motion axis (turntable or tilt arm), in degrees."""
@@ -148,6 +159,9 @@ class MotionAxis(Stage):
     @abc.abstractmethod
     def home(self) -> None:
         """Find the reference position and call it 0."""
+
+    def stop(self) -> None:
+        """Stop moving now (Ctrl-C).  Must not block.  Default: nothing to stop."""
 
 
 class Scene(Stage):
