@@ -25,10 +25,11 @@ those of its **mid-surface**, measured without building it:
   of its zig-zag along the mesh, averaged over the two sides (a bent slab's
   inner side is shorter and its outer side longer than the mid-surface, by
   the same amount to first order).
-* **width**: at the stations along the midrib where the leaf is widest
-  (largest sum of geodesic distances to the midrib on its left and right),
-  the same two-side shortest path from the left rim to the right rim; the
-  largest is the width.
+* **width**: crest points are binned in stations along the smoothed midrib;
+  at the stations of largest lateral extent (across the midrib, in the local
+  leaf plane) the same two-side shortest path runs from the left rim to the
+  right rim.  The width is the largest such path, or the lateral extent
+  where the path is implausible (shorter than it, or > 1.25 x longer).
 
 Paths over a side run from crest to crest over the rounded rim, a little
 longer than the mid-surface would be (``(pi/2 - 1) r`` per end for a
@@ -264,40 +265,38 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
     rim_excess = (math.pi / 2 - 1) * thickness if p.rim_correction else 0.0
     length = _two_side_length([g_a, g_b], q, base, tip, sigma) - rim_excess
 
-    # width: distance to the midrib on either side, widest stations traced rim to rim
-    d_mid, _, src = dijkstra(g_all, indices=midrib_idx, min_only=True,
-                             return_predecessors=True)  # with min_only: also the sources
+    # width: crest points binned in stations along the smoothed midrib
     mid_pts = geo.smooth_polyline(q[midrib_idx], sigma) if len(midrib_idx) > 2 else q[midrib_idx]
     mid_axis = _axes_at(mid_pts, keys, axes, grid, cell)
     tangent = np.gradient(mid_pts, axis=0) if len(mid_pts) > 1 else np.zeros((1, 3))
     across = np.cross(tangent, mid_axis)
-    # the widest points are on the crest: stations along the midrib, crest nodes only
-    valid = crest[np.isfinite(d_mid[crest]) & (src[crest] >= 0)]
+    valid = crest[np.isfinite(dist_b[crest])]  # crest points of the base's piece
     from scipy.spatial import cKDTree
 
     _, k = cKDTree(mid_pts).query(q[valid])
-    left = np.einsum("ij,ij->i", q[valid] - mid_pts[k], across[k]) > 0
+    unit_across = across / np.maximum(np.linalg.norm(across, axis=1), 1e-12)[:, None]
+    lateral = np.einsum("ij,ij->i", q[valid] - mid_pts[k], unit_across[k])
     mid_len = geo.polyline_length(mid_pts)
     nbins = max(int(mid_len / max(2.0 * spacing, mid_len / 60.0)), 1)
     station = np.minimum((k * nbins) // len(mid_pts), nbins - 1)
-    dv = d_mid[valid]
-    best_l = np.full(nbins, -1.0)
-    best_r = np.full(nbins, -1.0)
-    np.maximum.at(best_l, station[left], dv[left])
-    np.maximum.at(best_r, station[~left], dv[~left])
-    total = np.where((best_l >= 0) & (best_r >= 0), best_l + best_r, -1.0)
+    # lateral extent of the crest at each station (exact for a leaf flat across), then the
+    # rim-to-rim path over each side at the widest stations (right for a leaf curled across;
+    # a path much longer than the extent went round a gap or a misplaced rim point)
+    u_max = np.full(nbins, -np.inf)
+    u_min = np.full(nbins, np.inf)
+    np.maximum.at(u_max, station, lateral)
+    np.minimum.at(u_min, station, lateral)
+    extent = np.where(np.isfinite(u_max) & np.isfinite(u_min), u_max - u_min, 0.0)
     width = 0.0
-    for st in np.argsort(-total)[: p.width_stations]:
-        if total[st] <= 0:
+    for st in np.argsort(-extent)[: p.width_stations]:
+        if extent[st] <= 0:
             break
-        in_st = station == st
-        li = valid[in_st & left][np.argmax(dv[in_st & left])]
-        ri = valid[in_st & ~left][np.argmax(dv[in_st & ~left])]
+        in_st = np.flatnonzero(station == st)
+        li = valid[in_st[np.argmax(lateral[in_st])]]
+        ri = valid[in_st[np.argmin(lateral[in_st])]]
         w = _two_side_length([g_a, g_b], q, int(li), int(ri), sigma) - rim_excess
-        # the rim-to-rim path cannot be much shorter than the two distances to the midrib
-        # (when a side's graph is broken by a rough surface it is): fall back to those
-        if not np.isfinite(w) or w < 0.9 * total[st]:
-            w = float(total[st])
+        if not (np.isfinite(w) and extent[st] <= w <= 1.25 * extent[st]):
+            w = float(extent[st])
         width = max(width, w)
     midrib_idx = nodes[midrib_idx]
     base, tip = nodes[base], nodes[tip]

@@ -11,7 +11,8 @@ from plantscan_leaves import phantoms as ph
 
 @pytest.fixture(scope="session")
 def mock_plant() -> tuple[ph.MockPlant, Mesh, np.ndarray]:
-    """Stem + 5 leaves voxelised at 0.8 mm, and each face's true part (-1 stem, 0.. leaves)."""
-    plant = ph.mock_plant(5, thickness=2.0)
+    """Stem + 5 leaves on 20 mm petioles voxelised at 0.8 mm, and each face's true part
+    (-1 stem and petioles, 0.. leaves)."""
+    plant = ph.mock_plant(5, thickness=2.0, petiole_mm=20.0)
     mesh = plant.mesh(voxel_mm=0.8)
     return plant, mesh, plant.part_of(mesh.vertices[mesh.faces].mean(axis=1))
