@@ -1,0 +1,39 @@
+"""``plantscan evaluate``: the ``silhouettes`` section (run masks vs the virtual scanner's)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from plantscan_core.pipeline import read_mask
+from plantscan_core.scanfolder import ScanFolder
+from plantscan_segment.metrics import mask_metrics, summarise
+
+
+def evaluate_silhouettes(run_dir: Path, truth_dir: Path) -> dict | None:
+    masks_dir, truth_masks = Path(run_dir) / "masks", Path(truth_dir) / "masks"
+    if not masks_dir.is_dir() or not truth_masks.is_dir():
+        return None
+    scan = None
+    try:
+        info = json.loads((Path(run_dir) / "run.json").read_text())
+        scan = ScanFolder.open(Path(info["scan"]))
+    except (OSError, ValueError, KeyError):
+        pass
+    views = {v.index: v for v in scan.views} if scan is not None else {}
+    plates = {}
+    if scan is not None:
+        for v in scan.views_by_role("background"):
+            plates[(v.camera, v.tilt_index)] = v
+    metrics = []
+    for path in sorted(masks_dir.glob("*.png")):
+        truth_path = truth_masks / path.name
+        if not truth_path.exists():
+            continue
+        image = background = None
+        view = views.get(int(path.stem)) if path.stem.isdigit() else None
+        if view is not None and (view.camera, view.tilt_index) in plates:
+            image = scan.read_image(view)
+            background = scan.read_image(plates[(view.camera, view.tilt_index)])
+        metrics.append(mask_metrics(read_mask(path), read_mask(truth_path), image, background))
+    return {"silhouettes": summarise(metrics)} if metrics else None

@@ -1,0 +1,192 @@
+"""The seed's shadow-robust background subtraction in LAB colour (``lab-shadow``).
+
+Per pixel, against a background plate of the same camera and tilt (OpenCV's
+8-bit LAB: L, A, B in 0..255):
+
+* luminance difference  Δ = |L − L'|
+* colour difference     Θ = |A − A'| + |B − B'|
+* texture difference    Ψ = |L(u,v)/L(u+1,v) − L'(u,v)/L'(u+1,v)|
+                          + |L(u,v)/L(u,v+1) − L'(u,v)/L'(u,v+1)|
+* score                 Ω = (αΔ + βΘ + γΨ) / (α + β + γ), plant where Ω > t.
+
+A cast shadow darkens the backdrop (large Δ) but keeps its hue (small Θ) and
+its texture ratios (Ψ ≈ 0, a shadow scales neighbours alike), so the seed's
+weights α = 0.1, β = 0.5, γ = 0.4 keep shadows out while coloured leaves,
+even thin and partly covered pixels, score high.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import cv2
+import numpy as np
+from pydantic import Field
+
+from plantscan_core.data import ViewRecord
+from plantscan_core.errors import DataError
+from plantscan_core.stages import Segmenter, StageParams
+
+# Ratios of L use L + 1: an 8-bit L of 0 (pure black) must not divide by zero, and
+# one DN of offset changes a ratio of mid-grey pixels by < 1 %.
+_L_OFFSET = 1.0
+
+
+def to_lab(image: np.ndarray) -> np.ndarray:
+    """(H, W, 3) uint8 BGR -> (H, W, 3) float32 LAB on OpenCV's 8-bit scale."""
+    return cv2.cvtColor(image, cv2.COLOR_BGR2LAB).astype(np.float32)
+
+
+def _ratios(lum: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """L(u,v)/L(u+1,v) and L(u,v)/L(u,v+1); the last column/row repeats its neighbour."""
+    l1 = lum + _L_OFFSET
+    right = np.empty_like(l1)
+    right[:, :-1] = l1[:, :-1] / l1[:, 1:]
+    right[:, -1] = right[:, -2] if l1.shape[1] > 1 else 1.0
+    down = np.empty_like(l1)
+    down[:-1] = l1[:-1] / l1[1:]
+    down[-1] = down[-2] if l1.shape[0] > 1 else 1.0
+    return right, down
+
+
+def lab_shadow_score(
+    image: np.ndarray,
+    background: np.ndarray,
+    alpha: float = 0.1,
+    beta: float = 0.5,
+    gamma: float = 0.4,
+    background_lab: np.ndarray | None = None,
+) -> np.ndarray:
+    """The seed's score Ω per pixel.
+
+    Parameters
+    ----------
+    image, background : (H, W, 3) uint8 BGR arrays of the same size
+    alpha, beta, gamma : weights of luminance, colour and texture differences
+    background_lab : optional precomputed ``to_lab(background)`` (reused across views)
+
+    Returns
+    -------
+    omega : (H, W) float32, in 8-bit LAB units
+    """
+    lab = to_lab(image)
+    bg = to_lab(background) if background_lab is None else background_lab
+    delta = np.abs(lab[..., 0] - bg[..., 0])
+    theta = np.abs(lab[..., 1] - bg[..., 1]) + np.abs(lab[..., 2] - bg[..., 2])
+    r, d = _ratios(lab[..., 0])
+    rb, db = _ratios(bg[..., 0])
+    psi = np.abs(r - rb) + np.abs(d - db)
+    return (alpha * delta + beta * theta + gamma * psi) / (alpha + beta + gamma)
+
+
+def shadow_like(
+    image_lab: np.ndarray,
+    background_lab: np.ndarray,
+    ratio_min: float,
+    ratio_max: float,
+    colour_max: float,
+    texture_max: float,
+) -> np.ndarray:
+    """Pixels that look like the plate in a cast shadow.
+
+    A shadow darkens the plate by a bounded factor (ambient over ambient plus
+    key light: never to black), keeps its colour and its texture ratios; dark
+    objects (a black pot) are darker than any shadow, and leaves differ in
+    colour.  (H, W) bool.
+    """
+    lum, lum_bg = image_lab[..., 0], background_lab[..., 0]
+    ratio = (lum + _L_OFFSET) / (lum_bg + _L_OFFSET)
+    theta = np.abs(image_lab[..., 1] - background_lab[..., 1]) + np.abs(
+        image_lab[..., 2] - background_lab[..., 2])
+    r, d = _ratios(lum)
+    rb, db = _ratios(lum_bg)
+    psi = np.abs(r - rb) + np.abs(d - db)
+    return ((ratio >= ratio_min) & (ratio <= ratio_max) & (theta < colour_max)
+            & (psi < texture_max))
+
+
+def remove_small_blobs(mask: np.ndarray, min_px: int) -> np.ndarray:
+    """Drop 8-connected foreground blobs smaller than ``min_px`` pixels."""
+    if min_px <= 1:
+        return mask
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    keep = stats[:, cv2.CC_STAT_AREA] >= min_px
+    keep[0] = False
+    return keep[labels]
+
+
+def median_background(images: list[np.ndarray]) -> np.ndarray:
+    """Per-pixel median of views of one camera and tilt: a background plate estimate.
+
+    Works where the plant covers any pixel in fewer than half of the views
+    (a plant turning on a turntable in front of a fixed backdrop); the pot and
+    the plant's axis region, always covered, stay in the estimate.
+    """
+    return np.median(np.stack(images), axis=0).astype(np.uint8)
+
+
+class LabShadowSegmenter(Segmenter):
+    """``lab-shadow``: the seed's LAB score against a background plate."""
+
+    name = "lab-shadow"
+
+    class Params(StageParams):
+        alpha: float = Field(default=0.1, ge=0, description="weight of luminance difference Δ")
+        beta: float = Field(default=0.5, ge=0, description="weight of colour difference Θ")
+        gamma: float = Field(default=0.4, ge=0, description="weight of texture difference Ψ")
+        threshold: float = Field(default=8.0, ge=0, description="t: plant where Ω > t")
+        suppress_shadows: bool = Field(
+            default=True, description="also drop shadow-like pixels (False: the seed's score "
+            "alone)")
+        shadow_ratio_min: float = Field(default=0.45, gt=0, le=1,
+                                        description="darkest shadow, as L / L' of the plate")
+        shadow_ratio_max: float = Field(default=0.98, gt=0, le=1)
+        shadow_colour_max: float = Field(default=12.0, ge=0, description="max Θ of a shadow")
+        shadow_texture_max: float = Field(default=0.5, ge=0, description="max Ψ of a shadow")
+        min_blob_px: int = Field(default=0, ge=0,
+                                 description="drop foreground blobs smaller than this (0: off)")
+        background: Literal["plate", "median"] = Field(
+            default="plate",
+            description="plate: the scan's background view of the same camera and tilt; "
+            "median: per-pixel median of the plant views of that camera and tilt "
+            "(scans without a plate)")
+
+    def __init__(self, params=None, context=None):
+        super().__init__(params, context)
+        if self.params.alpha + self.params.beta + self.params.gamma <= 0:
+            raise DataError("lab-shadow: alpha + beta + gamma must be > 0")
+        self._median_cache: dict[tuple[str, int], np.ndarray] = {}
+
+    def _median_plate(self, view: ViewRecord) -> np.ndarray:
+        key = (view.camera, view.tilt_index)
+        if key not in self._median_cache:
+            scan = self.context.scan
+            if scan is None:
+                raise DataError("lab-shadow: background 'median' needs the scan folder")
+            views = [v for v in scan.views_by_role("plant")
+                     if (v.camera, v.tilt_index) == key]
+            self._median_cache[key] = median_background([scan.read_image(v) for v in views])
+        return self._median_cache[key]
+
+    def segment(self, image, background, view=None):
+        p = self.params
+        if p.background == "median":
+            if view is None:
+                raise DataError("lab-shadow: background 'median' needs the view")
+            background = self._median_plate(view)
+        if background is None:
+            where = f"view {view.index} ({view.file}, camera {view.camera}, tilt " \
+                    f"{view.tilt_index})" if view is not None else "this image"
+            raise DataError(f"lab-shadow: no background plate for {where}; capture the "
+                            "'background' role or set segment.params.background=median")
+        if background.shape != image.shape:
+            raise DataError(f"lab-shadow: background plate is {background.shape[1]}x"
+                            f"{background.shape[0]} but the image is {image.shape[1]}x"
+                            f"{image.shape[0]}")
+        background_lab = to_lab(background)
+        omega = lab_shadow_score(image, background, p.alpha, p.beta, p.gamma, background_lab)
+        mask = omega > p.threshold
+        if p.suppress_shadows:
+            mask &= ~shadow_like(to_lab(image), background_lab, p.shadow_ratio_min,
+                                 p.shadow_ratio_max, p.shadow_colour_max, p.shadow_texture_max)
+        return remove_small_blobs(mask, p.min_blob_px)
