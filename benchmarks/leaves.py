@@ -35,14 +35,14 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scipy.sparse.csgraph import connected_components
-from scipy.spatial import ConvexHull
-
-from plantscan_core.data import LabelledMesh, LeafTraits, Mesh, Traits
 from plantscan_leaves.evaluate import match_leaves, trait_errors
 from plantscan_leaves.geometry import face_adjacency_operator, topology
 from plantscan_leaves.measure import measure_plant
 from plantscan_leaves.segment import segment_leaves
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import ConvexHull
+
+from plantscan_core.data import LabelledMesh, LeafTraits, Mesh, Traits
 
 
 def components_segmentation(mesh: Mesh) -> LabelledMesh:

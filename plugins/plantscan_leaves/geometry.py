@@ -136,9 +136,9 @@ def edge_graph(vertices: np.ndarray, edges: np.ndarray, mask: np.ndarray | None 
     w = np.linalg.norm(vertices[e[:, 0]] - vertices[e[:, 1]], axis=1)
     w = np.maximum(w, 1e-9)  # scipy drops explicit zeros
     nv = len(vertices)
-    g = sparse.csr_matrix((np.concatenate([w, w]),
-                           (np.concatenate([e[:, 0], e[:, 1]]), np.concatenate([e[:, 1], e[:, 0]]))),
-                          shape=(nv, nv))
+    rows = np.concatenate([e[:, 0], e[:, 1]])
+    cols = np.concatenate([e[:, 1], e[:, 0]])
+    g = sparse.csr_matrix((np.concatenate([w, w]), (rows, cols)), shape=(nv, nv))
     return g
 
 

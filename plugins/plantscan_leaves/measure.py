@@ -50,7 +50,6 @@ from scipy.sparse.csgraph import dijkstra
 
 from plantscan_core.data import LabelledMesh, LeafTraits, Mesh, Traits
 from plantscan_core.stages import StageParams
-
 from plantscan_leaves import geometry as geo
 
 log = logging.getLogger(__name__)

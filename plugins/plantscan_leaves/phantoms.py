@@ -274,8 +274,8 @@ def mock_plant(n_leaves: int = 5, stem_radius: float = 3.0, thickness: float = 1
         if petiole_mm > 0:
             # from the stem axis to 1 mm into the blade's base
             ends = np.array([[0.0, 0.0, 0.0], [x0 + 1.0, 0.0, 0.0]]) @ rot.T + [0.0, 0.0, z]
-            petioles.append((capsule_field(ends[0], ends[1], petiole_radius),
-                             (ends.min(axis=0) - petiole_radius, ends.max(axis=0) + petiole_radius)))
+            box = (ends.min(axis=0) - petiole_radius, ends.max(axis=0) + petiole_radius)
+            petioles.append((capsule_field(ends[0], ends[1], petiole_radius), box))
         fields.append(placed(ellipse_slab_field(a, b, thickness), rot, t))
         corners = np.array(np.meshgrid([-a, a], [-b, b], [-thickness, thickness])).reshape(3, -1).T
         world = corners @ rot.T + t
@@ -327,7 +327,8 @@ def voxelise_mesh(vertices: np.ndarray, faces: np.ndarray, voxel_mm: float, offs
     cand = np.unique((centre[:, None, :] + offs[None]).reshape(-1, 3), axis=0)
     cand = cand[np.all((cand >= 0) & (cand < n), axis=1)]
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)), o3d.core.Tensor(f.astype(np.uint32)))
+    scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)),
+                        o3d.core.Tensor(f.astype(np.uint32)))
     d = scene.compute_distance(o3d.core.Tensor((lo + cand * voxel_mm).astype(np.float32))).numpy()
     field = np.full(tuple(n), -voxel_mm, np.float32)
     field[cand[:, 0], cand[:, 1], cand[:, 2]] = np.maximum(offset_mm - d, -voxel_mm)

@@ -12,7 +12,6 @@ from typing import Any
 from plantscan_core.data import LabelledMesh, Mesh, Traits
 from plantscan_core.hookspecs import hookimpl
 from plantscan_core.stages import Measurer, MeshSegmenter
-
 from plantscan_leaves.evaluate import evaluate_traits
 from plantscan_leaves.measure import LeafGeometryParams, measure_plant
 from plantscan_leaves.segment import CurvatureRegionsParams, segment_leaves

@@ -32,7 +32,6 @@ from scipy.sparse.csgraph import connected_components
 
 from plantscan_core.data import LabelledMesh, Mesh
 from plantscan_core.stages import StageParams
-
 from plantscan_leaves import geometry as geo
 
 log = logging.getLogger(__name__)

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from plantscan_leaves import phantoms as ph
 
 from plantscan_core.data import Mesh
-from plantscan_leaves import phantoms as ph
 
 
 @pytest.fixture(scope="session")
@@ -16,3 +16,15 @@ def mock_plant() -> tuple[ph.MockPlant, Mesh, np.ndarray]:
     plant = ph.mock_plant(5, thickness=2.0, petiole_mm=20.0)
     mesh = plant.mesh(voxel_mm=0.8)
     return plant, mesh, plant.part_of(mesh.vertices[mesh.faces].mean(axis=1))
+
+
+@pytest.fixture(scope="session")
+def mock_plant_measured(mock_plant):
+    """The mock plant through both stages (default parameters): (labelled, traits)."""
+    from plantscan_leaves.measure import measure_plant
+    from plantscan_leaves.segment import segment_leaves
+
+    _, mesh, _ = mock_plant
+    labelled, _ = segment_leaves(mesh)
+    traits, _, _ = measure_plant(labelled)
+    return labelled, traits

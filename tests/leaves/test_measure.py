@@ -6,10 +6,10 @@ import logging
 
 import numpy as np
 import pytest
-
-from plantscan_core.data import LabelledMesh, Mesh, rotation_about_axis
 from plantscan_leaves import phantoms as ph
 from plantscan_leaves.measure import LeafGeometryParams, measure_leaf, measure_plant
+
+from plantscan_core.data import LabelledMesh, Mesh, rotation_about_axis
 
 
 def _rel(measured: float, truth: float) -> float:

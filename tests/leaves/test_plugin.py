@@ -7,11 +7,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from plantscan_leaves import plugin as leaves_plugin
 
 from plantscan_core.data import LabelledMesh, Traits
 from plantscan_core.plugins import new_manager
-from plantscan_leaves import plugin as leaves_plugin
-from plantscan_leaves.segment import segment_leaves
 
 
 @pytest.fixture
@@ -47,15 +46,14 @@ def test_stages_registered_and_run(manager, mock_plant, tmp_path):
         manager.build("measurer", "leaf-geometry", {"no_such": 1})
 
 
-def test_evaluate_matches_and_scores(manager, mock_plant, tmp_path):
+def test_evaluate_matches_and_scores(manager, mock_plant, mock_plant_measured, tmp_path):
     plant, mesh, part = mock_plant
     truth = _truth_dir(tmp_path, plant, mesh, part)
     run = tmp_path / "run"
     run.mkdir()
     assert manager.evaluate(run, truth) == {}  # nothing measured yet: no section
-    labelled, _ = segment_leaves(mesh)
+    labelled, traits = mock_plant_measured
     labelled.save(run / "labelled.npz")
-    traits = leaves_plugin.LeafGeometry().measure(LabelledMesh.load(run / "labelled.npz"))
     traits.save(run / "traits.csv", run / "plant_traits.json")
     section = manager.evaluate(run, truth)["traits"]
     json.dumps(section)  # plain JSON

@@ -1,4 +1,4 @@
-"""curvature-regions on phantoms: one leaf stays one, touching leaves split, a plant's leaves found."""
+"""curvature-regions on phantoms: a leaf stays one, touching leaves split, plant leaves found."""
 
 from __future__ import annotations
 
@@ -6,12 +6,12 @@ import logging
 
 import numpy as np
 import pytest
-
-from plantscan_core.data import Mesh, rotation_about_axis
 from plantscan_leaves import phantoms as ph
 from plantscan_leaves.evaluate import match_leaves
 from plantscan_leaves.measure import measure_plant
 from plantscan_leaves.segment import CurvatureRegionsParams, segment_leaves
+
+from plantscan_core.data import Mesh, rotation_about_axis
 
 
 def _all_faces_labelled(labelled) -> None:
@@ -41,9 +41,8 @@ def test_two_touching_leaves_come_out_as_two():
     mesh = ph.mesh_field(None, (-a, -b, -2.0), box2[1], 0.5,
                          parts=[(leaf1, ((-a, -b, -2.0), (a, b, 2.0))), (leaf2, box2)])
     parts = np.argmax(np.stack([leaf1(c := mesh.vertices[mesh.faces].mean(axis=1)), leaf2(c)]), 0)
-    from scipy.sparse.csgraph import connected_components
-
     from plantscan_leaves.geometry import face_adjacency_operator, topology
+    from scipy.sparse.csgraph import connected_components
 
     n_parts, _ = connected_components(face_adjacency_operator(len(mesh.faces),
                                                               topology(mesh.faces).face_pairs))
@@ -63,9 +62,9 @@ def test_two_touching_leaves_come_out_as_two():
         assert t.width_mm == pytest.approx(leaf.width_mm, rel=0.05)
 
 
-def test_mock_plant_leaves_and_stem(mock_plant):
+def test_mock_plant_leaves_and_stem(mock_plant, mock_plant_measured):
     plant, mesh, part = mock_plant
-    labelled, info = segment_leaves(mesh)
+    labelled, _ = mock_plant_measured
     _all_faces_labelled(labelled)
     assert len(labelled.leaf_labels) == len(plant.leaves)
     assert "stem" in labelled.kinds.values()
@@ -78,10 +77,9 @@ def test_mock_plant_leaves_and_stem(mock_plant):
     assert np.isin(labelled.face_labels[true_stem], stem_label).mean() > 0.9
 
 
-def test_mock_plant_traits(mock_plant):
+def test_mock_plant_traits(mock_plant, mock_plant_measured):
     plant, mesh, part = mock_plant
-    labelled, _ = segment_leaves(mesh)
-    traits, _, _ = measure_plant(labelled)
+    labelled, traits = mock_plant_measured
     m = match_leaves(labelled, mesh.vertices, mesh.faces, part)
     by_id = {t.leaf_id: t for t in traits.leaves}
     for truth_id, label, _ in m["pairs"]:
@@ -133,6 +131,7 @@ def test_params_reject_unknown_keys():
         CurvatureRegionsParams(concave_curvature=0.1)
 
 
+@pytest.mark.slow
 def test_sessile_leaves_sunk_into_the_stem():
     plant = ph.mock_plant(3, thickness=1.5, seed=4)
     mesh = plant.mesh(voxel_mm=1.0)
