@@ -34,7 +34,9 @@ def scene_for(size: tuple[int, int]) -> SimScene:
     manager = sim_manager()
     recipe = validate_recipe({k: raw[k] for k in ("name", "plant", "scan")}, manager.registry)
     scene = SimScene(SimScene.Params(**raw["scan"]["scene"]["params"]), StageContext(recipe))
-    scene.rig = Rig(scene._camera_params(recipe), size, [0.0], 220.0, 0.0)
+    p = scene.params
+    scene.rig = Rig(scene._camera_params(recipe), size, [0.0], p.target_height_mm,
+                    p.arm_azimuth_deg)
     scene.plant = build_plant("plastic-dicot", 0, scene.soil_z)
     scene._build_world()
     scene.camera_order = ["cam0", "cam1"]

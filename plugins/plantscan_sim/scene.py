@@ -66,8 +66,12 @@ class SimSceneParams(StageParams):
                                            description="samples per pixel side (board views)")
     noise_sigma: float = Field(2.0, ge=0.0, le=50.0, description="sensor noise, 8-bit DN")
     target_height_mm: float = Field(220.0, description="aim point / tilt axis height")
-    arm_azimuth_deg: float = 0.0
-    light_position_mm: tuple[float, float, float] = (1100.0, 800.0, 1700.0)
+    arm_azimuth_deg: float = Field(-90.0, description="azimuth of the camera arm at turntable "
+                                   "angle 0; -90 puts the cameras on the -Y side, the gauge of "
+                                   "the 'turntable' calibrator")
+    light_position_mm: tuple[float, float, float] = Field(
+        (1100.0, 800.0, 1700.0), description="key light, in the arm's frame (x towards the "
+        "cameras, z up); turned with arm_azimuth_deg")
     key_light: float = Field(0.8, ge=0.0)
     ambient: float = Field(0.3, ge=0.0)
     gamma: float = Field(2.2, ge=1.0, le=3.0, description="camera tone curve exponent")
@@ -289,7 +293,8 @@ class SimScene(Scene):
             Material((0.30, 0.30, 0.30)),            # board post
             Material(plant.stem_colour, CLASS_PLANT),
         ] + [Material(plant.leaf_colours[lid], CLASS_PLANT) for lid in leaf_ids]
-        light = Lighting(np.array(p.light_position_mm, float), p.key_light, p.ambient,
+        light_lab = rotation_z(p.arm_azimuth_deg) @ np.array(p.light_position_mm, float)
+        light = Lighting(light_lab, p.key_light, p.ambient,
                          gamma=p.gamma)
         self.renderer = Renderer(world, self._backdrop(), materials, light, tex, M_BOARD,
                                  moving)
@@ -480,6 +485,7 @@ class SimScene(Scene):
                 "charuco": None if p.board != "charuco" else {
                     "dictionary": p.charuco_dictionary, "marker_mm": 0.75 * p.board_square_mm},
                 "corners_world_mm": np.round(corners, 6).tolist(),
+                "lowest_corner_z_mm": float(corners[:, 2].min()),
                 "views_fully_visible": getattr(self, "board_visibility", {}),
             },
             "true_angles": "per view in cameras.jsonl (true_angle_deg, true_tilt_deg)",
