@@ -71,7 +71,7 @@ class LeafGeometryParams(StageParams):
         description="smoothing of the rim crest line (perimeter), mm; None: 8 mean edge "
                     "lengths within 1.5-5 mm (a voxel hull's sharp rim zig-zags at a few "
                     "voxels); keep it below the outline's smallest radius of curvature")
-    width_stations: int = Field(5, ge=1, description="widest stations whose width is traced")
+    width_stations: int = Field(3, ge=1, description="widest stations whose width is traced")
     graph_spacing_mm: float = Field(
         1.0, gt=0, description="spacing of the points geodesic paths run through, mm")
     rim_correction: bool = Field(
@@ -165,11 +165,12 @@ def _path(pred: np.ndarray, target: int) -> list[int]:
 
 
 def _two_side_length(graphs: list[sparse.csr_matrix], vertices: np.ndarray, a: int, b: int,
-                     sigma: float) -> float:
+                     sigma: float, limit: float = np.inf) -> float:
     """Mean over the slab's sides of the smoothed shortest-path length from ``a`` to ``b``."""
     lengths = []
     for g in graphs:
-        dist, pred = dijkstra(g, indices=a, return_predecessors=True)
+        dist, pred = dijkstra(g, directed=False, indices=a, return_predecessors=True,
+                              limit=limit)
         if not np.isfinite(dist[b]):
             continue
         pts = vertices[_path(pred, b)]
@@ -249,20 +250,21 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
     # base and tip are the two ends of the leaf's geodesic diameter (double sweep); the base
     # is the end nearer to where the leaf attaches.  (The crest point nearest to the stem is
     # not used directly: a drooping blade's tip may hang close to another stem.)
-    d0 = dijkstra(g_all, indices=int(crest[0]))
+    d0 = dijkstra(g_all, directed=False, indices=int(crest[0]))
     end1 = int(crest[np.argmax(np.where(np.isfinite(d0[crest]), d0[crest], -1))])
-    d1 = dijkstra(g_all, indices=end1)
+    d1 = dijkstra(g_all, directed=False, indices=end1)
     end2 = int(crest[np.argmax(np.where(np.isfinite(d1[crest]), d1[crest], -1))])
     base, tip = end1, end2
     if base_hint is not None:
         hint = np.asarray(base_hint, float)
         if np.linalg.norm(q[end2] - hint) < np.linalg.norm(q[end1] - hint):
             base, tip = end2, end1
-    dist_b, pred_b = dijkstra(g_all, indices=base, return_predecessors=True)
+    dist_b, pred_b = dijkstra(g_all, directed=False, indices=base, return_predecessors=True)
     midrib_idx = np.array(_path(pred_b, tip))
     sigma = p.path_smoothing_mm
     rim_excess = (math.pi / 2 - 1) * thickness if p.rim_correction else 0.0
-    length = _two_side_length([g_a, g_b], q, base, tip, sigma) - rim_excess
+    # a path over one side is never twice the shortest path over both (limit: speed)
+    length = _two_side_length([g_a, g_b], q, base, tip, sigma, 2.0 * dist_b[tip]) - rim_excess
 
     # width: crest points binned in stations along the smoothed midrib
     mid_pts = geo.smooth_polyline(q[midrib_idx], sigma) if len(midrib_idx) > 2 else q[midrib_idx]
@@ -293,7 +295,8 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
         in_st = np.flatnonzero(station == st)
         li = valid[in_st[np.argmax(lateral[in_st])]]
         ri = valid[in_st[np.argmin(lateral[in_st])]]
-        w = _two_side_length([g_a, g_b], q, int(li), int(ri), sigma) - rim_excess
+        w = _two_side_length([g_a, g_b], q, int(li), int(ri), sigma,
+                             1.5 * extent[st] + 10 * spacing) - rim_excess
         if not (np.isfinite(w) and extent[st] <= w <= 1.25 * extent[st]):
             w = float(extent[st])
         width = max(width, w)
@@ -400,9 +403,8 @@ def _radius_graphs(q: np.ndarray, kind: np.ndarray, radius: float
     n = len(q)
 
     def graph(sel: np.ndarray) -> sparse.csr_matrix:
-        a, b, ww = pairs[sel, 0], pairs[sel, 1], w[sel]
-        return sparse.csr_matrix((np.concatenate([ww, ww]),
-                                  (np.concatenate([a, b]), np.concatenate([b, a]))), shape=(n, n))
+        # one direction per pair: every dijkstra call here is undirected
+        return sparse.csr_matrix((w[sel], (pairs[sel, 0], pairs[sel, 1])), shape=(n, n))
 
     ka, kb = kind[pairs[:, 0]], kind[pairs[:, 1]]
     side_a = (ka != 2) & (kb != 2)
@@ -445,7 +447,10 @@ def plant_traits(mesh: Mesh, leaves: list[LeafTraits], pixel_mm: float = 0.25) -
     lo = v[:, :2].min(axis=0) - 2 * pixel_mm
     size = np.ceil((v[:, :2].max(axis=0) + 2 * pixel_mm - lo) / pixel_mm).astype(int) + 1
     img = np.zeros((int(size[1]), int(size[0])), np.uint8)
-    tri = np.round((v[mesh.faces][:, :, :2] - lo) / pixel_mm * 16).astype(np.int32)
+    # the top-view shadow of a closed surface is covered by its up-facing triangles alone
+    up = mesh.faces[np.cross(v[mesh.faces[:, 1]] - v[mesh.faces[:, 0]],
+                             v[mesh.faces[:, 2]] - v[mesh.faces[:, 0]])[:, 2] >= 0]
+    tri = np.round((v[up][:, :, :2] - lo) / pixel_mm * 16).astype(np.int32)
     cv2.fillPoly(img, list(tri), 1, lineType=cv2.LINE_8, shift=4)
     out["projected_area_mm2"] = float(img.sum()) * pixel_mm * pixel_mm
     return out
@@ -480,8 +485,9 @@ def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = No
         sub = labelled.submesh(leaf_id)
         hint = None
         if tree is not None:
-            d, _ = tree.query(sub.vertices)
-            hint = sub.vertices[int(np.argmin(d))]
+            probe = sub.vertices[:: max(1, len(sub.vertices) // 5000)]  # 5000 are plenty
+            d, _ = tree.query(probe)
+            hint = probe[int(np.argmin(d))]
         try:
             m = measure_leaf(sub, leaf_id, p, hint)
         except Exception as exc:  # one odd leaf must not lose the others
