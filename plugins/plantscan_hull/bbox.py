@@ -25,6 +25,9 @@ from plantscan_hull.views import ViewField
 
 # Views used for the linear programs (evenly spread); more add constraints, not accuracy.
 MAX_LP_VIEWS = 72
+# Views used by the quick carve.  Fewer views never remove more (the hull of a subset
+# contains the hull of all), so the box stays safe; the final carve checks clipping.
+MAX_BOX_CARVE_VIEWS = 48
 
 
 class BoundingBoxError(DataError):
@@ -111,6 +114,13 @@ def auto_box(views: Sequence[ViewField], k: int, margin_mm: float, coarse: int =
         lo0[2] = max(lo0[2], floor_z)
         hi0[2] = max(hi0[2], floor_z + 1.0)
     lo, hi = lo0.copy(), hi0.copy()
+    if len(views) > MAX_BOX_CARVE_VIEWS:
+        from plantscan_hull.carve import interleaved
+
+        subset = interleaved(views)[:MAX_BOX_CARVE_VIEWS]
+        # Looser than the scaled rule: a subset may see a point less often than all views.
+        min_seen = max(k + 1, int(0.8 * min_seen * len(subset) / len(views)))
+        views = subset
     for attempt in range(attempts):
         ext = hi - lo
         lo_big, hi_big = lo - grow * ext - margin_mm, hi + grow * ext + margin_mm
