@@ -105,3 +105,47 @@ class GivenMasksSegmenter(Segmenter):
             raise DataError(f"{path}: mask is {mask.shape[1]}x{mask.shape[0]} but image "
                             f"{view.file} is {image.shape[1]}x{image.shape[0]}")
         return mask > 0
+
+
+class GreenSegmenter(Segmenter):
+    """``green``: plant where the excess-green index is high; needs no background plate.
+
+    For scans without a background plate (e.g. a phenotyping cabin whose
+    photos were all taken with the plant in place).  Per pixel the normalised
+    excess green ``ExG = (2G - R - B) / (R + G + B)`` (Woebbecke et al. 1995)
+    is compared with ``exg_min``; then only 8-connected components of at least
+    ``keep_fraction`` of the largest one are kept (the plant is one big green
+    component; the cabin's frames and JPEG noise give scattered specks).
+    Non-green organs (flowers, a dry stem) and the pot are not found: the
+    price of having no plate.  Measured on the PhenoArch maize photos:
+    docs/segmentation.md.
+    """
+
+    name = "green"
+
+    class Params(StageParams):
+        exg_min: float = Field(default=0.07, ge=-1, le=2,
+                               description="plant where (2G - R - B) / (R + G + B) > exg_min")
+        keep_fraction: float = Field(default=0.005, ge=0, le=1,
+                                     description="drop components smaller than this fraction "
+                                     "of the largest (0: keep all)")
+
+    def segment(self, image, background, view=None):
+        bgr = image.astype(np.float32)
+        b, g, r = cv2.split(bgr)
+        total = b + g + r + 1.0  # + 1: black pixels must not divide by zero
+        exg = (2.0 * g - r - b) / total
+        return keep_large_components(exg > self.params.exg_min, self.params.keep_fraction)
+
+
+def keep_large_components(mask: np.ndarray, fraction: float) -> np.ndarray:
+    """Keep the 8-connected components of ``mask`` with area >= ``fraction`` x the largest."""
+    if fraction <= 0:
+        return mask
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    if n <= 1:
+        return mask
+    area = stats[:, cv2.CC_STAT_AREA]
+    keep = area >= fraction * area[1:].max()
+    keep[0] = False
+    return keep[labels]

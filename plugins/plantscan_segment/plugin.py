@@ -7,6 +7,7 @@ from pathlib import Path
 from plantscan_core.hookspecs import hookimpl
 from plantscan_segment.baselines import (
     GivenMasksSegmenter,
+    GreenSegmenter,
     KNNSegmenter,
     MOG2Segmenter,
     ThresholdSegmenter,
@@ -17,7 +18,7 @@ from plantscan_segment.lab import LabShadowSegmenter
 @hookimpl
 def plantscan_register_stages(registry) -> None:
     for cls in (LabShadowSegmenter, ThresholdSegmenter, MOG2Segmenter, KNNSegmenter,
-                GivenMasksSegmenter):
+                GivenMasksSegmenter, GreenSegmenter):
         registry.add(cls)
 
 

@@ -1,0 +1,184 @@
+"""Segmentation benchmark: accuracy on virtual scans, real photos, undistortion, speed.
+
+Run ``python benchmarks/segmentation.py [--size 1200x800] [--views 4] [--scans DIR]``.
+Writes nothing by itself; the figures go into docs/benchmarks/segmentation.md by hand.
+
+1. Virtual plastic-dicot and wheat scans with hard shadows: every segmenter on
+   the same images, against the exact truth masks (IoU, thin recall, shadow
+   false-positive rate).
+2. Real PhenoArch photos (no background plate): ``lab-shadow`` with the
+   per-pixel median plate, and ``green``, against the shipped silhouettes.
+3. Undistortion: IoU of truth masks undistorted then re-distorted (the loss a
+   pipeline that carves undistorted masks pays on top of the segmentation).
+4. Speed at 18 MP, one thread: megapixels per second per core.
+"""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+import time
+
+import cv2
+import numpy as np
+
+from plantscan_core.data import CameraModel
+from plantscan_core.pipeline import read_mask
+from plantscan_core.scanfolder import ScanFolder
+from plantscan_segment.baselines import (
+    GreenSegmenter,
+    KNNSegmenter,
+    MOG2Segmenter,
+    ThresholdSegmenter,
+)
+from plantscan_segment.lab import LabShadowSegmenter, median_background
+from plantscan_segment.metrics import mask_metrics, summarise
+from plantscan_segment.undistort import distort_mask, undistort_mask
+
+REAL = pathlib.Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / \
+    "phenoarch_maize_plant1"
+
+
+def segmenters():
+    return {
+        "lab-shadow": LabShadowSegmenter(),
+        "lab-shadow (seed score only, t=8)": LabShadowSegmenter(
+            LabShadowSegmenter.Params(suppress_shadows=False, min_blob_px=0)),
+        "threshold": ThresholdSegmenter(),
+        "mog2": MOG2Segmenter(),
+        "knn": KNNSegmenter(),
+    }
+
+
+def virtual_scan(root: pathlib.Path, preset: str, size: tuple[int, int], views: int):
+    from plantscan_sim import make_scan
+
+    d = root / f"{preset}-{size[0]}x{size[1]}-{views}"
+    if (d / "views.jsonl").exists() and (d / "ground_truth" / "masks").is_dir():
+        return ScanFolder.open(d)
+    return make_scan(d, preset=preset, image_size=size, images_per_revolution=views,
+                     roles=["background", "plant"])
+
+
+def accuracy(scan: ScanFolder) -> dict[str, dict]:
+    plates = {(v.camera, v.tilt_index): scan.read_image(v) for v in scan.views_by_role("background")}
+    per = {name: [] for name in segmenters()}
+    for v in scan.views_by_role("plant"):
+        img, bg = scan.read_image(v), plates[(v.camera, v.tilt_index)]
+        truth = read_mask(scan.ground_truth_dir / "masks" / f"{v.index:05d}.png")
+        for name, seg in segmenters().items():
+            per[name].append(mask_metrics(seg.segment(img, bg, v), truth, img, bg))
+    return {name: summarise(m) for name, m in per.items()}
+
+
+def undistortion_loss(scan: ScanFolder) -> float:
+    """Mean IoU of distort(undistort(truth)) vs truth over the scan's plant views."""
+    import yaml
+
+    cams = {}
+    for line in (scan.ground_truth_dir / "cameras.jsonl").read_text().splitlines():
+        d = yaml.safe_load(line)
+        cams[d["index"]] = CameraModel.from_dict(d["camera"]["model"])
+    ious = []
+    for v in scan.views_by_role("plant"):
+        truth = read_mask(scan.ground_truth_dir / "masks" / f"{v.index:05d}.png")
+        back = distort_mask(undistort_mask(truth, cams[v.index]), cams[v.index])
+        ious.append(np.count_nonzero(back & truth) / np.count_nonzero(back | truth))
+    return float(np.mean(ious))
+
+
+def real_photos() -> dict | None:
+    raw, binary = REAL / "raw" / "side", REAL / "bin" / "side"
+    if not raw.is_dir():
+        return None
+    names = sorted(p.stem for p in raw.glob("*.jpg"))
+    images = [cv2.imread(str(raw / f"{n}.jpg")) for n in names]
+    plate = median_background(images)
+    out = {}
+    for label, seg, bg in [
+        ("lab-shadow, median plate", LabShadowSegmenter(), plate),
+        ("threshold, median plate", ThresholdSegmenter(), plate),
+        ("green (no plate)", GreenSegmenter(), None),
+    ]:
+        ious, precision, recall = [], [], []
+        for n, img in zip(names, images, strict=True):
+            truth = cv2.imread(str(binary / f"{n}.png"), cv2.IMREAD_GRAYSCALE) > 0
+            m = seg.segment(img, bg)
+            inter = np.count_nonzero(m & truth)
+            ious.append(inter / np.count_nonzero(m | truth))
+            precision.append(inter / max(np.count_nonzero(m), 1))
+            recall.append(inter / np.count_nonzero(truth))
+        out[label] = (float(np.mean(ious)), float(np.min(ious)), float(np.mean(precision)),
+                      float(np.mean(recall)))
+    return out
+
+
+def speed(size=(5184, 3456), repeats=3) -> dict[str, float]:
+    """Megapixels per second on one thread (one core) at 18 MP."""
+    rng = np.random.default_rng(0)
+    h, w = size[1], size[0]
+    bg = np.full((h, w, 3), (200, 195, 190), np.uint8)
+    bg = cv2.add(bg, rng.integers(0, 6, (h, w, 3), dtype=np.uint8))
+    img = bg.copy()
+    cv2.ellipse(img, (w // 2, h // 2), (w // 6, h // 4), 30, 0, 360, (40, 140, 50), -1)
+    img[:, : w // 3] = (img[:, : w // 3] * 0.6).astype(np.uint8)
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        out = {}
+        for name, seg in segmenters().items():
+            seg.segment(img, bg)
+            t0 = time.perf_counter()
+            for _ in range(repeats):
+                seg.segment(img, bg)
+            out[name] = w * h * 1e-6 * repeats / (time.perf_counter() - t0)
+        return out
+    finally:
+        cv2.setNumThreads(threads)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--size", default="1200x800", help="virtual image size WxH")
+    ap.add_argument("--views", type=int, default=4, help="plant views per revolution")
+    ap.add_argument("--scans", default="/tmp/plantscan-bench-segmentation",
+                    help="where the virtual scans are rendered (reused when present)")
+    ap.add_argument("--skip-speed", action="store_true")
+    args = ap.parse_args()
+    size = tuple(int(x) for x in args.size.split("x"))
+    root = pathlib.Path(args.scans)
+
+    print(f"## Virtual scans {size[0]}x{size[1]}, {args.views} views x 2 cameras\n")
+    print("| scan | segmenter | IoU mean | IoU min | thin recall | shadow FP rate |")
+    print("|---|---|---|---|---|---|")
+    losses = {}
+    for preset in ("plastic-dicot", "wheat"):
+        scan = virtual_scan(root, preset, size, args.views)
+        for name, s in accuracy(scan).items():
+            print(f"| {preset} | {name} | {s['iou']['mean']:.4f} | {s['iou']['min']:.4f} | "
+                  f"{s['thin_recall']:.4f} | {s['shadow_false_positive_rate']:.4f} |")
+        losses[preset] = undistortion_loss(scan)
+    print("\n## Undistort then re-distort the truth masks (mean IoU vs truth)\n")
+    for preset, iou in losses.items():
+        print(f"- {preset}: {iou:.4f}")
+
+    real = real_photos()
+    print("\n## Real PhenoArch side photos vs shipped silhouettes\n")
+    if real is None:
+        print("(../shared/data/phenoarch_maize_plant1 absent: skipped)")
+    else:
+        print("| method | IoU mean | IoU min | precision | recall |")
+        print("|---|---|---|---|---|")
+        for label, (iou, iou_min, prec, rec) in real.items():
+            print(f"| {label} | {iou:.4f} | {iou_min:.4f} | {prec:.4f} | {rec:.4f} |")
+
+    if not args.skip_speed:
+        print("\n## Speed at 18 MP (5184x3456), one thread\n")
+        print("| segmenter | MP/s per core |")
+        print("|---|---|")
+        for name, mps in speed().items():
+            print(f"| {name} | {mps:.1f} |")
+
+
+if __name__ == "__main__":
+    main()

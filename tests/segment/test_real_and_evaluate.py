@@ -1,0 +1,47 @@
+"""Real PhenoArch photos (no background plate) and the `silhouettes` section of evaluate."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from plantscan_segment.baselines import GreenSegmenter
+from plantscan_segment.metrics import mask_metrics
+
+DATA = Path(__file__).resolve().parents[3] / "shared/data/phenoarch_maize_plant1"
+
+
+@pytest.mark.skipif(not (DATA / "raw/side").is_dir(), reason="../shared data not present")
+def test_green_on_real_maize_photos_agrees_with_the_shipped_silhouettes():
+    angles = sorted(int(p.stem) for p in (DATA / "raw/side").glob("*.jpg"))
+    assert len(angles) >= 6
+    seg = GreenSegmenter(GreenSegmenter.Params(min_blob_px=400))
+    ious = []
+    for a in angles[::2]:
+        image = cv2.imread(str(DATA / f"raw/side/{a}.jpg"))
+        theirs = cv2.imread(str(DATA / f"bin/side/{a}.png"), cv2.IMREAD_GRAYSCALE) > 0
+        ious.append(mask_metrics(seg.segment(image, None), theirs).iou)
+    # Measured 0.73 mean (docs/segmentation.md): the shipped masks are another program's
+    # output, wider at leaf edges, not truth. 0.65 guards the agreement we measured.
+    assert np.mean(ious) >= 0.65, ious
+
+
+def test_evaluate_reports_silhouettes_of_a_run(sim_scans, tmp_path):
+    from plantscan_core.pipeline import process
+    from plantscan_core.plugins import load_plugins
+    from plantscan_core.recipe import validate_recipe
+
+    manager = load_plugins()
+    scan = sim_scans["plastic-dicot"]
+    raw = dict(scan.recipe_dict)
+    raw.update(calibrate=None, segment={"plugin": "lab-shadow"}, reconstruct=None, mesh=None,
+               segment_mesh=None, measure=None, export=[])
+    recipe = validate_recipe(raw, manager.registry)
+    process(scan.root, recipe, tmp_path / "run", manager, raw_recipe=raw)
+    section = manager.evaluate(tmp_path / "run", scan.ground_truth_dir)["silhouettes"]
+    assert section["views"] == len(scan.views_by_role("plant"))
+    assert section["iou"]["min"] >= 0.98
+    assert 0.97 <= section["thin_recall"] <= 1.0

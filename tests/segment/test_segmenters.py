@@ -1,0 +1,150 @@
+"""Segmenters against the virtual scanner's exact masks, plus analytic and bad-input checks."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from plantscan_core.data import ViewRecord
+from plantscan_core.errors import DataError
+from plantscan_core.pipeline import read_mask
+from plantscan_segment.baselines import (
+    GivenMasksSegmenter,
+    GreenSegmenter,
+    MOG2Segmenter,
+    ThresholdSegmenter,
+)
+from plantscan_segment.lab import LabShadowSegmenter, lab_shadow_score, median_background
+from plantscan_segment.metrics import mask_metrics, summarise, thin_structure_mask
+
+
+def _views(scan):
+    plates = {(v.camera, v.tilt_index): scan.read_image(v) for v in scan.views_by_role("background")}
+    for v in scan.views_by_role("plant"):
+        truth = read_mask(scan.ground_truth_dir / "masks" / f"{v.index:05d}.png")
+        yield v, scan.read_image(v), plates[(v.camera, v.tilt_index)], truth
+
+
+def _evaluate(segmenter, scan):
+    return summarise([mask_metrics(segmenter.segment(img, bg, v), truth, img, bg)
+                      for v, img, bg, truth in _views(scan)])
+
+
+def test_lab_shadow_meets_the_issue_targets_on_the_dicot(sim_scans):
+    s = _evaluate(LabShadowSegmenter(), sim_scans["plastic-dicot"])
+    # Targets of the issue: IoU >= 0.98 (every view) and thin-structure recall >= 0.97.
+    assert s["iou"]["min"] >= 0.98, s
+    assert s["thin_recall"] >= 0.97, s
+    assert s["thin_pixels"] > 200, "too few thin pixels for the recall to mean anything"
+    # The scans have real hard shadows, and lab-shadow keeps nearly all of them out.
+    assert s["shadow_pixels"] > 5000
+    assert s["shadow_false_positive_rate"] < 0.01, s
+
+
+def test_lab_shadow_on_wheat_keeps_thin_blades(sim_scans):
+    s = _evaluate(LabShadowSegmenter(), sim_scans["wheat"])
+    assert s["thin_recall"] >= 0.97, s
+    # Known shortfall (docs/segmentation.md): wheat IoU is 0.94-0.96, not the issue's 0.98.
+    # Blades 2-5 px wide are mostly rim pixels; lab-shadow takes a pixel from ~20 %
+    # coverage while the truth takes it from 50 % (pixel centre), and the thin shadows of
+    # blades have anti-aliased rims whose texture term is high.  Guard against regression:
+    assert s["iou"]["min"] >= 0.93, s
+    assert s["shadow_false_positive_rate"] < 0.02, s
+
+
+def test_plain_threshold_keeps_the_shadows(sim_scans):
+    lab = _evaluate(LabShadowSegmenter(), sim_scans["plastic-dicot"])
+    thr = _evaluate(ThresholdSegmenter(), sim_scans["plastic-dicot"])
+    assert thr["shadow_false_positive_rate"] > 0.5  # why the seed needed a shadow-robust score
+    assert lab["iou"]["mean"] > thr["iou"]["mean"] + 0.1
+
+
+def test_seed_score_by_hand():
+    # Two pixels side by side; plate grey, image: left pixel green, right unchanged.
+    bg = np.full((1, 2, 3), 128, np.uint8)
+    img = bg.copy()
+    img[0, 0] = (40, 160, 40)
+    lab = cv2.cvtColor(img, cv2.COLOR_BGR2LAB).astype(float)
+    lb = cv2.cvtColor(bg, cv2.COLOR_BGR2LAB).astype(float)
+    delta = abs(lab[0, 0, 0] - lb[0, 0, 0])
+    theta = abs(lab[0, 0, 1] - lb[0, 0, 1]) + abs(lab[0, 0, 2] - lb[0, 0, 2])
+    # Texture: only the horizontal ratio changes (one row: the vertical ratio is 1 for both).
+    psi = abs((lab[0, 0, 0] + 1) / (lab[0, 1, 0] + 1) - 1.0)
+    omega = lab_shadow_score(img, bg, 0.1, 0.5, 0.4)
+    assert omega[0, 0] == pytest.approx((0.1 * delta + 0.5 * theta + 0.4 * psi), rel=1e-5)
+
+
+def test_shadow_dark_pot_and_thin_leaf_analytic():
+    plate = np.full((60, 80, 3), (200, 190, 185), np.uint8)
+    img = plate.copy()
+    img[:, 40:] = (plate[:, 40:] * 0.6).astype(np.uint8)       # hard shadow on the right
+    img[10:50, 10:20] = (25, 25, 28)                             # dark pot
+    img[5:55, 60] = (40, 140, 50)                                # 1 px wide green leaf in shadow
+    mask = LabShadowSegmenter().segment(img, plate)
+    assert mask[10:50, 10:20].all(), "the dark pot is foreground"
+    assert mask[5:55, 60].all(), "the thin leaf survives inside the shadow"
+    shadow = np.zeros_like(mask)
+    shadow[:, 41:] = True
+    shadow[:, 59:62] = False
+    assert not mask[shadow].any(), "the shadow is background"
+    seed_only = LabShadowSegmenter(LabShadowSegmenter.Params(suppress_shadows=False, threshold=5))
+    assert seed_only.segment(img, plate)[shadow].mean() > 0.9  # this shadow is too deep for t=5
+
+
+def test_thin_structure_mask_is_the_narrow_part():
+    truth = np.zeros((40, 40), bool)
+    truth[5:35, 5:20] = True    # broad blade
+    truth[5:35, 30:32] = True   # 2 px wide tip
+    thin = thin_structure_mask(truth)
+    assert thin[5:35, 30:32].all()
+    assert not thin[10:30, 8:17].any()
+
+
+def test_median_background_recovers_the_plate_behind_a_moving_object():
+    plate = np.random.default_rng(1).integers(100, 200, (30, 60, 3), dtype=np.uint8)
+    views = []
+    for x in range(0, 50, 10):
+        v = plate.copy()
+        v[5:25, x:x + 8] = (0, 255, 0)
+        views.append(v)
+    assert np.array_equal(median_background(views), plate)
+
+
+def test_missing_and_mismatched_plates_are_named():
+    view = ViewRecord(7, "plant", "cam1", 2, 20.0, 3, 30.0, None, "images/plant/cam1_t02_a003.png")
+    img = np.zeros((20, 30, 3), np.uint8)
+    with pytest.raises(DataError, match=r"view 7 \(images/plant/cam1_t02_a003.png, camera cam1"):
+        LabShadowSegmenter().segment(img, None, view)
+    with pytest.raises(DataError, match="30x20.*|.*20x30"):
+        LabShadowSegmenter().segment(img, np.zeros((21, 30, 3), np.uint8), view)
+    with pytest.raises(DataError, match="no background plate"):
+        MOG2Segmenter().segment(img, None, view)
+
+
+def test_given_masks_reads_the_scan_masks(tiny_scan):
+    from plantscan_core.stages import StageContext
+
+    view = tiny_scan.views_by_role("plant")[0]
+    img = tiny_scan.read_image(view)
+    seg = GivenMasksSegmenter(context=StageContext(scan=tiny_scan))
+    with pytest.raises(DataError, match=Path(view.file).stem + ".png"):
+        seg.segment(img, None, view)
+    (tiny_scan.root / "masks").mkdir()
+    mask = np.zeros(img.shape[:2], np.uint8)
+    mask[3:9, 4:7] = 255
+    cv2.imwrite(str(tiny_scan.root / "masks" / f"{Path(view.file).stem}.png"), mask)
+    assert np.array_equal(seg.segment(img, None, view), mask > 0)
+
+
+def test_green_needs_no_plate():
+    img = np.full((300, 300, 3), 230, np.uint8)
+    img[20:280, 150] = (40, 150, 45)       # a 1 px wide green stem, 260 px long
+    img[100:140, 100:200] = (50, 120, 40)  # a darker leaf on it
+    img[5, 5] = (40, 150, 45)              # a green speck, < 0.5 % of the plant
+    mask = GreenSegmenter().segment(img, None)
+    truth = np.zeros(mask.shape, bool)
+    truth[20:280, 150] = truth[100:140, 100:200] = True
+    assert np.array_equal(mask, truth)
