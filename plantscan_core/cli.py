@@ -163,9 +163,9 @@ def cmd_process(args) -> int:
                      calibration_path=Path(args.calibration) if args.calibration else None)
     if args.profile:
         print(profile_table(result.info))
-    stopped = result.info.get("stopped_before")
-    if stopped:
-        print(f"{out}: stopped before '{stopped}' (the recipe names no plugin for it)")
+    skipped = result.info.get("skipped")
+    if skipped:
+        print(f"{out}: not run: {', '.join(skipped)} (not in the recipe, or an input missing)")
     if result.traits is not None:
         print(f"{out}: {len(result.traits.leaves)} leaves measured -> {out / 'traits.csv'}")
     else:

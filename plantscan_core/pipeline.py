@@ -362,7 +362,8 @@ def process(
     """Run the recipe's processing stages over ``scan_dir`` into ``run_dir``.
 
     Stages run in order (calibrate, segment, reconstruct, mesh, segment_mesh,
-    measure, export); the run stops after the last stage the recipe names.
+    measure, export); a stage runs when the recipe names it and its inputs exist
+    (``run.json: skipped`` lists the others).
     ``calibration_path`` replaces the calibrate stage with a saved calibration.
 
     Returns
@@ -377,12 +378,17 @@ def process(
         raise PlantScanError(f"{run_dir}: cannot create the run folder ({exc.strerror})") from exc
     run = Run(scan, recipe, run_dir, manager, raw_recipe, list(overrides), progress, workers)
     t0 = time.perf_counter()
-    order = ["calibrate", "segment", "reconstruct", "mesh", "segment_mesh", "measure"]
     keys: dict[str, str] = {}
-    for section in order:
-        if getattr(recipe, section) is None and not (section == "calibrate" and calibration_path):
-            run.info["stopped_before"] = section
-            break
+    # What each stage needs from earlier ones; a stage runs when the recipe names it and
+    # its inputs exist (calibration and silhouettes are independent of each other).
+    needs = {"calibrate": [], "segment": [], "reconstruct": ["calibrate", "segment"],
+             "mesh": ["reconstruct"], "segment_mesh": ["mesh"], "measure": ["segment_mesh"]}
+    for section, inputs in needs.items():
+        named = getattr(recipe, section) is not None or (
+            section == "calibrate" and calibration_path is not None)
+        if not named or any(i not in keys for i in inputs):
+            run.info.setdefault("skipped", []).append(section)
+            continue
         if section == "calibrate":
             keys[section] = run.calibrate(calibration_path)
         elif section == "segment":
@@ -395,8 +401,6 @@ def process(
             keys[section] = run.segment_mesh(keys["mesh"])
         elif section == "measure":
             keys[section] = run.measure(keys["segment_mesh"])
-        if section == "segment" and "calibrate" not in keys:
-            break  # reconstruct needs a calibration
     run.export()
     run.info["timings_s"]["total"] = round(time.perf_counter() - t0, 4)
     run._write_info()
