@@ -309,13 +309,13 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
 
 
 def _iso_line_length(v: np.ndarray, f: np.ndarray, topo: geo.MeshTopology, value: np.ndarray,
-                     sigma: float, min_share: float = 0.1) -> float:
+                     sigma: float, min_share: float = 0.3) -> float:
     """Total length (mm) of the zero iso-line of the vertex field ``value`` after smoothing.
 
     Crossing points sit on mesh edges; each face with a sign change links two
     of them.  Chains are walked into polylines (closed when they close) and
     smoothed by ``sigma`` mm of arclength before measuring.  Chains shorter
-    than ``min_share`` of the longest are dropped.
+    than ``min_share`` of the longest are dropped (a leaf has one outline).
     """
     pos = value > 0
     e = topo.edges
@@ -360,7 +360,7 @@ def _iso_line_length(v: np.ndarray, f: np.ndarray, topo: geo.MeshTopology, value
             poly = pts[chain]
             length = geo.polyline_length(geo.smooth_polyline(poly, sigma))
             chord = float(np.linalg.norm(poly[-1] - poly[0]))
-            if on_border[chain[0]] and on_border[chain[-1]] and chord < 0.2 * length:
+            if on_border[chain[0]] and on_border[chain[-1]] and chord < 0.5 * length:
                 # an outline broken where the leaf was cut from the stem: close it by the chord
                 length += chord
             chains.append(length)
