@@ -30,6 +30,7 @@ from plantscan_core.stages import Segmenter, StageParams
 # Ratios of L use L + 1: an 8-bit L of 0 (pure black) must not divide by zero, and
 # one DN of offset changes a ratio of mid-grey pixels by < 1 %.
 _L_OFFSET = 1.0
+_NEIGHBOURHOOD = np.ones((3, 3), np.uint8)
 
 
 def to_lab(image: np.ndarray) -> np.ndarray:
@@ -149,7 +150,7 @@ class LabShadowSegmenter(Segmenter):
         suppress_shadows: bool = Field(
             default=True, description="also drop shadow-like pixels (False: the seed's score "
             "alone)")
-        shadow_ratio_min: float = Field(default=0.45, gt=0, le=1,
+        shadow_ratio_min: float = Field(default=0.5, gt=0, le=1,
                                         description="darkest shadow, as L / L' of the plate")
         shadow_ratio_max: float = Field(default=0.98, gt=0, le=1)
         shadow_colour_max: float = Field(default=12.0, ge=0, description="max Θ of a shadow")
@@ -157,6 +158,10 @@ class LabShadowSegmenter(Segmenter):
         shadow_chroma_max: float | None = Field(
             default=0.06, ge=0, description="max L1 distance of normalised rgb between a shadow "
             "and its plate (None: no chromaticity test)")
+        edge_fraction: float = Field(
+            default=0.25, ge=0, le=1, description="drop pixels whose Ω is below this fraction of "
+            "the largest Ω in their 3x3 neighbourhood: mixed edge pixels mostly covered by "
+            "background (0: off); measured against thin recall in docs/segmentation.md")
         min_blob_px: int = Field(
             default=3, ge=0, description="drop 8-connected foreground blobs smaller than this "
             "(0: off); 3 removes noise speckle in shadows at no measured thin-recall cost")
@@ -201,6 +206,11 @@ class LabShadowSegmenter(Segmenter):
         delta, theta, psi, ratio = lab_terms(to_lab(image), to_lab(background))
         omega = (p.alpha * delta + p.beta * theta + p.gamma * psi) / (p.alpha + p.beta + p.gamma)
         mask = omega > p.threshold
+        if p.edge_fraction > 0:
+            # A pixel half covered by a leaf has, after the camera's tone curve, Ω ~ 0.3 of a
+            # fully covered neighbour; along a 1 px leaf the neighbours are as weak, so it stays.
+            local_max = cv2.dilate(omega, _NEIGHBOURHOOD)
+            mask &= omega >= p.edge_fraction * local_max
         if p.suppress_shadows:
             chroma = (None if p.shadow_chroma_max is None
                       else chromaticity_distance(image, background))

@@ -18,15 +18,17 @@ DATA = Path(__file__).resolve().parents[3] / "shared/data/phenoarch_maize_plant1
 def test_green_on_real_maize_photos_agrees_with_the_shipped_silhouettes():
     angles = sorted(int(p.stem) for p in (DATA / "raw/side").glob("*.jpg"))
     assert len(angles) >= 6
-    seg = GreenSegmenter(GreenSegmenter.Params(min_blob_px=400))
+    seg = GreenSegmenter()
     ious = []
     for a in angles[::2]:
         image = cv2.imread(str(DATA / f"raw/side/{a}.jpg"))
         theirs = cv2.imread(str(DATA / f"bin/side/{a}.png"), cv2.IMREAD_GRAYSCALE) > 0
         ious.append(mask_metrics(seg.segment(image, None), theirs).iou)
-    # Measured 0.73 mean (docs/segmentation.md): the shipped masks are another program's
-    # output, wider at leaf edges, not truth. 0.65 guards the agreement we measured.
-    assert np.mean(ious) >= 0.65, ious
+    # Measured 0.92 mean over the 12 photos (docs/segmentation.md): the shipped masks are
+    # another program's output, not truth (they differ at leaf rims and the dark stem base).
+    # 0.88 guards the agreement we measured; every photo must agree to 0.85.
+    assert np.mean(ious) >= 0.88, ious
+    assert min(ious) >= 0.85, ious
 
 
 def test_evaluate_reports_silhouettes_of_a_run(sim_scans, tmp_path):
