@@ -7,7 +7,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-
 from plantscan_segment.baselines import GreenSegmenter
 from plantscan_segment.metrics import mask_metrics
 

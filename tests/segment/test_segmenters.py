@@ -7,10 +7,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-
-from plantscan_core.data import ViewRecord
-from plantscan_core.errors import DataError
-from plantscan_core.pipeline import read_mask
 from plantscan_segment.baselines import (
     GivenMasksSegmenter,
     GreenSegmenter,
@@ -20,9 +16,14 @@ from plantscan_segment.baselines import (
 from plantscan_segment.lab import LabShadowSegmenter, lab_shadow_score, median_background
 from plantscan_segment.metrics import mask_metrics, summarise, thin_structure_mask
 
+from plantscan_core.data import ViewRecord
+from plantscan_core.errors import DataError
+from plantscan_core.pipeline import read_mask
+
 
 def _views(scan):
-    plates = {(v.camera, v.tilt_index): scan.read_image(v) for v in scan.views_by_role("background")}
+    plates = {(v.camera, v.tilt_index): scan.read_image(v)
+              for v in scan.views_by_role("background")}
     for v in scan.views_by_role("plant"):
         truth = read_mask(scan.ground_truth_dir / "masks" / f"{v.index:05d}.png")
         yield v, scan.read_image(v), plates[(v.camera, v.tilt_index)], truth
@@ -174,8 +175,9 @@ def test_green_needs_no_plate():
 
 
 def test_undistorted_mask_puts_a_point_where_the_pinhole_camera_sees_it():
-    from plantscan_core.data import CameraModel
     from plantscan_segment.undistort import distort_mask, undistort_mask
+
+    from plantscan_core.data import CameraModel
 
     model = CameraModel(f=300.0, cu=159.5, cv=119.5, d1=-0.2, d2=0.05, width=320, height=240)
     xy = np.array([[0.4, -0.3]])                     # normalised pinhole coordinates
