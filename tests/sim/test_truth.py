@@ -135,3 +135,22 @@ def test_plant_sway_is_rendered_and_recorded(tmp_path):
         assert iou(swayed) >= 0.99
         worse += iou(plant) < iou(swayed) - 0.005
     assert worse >= len(scan.views) // 2
+
+
+def test_background_plate_fits_every_angle(small_scan):
+    # The plate and carrier are round and plain, so the one background plate per camera
+    # and tilt equals every plant view outside the foreground, except where the plant or
+    # pot casts a shadow: at least 85 % of the non-foreground pixels within 4 sigma of
+    # the sensor noise (2 DN per image, so sigma of a difference ~2.8 DN).
+    gt = small_scan.ground_truth_dir
+    bg = {(v.camera, v.tilt_index): small_scan.read_image(v)
+          for v in small_scan.views_by_role("background")}
+    for view in small_scan.views_by_role("plant"):
+        img = small_scan.read_image(view).astype(np.int16)
+        mask = cv2.imread(str(gt / "masks" / f"{view.index:05d}.png"), 0) > 127
+        ring = cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+        diff = np.abs(img - bg[(view.camera, view.tilt_index)].astype(np.int16)).max(axis=2)
+        same = diff[~ring] <= 4 * 2.0 * np.sqrt(2)
+        assert same.mean() >= 0.85, f"view {view.index}: {same.mean():.3f}"
+        # and the shadows are real: some background pixels are clearly darker
+        assert np.mean(diff[~ring] > 20) > 0.01
