@@ -46,3 +46,6 @@ def test_evaluate_reports_silhouettes_of_a_run(sim_scans, tmp_path):
     assert section["views"] == len(scan.views_by_role("plant"))
     assert section["iou"]["min"] >= 0.98
     assert 0.97 <= section["thin_recall"] <= 1.0
+    # The evaluator found the scan's plates through run.json and measured the shadows.
+    assert section["shadow_pixels"] > 5000
+    assert section["shadow_false_positive_rate"] < 0.01
