@@ -370,7 +370,15 @@ class SimScene(Scene):
         rims = np.concatenate([
             np.stack([r * np.cos(a), r * np.sin(a), np.full_like(a, z)], 1)
             for r, z in ((p.pot_r_bottom_mm, p.pot_z_bottom_mm), (p.pot_r_top_mm, p.pot_z_top_mm))])
-        pts = np.concatenate([v[:: max(1, len(v) // 20000)], rims])
+        plant_pts = v[:: max(1, len(v) // 20000)]
+        if p.sway_deg > 0:  # the plant must stay in view when it sways by up to 3 sigma
+            from plantscan_core.data import rotation_about_axis
+
+            pivot = np.array([0.0, 0.0, self.soil_z])
+            plant_pts = np.concatenate([plant_pts] + [
+                pivot + (plant_pts - pivot) @ rotation_about_axis(ax, 3.0 * p.sway_deg).T
+                for ax in ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0))])
+        pts = np.concatenate([plant_pts, rims])
         corners = self.board_corners()
         _, n, _, _ = self._board_frame()
         board_seen: dict[tuple[str, int], int] = {}
