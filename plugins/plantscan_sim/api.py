@@ -112,7 +112,9 @@ def make_scan(
 
     Starts from the shipped recipe of ``preset`` (``recipes/<preset>.yaml``) or
     ``recipe``, changes what the arguments set (``None`` keeps the recipe's
-    value), then ``overrides`` (``"scan.scene.params.board=charuco"``).  Only the
+    value; ``calibration_images_per_revolution=None`` follows
+    ``images_per_revolution`` when that is given), then ``overrides``
+    (``"scan.scene.params.board=charuco"``).  Only the
     scan section is checked against plugins, so it works before the processing
     plugins exist; the full recipe is stored in ``scan.yaml``.
 
@@ -120,6 +122,8 @@ def make_scan(
     """
     from plantscan_core.acquire import acquire
 
+    if calibration_images_per_revolution is None and images_per_revolution is not None:
+        calibration_images_per_revolution = images_per_revolution
     raw = scan_recipe(preset, recipe=recipe, image_size=image_size,
                       images_per_revolution=images_per_revolution,
                       calibration_images_per_revolution=calibration_images_per_revolution,
