@@ -117,10 +117,17 @@ class SimScene(Scene):
         self.plant: Plant | None = None
 
     # ------------------------------------------------------------------ set-up
-    def setup(self, scan: ScanFolder) -> None:
-        recipe = self.context.recipe
+    def check(self, recipe=None) -> None:
+        """Build the world and refuse an impossible rig, writing nothing (``RigError``).
+
+        Needs no scan folder, so an orchestrator may call it before creating one;
+        ``setup`` calls it too (the world is built once).
+        """
+        recipe = recipe if recipe is not None else self.context.recipe
         if recipe is None:
             raise RecipeError([("scan.scene", "the sim scene needs the recipe in its context")])
+        if self.renderer is not None:
+            return
         p = self.params
         cams = self._camera_params(recipe)
         self._check_axes(recipe)
@@ -130,11 +137,14 @@ class SimScene(Scene):
                        p.target_height_mm, p.arm_azimuth_deg)
         self.plant = build_plant(p.preset, p.seed, self.soil_z, p.leaf_thickness_mm,
                                  p.mesh_path, p.mesh_labels_path, p.mesh_scale)
-        self._build_world()
         self.jpeg_quality = recipe.scan.jpeg_quality
         self.camera_order = [c.name for c in recipe.scan.cameras]
         if p.check_rig:
             self.check_rig(plan(recipe))
+        self._build_world()
+
+    def setup(self, scan: ScanFolder) -> None:
+        self.check(self.context.recipe)
         self.write_truth(scan)
         self.context.shared[SHARED_KEY] = self
 
