@@ -222,7 +222,7 @@ def cmd_batch(args) -> int:
                         Path(args.out), overrides=args.overrides, scheduler=args.scheduler,
                         workers=args.workers, progress=sys.stderr.isatty())
     print(summary)
-    return 1 if getattr(summary, "failed", 0) else 0
+    return summary.exit_status  # the number of failed plants (capped at 125)
 
 
 # --------------------------------------------------------------------------- parser
