@@ -14,6 +14,12 @@ hull encloses the true leaf), so overlap is measured by nearest faces:
   leaves; a truth leaf is *missed* when it has no pair.
 
 Errors use the seed's ε = mean(|truth − measured| / truth) over the pairs.
+
+A calibration fixes the turntable frame only up to its gauge (a rotation about
+the axis and a shift along it); when the run's mesh is far from the truth
+(median distance > ``GAUGE_TOLERANCE_MM``), the rotation about +Z and the
+vertical shift that best bring it onto the truth are found first (a search
+over the angle, then ICP) and reported as ``frame_alignment``.
 """
 
 from __future__ import annotations
@@ -28,6 +34,44 @@ from plantscan_core.errors import DataError
 
 PAIR_COVER = 0.5  # more than half of a truth leaf must be in its measured leaf
 MERGE_COVER = 0.3  # a measured leaf holding 30 % of each of two truth leaves merged them
+GAUGE_TOLERANCE_MM = 5.0  # a hull lies within a few mm of the true surface
+
+
+def align_gauge(points: np.ndarray, truth_points: np.ndarray) -> tuple[np.ndarray, dict]:
+    """(4, 4) transform taking ``points`` onto ``truth_points`` within the turntable gauge.
+
+    Tries rotations about +Z every 5 degrees (with the vertical shift of the
+    medians), keeps the best by median nearest distance, then refines the
+    rigid transform by point-to-point ICP (Open3D).
+    """
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(0)
+    sample = points[rng.choice(len(points), min(len(points), 4000), replace=False)]
+    tree = cKDTree(truth_points)
+    dz = np.median(truth_points[:, 2]) - np.median(points[:, 2])
+    best = (np.inf, 0.0)
+    for deg in np.arange(0.0, 360.0, 5.0):
+        a = np.radians(deg)
+        r = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0, 0, 1.0]])
+        d, _ = tree.query(sample @ r.T + [0.0, 0.0, dz])
+        best = min(best, (float(np.median(d)), deg))
+    a = np.radians(best[1])
+    init = np.eye(4)
+    init[:3, :3] = [[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0, 0, 1.0]]
+    init[2, 3] = dz
+    import open3d as o3d
+
+    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(sample))
+    dst = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(
+        truth_points[rng.choice(len(truth_points), min(len(truth_points), 20000), replace=False)]))
+    reg = o3d.pipelines.registration.registration_icp(
+        src, dst, 10.0, init, o3d.pipelines.registration.TransformationEstimationPointToPoint())
+    t = np.asarray(reg.transformation)
+    moved = sample @ t[:3, :3].T + t[:3, 3]
+    residual = float(np.median(tree.query(moved)[0]))
+    return t, {"yaw_deg": float(np.degrees(np.arctan2(t[1, 0], t[0, 0]))),
+               "translation_mm": t[:3, 3].round(3).tolist(), "median_distance_mm": residual}
 
 
 def _face_centroids(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -57,6 +101,12 @@ def match_leaves(labelled: LabelledMesh, truth_vertices: np.ndarray, truth_faces
         return out
     mc = _face_centroids(labelled.mesh.vertices, labelled.mesh.faces)
     tc = _face_centroids(truth_vertices, truth_faces)
+    from scipy.spatial import cKDTree as _Tree
+
+    probe = mc[:: max(1, len(mc) // 4000)]
+    if np.median(_Tree(tc).query(probe)[0]) > GAUGE_TOLERANCE_MM:
+        transform, out["frame_alignment"] = align_gauge(mc, tc)
+        mc = mc @ transform[:3, :3].T + transform[:3, 3]
     v = truth_vertices[truth_faces]
     t_area = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
     _, nearest = cKDTree(mc).query(tc)
@@ -133,6 +183,7 @@ def evaluate_traits(run_dir: Path, truth_dir: Path) -> dict[str, Any] | None:
             "leaves_merged": len(m["merged"]),
             "leaves_missed": len(m["missed"]),
             "leaves_extra": len(m["extra"]),
+            **({"frame_alignment": m["frame_alignment"]} if "frame_alignment" in m else {}),
             "pairs": [{"truth_id": t, "measured_id": mm, "cover": c} for t, mm, c in m["pairs"]],
             "per_leaf": errs["per_leaf"],
         }

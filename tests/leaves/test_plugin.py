@@ -84,3 +84,23 @@ def test_evaluate_counts_merged_and_missed(mock_plant, tmp_path):
     assert section["leaves_merged"] == 1
     assert section["leaves_missed"] == 1
     assert section["leaves_found"] == len(plant.leaves) - 1
+
+
+def test_evaluate_finds_the_turntable_gauge(mock_plant, mock_plant_measured, tmp_path):
+    # a calibration fixes the world frame up to a turn about the axis and a shift along it
+    from plantscan_core.data import Mesh, rotation_z
+
+    plant, mesh, part = mock_plant
+    truth = _truth_dir(tmp_path, plant, mesh, part)
+    labelled, traits = mock_plant_measured
+    run = tmp_path / "run"
+    run.mkdir()
+    moved = Mesh(mesh.vertices @ rotation_z(90.0).T + [0.0, 0.0, 80.0], mesh.faces)
+    LabelledMesh(moved, labelled.face_labels, labelled.kinds).save(run / "labelled.npz")
+    traits.save(run / "traits.csv")
+    section = leaves_plugin.plantscan_evaluate(run, truth)["traits"]
+    assert section["leaves_found"] == len(plant.leaves) and section["leaves_merged"] == 0
+    align = section["frame_alignment"]
+    assert align["yaw_deg"] == pytest.approx(-90.0, abs=1.0)
+    assert align["translation_mm"][2] == pytest.approx(-80.0, abs=1.0)
+    assert align["median_distance_mm"] < 0.5

@@ -7,6 +7,7 @@ leaf stages alone; the full chain is in benchmarks/leaves.py.
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from plantscan_core.data import Mesh
@@ -43,3 +44,29 @@ def test_grass_truth_mesh(preset):
     assert len(m["pairs"]) == len(m["truth_ids"]) and not m["merged"]
     # the grass targets (length 3 %, area 5 %) for the chain, met by the stages alone
     assert err["length"] < 0.03 and err["area"] < 0.05, err
+
+
+@pytest.mark.slow
+def test_plastic_dicot_voxelised_truth():
+    # the truth plant as a hull would mesh it: slabs 0.5 + 2 x 0.75 mm thick, 1.25 mm voxels
+    from plantscan_core.data import LeafTraits, Traits
+    from plantscan_leaves.phantoms import voxelise_mesh
+
+    offset = 0.75
+    plant = plants.build_plant("plastic-dicot", 1, 0.0)
+    tm = plant.mesh
+    mesh = voxelise_mesh(tm.vertices, tm.faces, 1.25, offset)
+    labelled, _ = segment_leaves(mesh)
+    traits, _, _ = measure_plant(labelled)
+    m = match_leaves(labelled, tm.vertices, tm.faces, tm.face_attr)
+    assert len(m["pairs"]) == 12 and not m["merged"] and not m["extra"]
+    # the slab's outline is the leaf's grown by the offset (phantoms.voxelise_mesh)
+    grown = Traits([LeafTraits(t.leaf_id, t.length_mm + 2 * offset, t.width_mm + 2 * offset,
+                               t.area_mm2 + t.perimeter_mm * offset + np.pi * offset**2,
+                               t.perimeter_mm + 2 * np.pi * offset)
+                    for t in plant.traits().leaves])
+    err = trait_errors(grown, traits, m["pairs"])["mean_relative_error"]
+    # 1.25 mm voxels blur the outline by ~half a voxel (0.3-0.8 % of these leaves): the
+    # issue's 1.5 % chain target must hold for the leaf stages on a hull-like mesh
+    for name in ("length", "width", "area", "perimeter"):
+        assert err[name] < 0.015, (name, err)
