@@ -49,8 +49,9 @@ def test_grass_truth_mesh(preset):
 @pytest.mark.slow
 def test_plastic_dicot_voxelised_truth():
     # the truth plant as a hull would mesh it: slabs 0.5 + 2 x 0.75 mm thick, 1.25 mm voxels
-    from plantscan_core.data import LeafTraits, Traits
     from plantscan_leaves.phantoms import voxelise_mesh
+
+    from plantscan_core.data import LeafTraits, Traits
 
     offset = 0.75
     plant = plants.build_plant("plastic-dicot", 1, 0.0)
