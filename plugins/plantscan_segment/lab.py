@@ -93,11 +93,17 @@ def chromaticity_distance(image: np.ndarray, background: np.ndarray) -> np.ndarr
     towards neutral when a tinted plate darkens; brown soil or a grey-brown
     stem keep a clearly different chromaticity from the plate.
     """
-    f = image.astype(np.float32) + 1.0  # + 1: black pixels must not divide by zero
-    fb = background.astype(np.float32) + 1.0
-    c = f / cv2.transform(f, np.ones((1, 3), np.float32))[..., None]
-    cb = fb / cv2.transform(fb, np.ones((1, 3), np.float32))[..., None]
-    return cv2.absdiff(c, cb).sum(axis=2)
+    # Per channel with OpenCV calls: a numpy reduction over the last axis of (H, W, 3)
+    # is ~5x slower at 18 MP.
+    f = cv2.split(image.astype(np.float32) + 1.0)  # + 1: black pixels must not divide by zero
+    fb = cv2.split(background.astype(np.float32) + 1.0)
+    inv = cv2.divide(1.0, cv2.add(cv2.add(f[0], f[1]), f[2]))
+    inv_b = cv2.divide(1.0, cv2.add(cv2.add(fb[0], fb[1]), fb[2]))
+    out = None
+    for ch, ch_b in zip(f, fb, strict=True):
+        d = cv2.absdiff(cv2.multiply(ch, inv), cv2.multiply(ch_b, inv_b))
+        out = d if out is None else cv2.add(out, d)
+    return out
 
 
 def shadow_like(theta, psi, ratio, ratio_min, ratio_max, colour_max, texture_max,
@@ -212,9 +218,16 @@ class LabShadowSegmenter(Segmenter):
             local_max = cv2.dilate(omega, _NEIGHBOURHOOD)
             mask &= omega >= p.edge_fraction * local_max
         if p.suppress_shadows:
-            chroma = (None if p.shadow_chroma_max is None
-                      else chromaticity_distance(image, background))
-            mask &= ~shadow_like(theta, psi, ratio, p.shadow_ratio_min, p.shadow_ratio_max,
-                                 p.shadow_colour_max, p.shadow_texture_max, chroma,
-                                 p.shadow_chroma_max)
+            shadow = mask & shadow_like(theta, psi, ratio, p.shadow_ratio_min,
+                                        p.shadow_ratio_max, p.shadow_colour_max,
+                                        p.shadow_texture_max)
+            if p.shadow_chroma_max is not None:
+                # Chromaticity only where it can still decide (shadow candidates, a few % of
+                # the image): the full-image version is a third of the run time at 18 MP.
+                rows, cols = np.nonzero(shadow)
+                if rows.size:
+                    chroma = chromaticity_distance(image[rows, cols][None],
+                                                   background[rows, cols][None])[0]
+                    shadow[rows, cols] = chroma < p.shadow_chroma_max
+            mask &= ~shadow
         return remove_small_blobs(mask, p.min_blob_px)

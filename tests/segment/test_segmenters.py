@@ -193,3 +193,15 @@ def test_undistorted_mask_puts_a_point_where_the_pinhole_camera_sees_it():
     assert abs(np.hypot(xs.mean() - u, ys.mean() - v)) > 5  # the distortion is not negligible
     back = distort_mask(und, model)
     assert np.count_nonzero(back & mask) / np.count_nonzero(back | mask) > 0.8
+
+
+def test_chromaticity_distance_matches_the_plain_formula():
+    from plantscan_segment.lab import chromaticity_distance
+
+    rng = np.random.default_rng(1)
+    a = rng.integers(0, 256, (50, 60, 3), dtype=np.uint8)
+    b = rng.integers(0, 256, (50, 60, 3), dtype=np.uint8)
+    fa, fb = a.astype(float) + 1, b.astype(float) + 1
+    ref = np.abs(fa / fa.sum(2, keepdims=True) - fb / fb.sum(2, keepdims=True)).sum(2)
+    # float32 OpenCV arithmetic vs float64: values are <= 2, so 1e-5 is float32 rounding.
+    assert np.allclose(chromaticity_distance(a, b), ref, atol=1e-5)
