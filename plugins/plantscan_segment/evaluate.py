@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from plantscan_core.errors import PlantScanError
 from plantscan_core.pipeline import read_mask
 from plantscan_core.scanfolder import ScanFolder
 from plantscan_segment.metrics import mask_metrics, summarise
@@ -33,7 +34,12 @@ def evaluate_silhouettes(run_dir: Path, truth_dir: Path) -> dict | None:
         image = background = None
         view = views.get(int(path.stem)) if path.stem.isdigit() else None
         if view is not None and (view.camera, view.tilt_index) in plates:
-            image = scan.read_image(view)
-            background = scan.read_image(plates[(view.camera, view.tilt_index)])
+            try:
+                image = scan.read_image(view)
+                background = scan.read_image(plates[(view.camera, view.tilt_index)])
+            except PlantScanError:
+                image = background = None  # images moved away: IoU and thin recall only
+            if image is not None and image.shape != background.shape:
+                image = background = None
         metrics.append(mask_metrics(read_mask(path), read_mask(truth_path), image, background))
     return {"silhouettes": summarise(metrics)} if metrics else None

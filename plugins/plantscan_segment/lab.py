@@ -17,6 +17,7 @@ even thin and partly covered pixels, score high.
 
 from __future__ import annotations
 
+import threading
 from typing import Literal
 
 import cv2
@@ -182,17 +183,36 @@ class LabShadowSegmenter(Segmenter):
         if self.params.alpha + self.params.beta + self.params.gamma <= 0:
             raise DataError("lab-shadow: alpha + beta + gamma must be > 0")
         self._median_cache: dict[tuple[str, int], np.ndarray] = {}
+        # segment() runs on several threads at once: one median per camera/tilt, built once.
+        self._median_lock = threading.Lock()
 
     def _median_plate(self, view: ViewRecord) -> np.ndarray:
         key = (view.camera, view.tilt_index)
-        if key not in self._median_cache:
-            scan = self.context.scan
-            if scan is None:
-                raise DataError("lab-shadow: background 'median' needs the scan folder")
-            views = [v for v in scan.views_by_role("plant")
-                     if (v.camera, v.tilt_index) == key]
-            self._median_cache[key] = median_background([scan.read_image(v) for v in views])
-        return self._median_cache[key]
+        with self._median_lock:
+            if key not in self._median_cache:
+                self._median_cache[key] = self._build_median_plate(view)
+            return self._median_cache[key]
+
+    def _build_median_plate(self, view: ViewRecord) -> np.ndarray:
+        scan = self.context.scan
+        if scan is None:
+            raise DataError("lab-shadow: background 'median' needs the scan folder")
+        views = [v for v in scan.views_by_role("plant")
+                 if (v.camera, v.tilt_index) == (view.camera, view.tilt_index)]
+        if len(views) < 3:
+            raise DataError(f"lab-shadow: background 'median' for camera {view.camera}, tilt "
+                            f"{view.tilt_index} needs >= 3 plant views, the scan has "
+                            f"{len(views)}")
+        images = []
+        for v in views:
+            img = scan.read_image(v)
+            if images and img.shape != images[0].shape:
+                raise DataError(f"{scan.path_of(v)}: {img.shape[1]}x{img.shape[0]} px, but "
+                                f"{views[0].file} is {images[0].shape[1]}x"
+                                f"{images[0].shape[0]} (camera {view.camera}, tilt "
+                                f"{view.tilt_index})")
+            images.append(img)
+        return median_background(images)
 
     def segment(self, image, background, view=None):
         p = self.params

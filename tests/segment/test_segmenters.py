@@ -205,3 +205,34 @@ def test_chromaticity_distance_matches_the_plain_formula():
     ref = np.abs(fa / fa.sum(2, keepdims=True) - fb / fb.sum(2, keepdims=True)).sum(2)
     # float32 OpenCV arithmetic vs float64: values are <= 2, so 1e-5 is float32 rounding.
     assert np.allclose(chromaticity_distance(a, b), ref, atol=1e-5)
+
+
+def test_threads_give_the_same_masks_as_one_thread(sim_scans):
+    # The pipeline calls segment() from several threads on one instance.
+    from concurrent.futures import ThreadPoolExecutor
+
+    items = list(_views(sim_scans["wheat"]))
+    seg = LabShadowSegmenter()
+    serial = [seg.segment(img, bg, v) for v, img, bg, _ in items]
+    with ThreadPoolExecutor(4) as pool:
+        threaded = list(pool.map(lambda it: seg.segment(it[1], it[2], it[0]), items))
+    assert all(np.array_equal(a, b) for a, b in zip(serial, threaded, strict=True))
+
+
+def test_median_plate_from_the_scan_views(sim_scans):
+    from plantscan_core.stages import StageContext
+
+    scan = sim_scans["plastic-dicot"]
+    seg = LabShadowSegmenter(LabShadowSegmenter.Params(background="median"),
+                             StageContext(scan=scan))
+    items = list(_views(scan))
+    # The plate is the per-pixel median of the plant views of the same camera and tilt.
+    # (Its accuracy is poor on a turntable, measured in docs/segmentation.md.)
+    for v, img, _, _ in items[:2]:
+        same = [scan.read_image(w) for w, *_ in items
+                if (w.camera, w.tilt_index) == (v.camera, v.tilt_index)]
+        expected = LabShadowSegmenter().segment(img, median_background(same), v)
+        assert np.array_equal(seg.segment(img, None, v), expected)
+    with pytest.raises(DataError, match="needs >= 3 plant views"):
+        other = ViewRecord(99, "plant", "nocam", 0, 0.0, 0, 0.0, None, "x.png")
+        seg.segment(items[0][1], None, other)
