@@ -6,7 +6,8 @@ STAMP := $(VENV)/.installed-stamp
 
 .PHONY: setup sysdeps demo test test-fast bench lint clean
 
-$(STAMP): pyproject.toml
+# A new plugin package needs a new editable install (its finder maps packages at install time).
+$(STAMP): pyproject.toml $(wildcard plugins/*/__init__.py)
 	@bash scripts/install-system-deps.sh
 	@test -x $(BIN)/python || $(PY) -m venv $(VENV) || { \
 	  echo "make: cannot create $(VENV): install python3-venv (apt-get install python3-venv)"; exit 1; }

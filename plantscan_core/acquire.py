@@ -296,6 +296,7 @@ def acquire(
     """
     raw_recipe = raw_recipe if raw_recipe is not None else recipe.model_dump(mode="json")
     out = Path(out)
+    scan = None
     if resume:
         scan = ScanFolder.open(out)
         old = scan.info.get("recipe") or {}
@@ -305,11 +306,10 @@ def acquire(
                 "(compare scan.yaml's recipe.scan with this recipe)"
             )
         remove_stale_temporaries(scan)
-    else:
-        scan = ScanFolder.create(out, _scan_info(recipe, raw_recipe))
 
     context = StageContext(recipe=recipe, scan=scan)
-    # Build everything first, so a bad parameter fails before any motor moves.
+    # Build everything first, so a bad parameter fails before any motor moves and before
+    # a new scan folder is created.
     scene = None
     if recipe.scan.scene is not None:
         scene = manager.build("scene", recipe.scan.scene.plugin, recipe.scan.scene.params, context)
@@ -324,6 +324,12 @@ def acquire(
                                  context)
     for cam_name, cam in cameras.items():
         cam.camera_name = cam_name  # lets a backend know which rig camera it is
+    if scene is not None:
+        scene.check(recipe)  # an impossible virtual rig is refused before the folder exists
+
+    if scan is None:
+        scan = ScanFolder.create(out, _scan_info(recipe, raw_recipe))
+        context.scan = scan
 
     if scene is not None:
         scene.setup(scan)

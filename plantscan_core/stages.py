@@ -174,6 +174,9 @@ class Scene(Stage):
 
     stage = "scene"
 
+    def check(self, recipe: Recipe) -> None:
+        """Refuse an impossible rig (named errors) before the scan folder exists.  Optional."""
+
     @abc.abstractmethod
     def setup(self, scan: ScanFolder) -> None:
         """Prepare the scene for a scan written to ``scan``."""
