@@ -158,9 +158,10 @@ def main() -> int:
     args = ap.parse_args()
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
           f"load {os.getloadavg()[0]:.1f}", flush=True)
-    lines = ["### Accuracy: seed initialisation vs refinement (same detections)", "",
-             "| data | method | centre err mean (mm) | rotation err max (deg) | "
-             "volume reproj RMS (px) | CPU time (s) |", "|---|---|---|---|---|---|"]
+    lines = [] if args.speed_only else [
+        "### Accuracy: seed initialisation vs refinement (same detections)", "",
+        "| data | method | centre err mean (mm) | rotation err max (deg) | "
+        "volume reproj RMS (px) | CPU time (s) |", "|---|---|---|---|---|---|"]
     for r in [] if args.speed_only else accuracy_synthetic((0,) if args.quick else (0, 1, 2)):
         lines.append(f"| {r['data']} ({r['views']} board views) | {r['method']} | "
                      f"{r['centre_mm']:.3f} | {r['rot_deg']:.4f} | {r['vol_px']:.3f} | "
