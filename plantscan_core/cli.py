@@ -32,7 +32,8 @@ def _add_recipe_args(p: argparse.ArgumentParser, required: bool = True) -> None:
     p.add_argument("--recipe", required=required,
                    help="recipe YAML file, or the name of a shipped recipe (e.g. plastic-dicot)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="PATH=VALUE",
-                   help="override a recipe value (YAML), repeatable: --set scan.image_size=[600,400]")
+                   help="override a recipe value (YAML), repeatable: "
+                   "--set scan.image_size=[600,400]")
 
 
 def _load(args, manager: PluginManager):

@@ -283,7 +283,8 @@ def _check_plugins_raw(raw: dict[str, Any], registry) -> list[tuple[str, str]]:
         candidates.append((f"scan.{key}", stage, scan.get(key)))
     for section, stage in PROCESSING_SECTIONS.items():
         candidates.append((section, stage, raw.get(section)))
-    for i, spec in enumerate(raw.get("export") or [] if isinstance(raw.get("export"), list) else []):
+    exports = raw.get("export") if isinstance(raw.get("export"), list) else []
+    for i, spec in enumerate(exports):
         candidates.append((f"export.{i}", "exporter", spec))
     for path, stage, spec in candidates:
         if isinstance(spec, dict) and isinstance(spec.get("plugin"), str):
