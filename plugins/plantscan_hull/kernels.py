@@ -10,6 +10,7 @@ path and ``dense-hull`` in ``tests/hull/test_kernels.py``.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 
 import numpy as np
@@ -21,6 +22,9 @@ try:  # numba is optional: the numpy path is complete without it
     import numba
     from numba import njit, prange
 
+    # Debian's libtbb is older than numba wants; numba then uses OpenMP or its own
+    # work queue by itself.  The warning says nothing a user can act on.
+    warnings.filterwarnings("ignore", message="The TBB threading layer requires TBB")
     HAVE_NUMBA = True
 except ImportError:  # pragma: no cover - exercised only without numba
     HAVE_NUMBA = False
