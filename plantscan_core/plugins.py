@@ -87,10 +87,8 @@ class StageRegistry:
                 f"{self._current_dist} (plugin {self._current_plugin}, "
                 f"{cls.__module__}.{cls.__qualname__})"
             )
-        dist = distribution_of_module(cls.__module__)
-        version = getattr(cls, "__version__", "") or (dist[1] if dist else "0")
         self._items[key] = Registration(cls.stage, cls.name, cls, self._current_plugin,
-                                        self._current_dist, version)
+                                        self._current_dist, cls.version())
 
     def remove(self, stage: str, name: str) -> None:
         self._items.pop((stage, name), None)

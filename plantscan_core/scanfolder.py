@@ -194,9 +194,9 @@ class ScanFolder:
                             f"{view.commanded_angle_deg:g}) is missing")
         return path
 
-    def read_image(self, view: ViewRecord, reduce: int = 1) -> np.ndarray:
-        """Decode a view's image as ``(H, W, 3) uint8`` BGR (``reduce`` in 1, 2, 4, 8)."""
-        return read_image(self.path_of(view), reduce=reduce)
+    def read_image(self, view: ViewRecord, reduce: int = 1, grayscale: bool = False) -> np.ndarray:
+        """Decode a view's image: ``(H, W, 3) uint8`` BGR, or ``(H, W)`` with ``grayscale``."""
+        return read_image(self.path_of(view), reduce=reduce, grayscale=grayscale)
 
     # ------------------------------------------------------------------ writing
     def append_view(self, view: ViewRecord, write_image: Callable[[Path], Any]) -> ViewRecord:
@@ -248,14 +248,22 @@ class ScanFolder:
         return f"ScanFolder({str(self.root)!r}, {len(self._views)} views)"
 
 
-def read_image(path: Path, reduce: int = 1) -> np.ndarray:
-    """Decode an image file as ``(H, W, 3) uint8`` BGR; ``DataError`` naming the file."""
+def read_image(path: Path, reduce: int = 1, grayscale: bool = False) -> np.ndarray:
+    """Decode an image file as ``(H, W, 3) uint8`` BGR (``(H, W)`` with ``grayscale``).
+
+    Every decode of a scan image goes through here, so ``iostats`` counts them.
+    ``DataError`` naming the file when it is missing or undecodable.
+    """
     import cv2
 
     from plantscan_core import iostats
 
-    flags = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
-             8: cv2.IMREAD_REDUCED_COLOR_8}
+    if grayscale:
+        flags = {1: cv2.IMREAD_GRAYSCALE, 2: cv2.IMREAD_REDUCED_GRAYSCALE_2,
+                 4: cv2.IMREAD_REDUCED_GRAYSCALE_4, 8: cv2.IMREAD_REDUCED_GRAYSCALE_8}
+    else:
+        flags = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2,
+                 4: cv2.IMREAD_REDUCED_COLOR_4, 8: cv2.IMREAD_REDUCED_COLOR_8}
     if reduce not in flags:
         raise ValueError(f"reduce must be one of {sorted(flags)}, got {reduce}")
     path = Path(path)

@@ -7,7 +7,6 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Literal
 
-import cv2
 import numpy as np
 from pydantic import Field
 
@@ -110,10 +109,7 @@ def detect_views(scan, views: list[ViewRecord], spec: BoardSpec, max_side_px: in
     different sizes raise ``DataError`` naming them.
     """
     def one(view: ViewRecord):
-        path = scan.path_of(view)
-        gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-        if gray is None:
-            raise DataError(f"{path}: cannot decode calibration image of view {view.index}")
+        gray = scan.read_image(view, grayscale=True)
         size = (gray.shape[1], gray.shape[0])
         if spec.kind == "chessboard":
             uv = detect_chessboard(gray, spec.cols, spec.rows, max_side_px)

@@ -33,21 +33,13 @@ import numpy as np
 import yaml
 
 from plantscan_core.data import Calibration, Camera, Mesh, Silhouettes
+from plantscan_core.pipeline import read_mask as _read_mask
 from plantscan_hull.views import signed_distance
 
 RIM_PX = 1.0
 LOST_RADIUS_VOXELS = 1.5
 
 
-def _read_mask(path: Path) -> np.ndarray:
-    import cv2
-
-    m = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    if m is None:
-        from plantscan_core.errors import DataError
-
-        raise DataError(f"{path}: cannot read mask")
-    return m > 127
 
 
 def truth_views(truth_dir: Path) -> list[tuple[int, Camera, Path]]:

@@ -9,6 +9,7 @@ import numpy as np
 from pydantic import Field
 
 from plantscan_core.errors import DataError
+from plantscan_core.pipeline import read_mask
 from plantscan_core.stages import Segmenter, StageParams
 
 
@@ -97,14 +98,13 @@ class GivenMasksSegmenter(Segmenter):
         if scan is None or view is None:
             raise DataError("given-masks: needs the scan folder and the view")
         path = Path(scan.root) / self.params.folder / f"{Path(view.file).stem}.png"
-        mask = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-        if mask is None:
-            raise DataError(f"{path}: mask of view {view.index} ({view.file}) missing or "
-                            "unreadable")
+        if not path.exists():
+            raise DataError(f"{path}: mask of view {view.index} ({view.file}) missing")
+        mask = read_mask(path)
         if mask.shape != image.shape[:2]:
             raise DataError(f"{path}: mask is {mask.shape[1]}x{mask.shape[0]} but image "
                             f"{view.file} is {image.shape[1]}x{image.shape[0]}")
-        return mask > 0
+        return mask
 
 
 class GreenSegmenter(Segmenter):

@@ -17,6 +17,7 @@ from pydantic import Field
 from plantscan_core.data import Calibration, ViewRecord
 from plantscan_core.errors import DataError, HardwareError
 from plantscan_core.hookspecs import hookimpl
+from plantscan_core.pipeline import read_mask
 from plantscan_core.scanfolder import ScanFolder
 from plantscan_core.stages import (
     Calibrator,
@@ -159,21 +160,17 @@ class TruthMaskSegmenter(Segmenter):
 
     def segment(self, image: np.ndarray, background: np.ndarray | None,
                 view: ViewRecord | None = None) -> np.ndarray:
-        import cv2
-
         scan = self.context.scan
         if view is None or scan is None:
             raise DataError("segmenter 'truth-masks' needs the view and the scan in its context")
         path = scan.ground_truth_dir / "masks" / f"{view.index:05d}.png"
         if not path.exists():
             raise DataError(f"{path}: no truth mask for view {view.index} ({view.file})")
-        mask = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-        if mask is None:
-            raise DataError(f"{path}: cannot decode the truth mask")
+        mask = read_mask(path)
         if image is not None and mask.shape != image.shape[:2]:
             raise DataError(f"{path}: mask is {mask.shape[::-1]} px but view {view.index}'s "
                             f"image is {image.shape[1::-1]} px")
-        return mask > 127
+        return mask
 
 
 @hookimpl
