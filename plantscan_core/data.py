@@ -70,7 +70,7 @@ class CameraModel:
     A point with camera coordinates ``(X, Y, Z)`` (mm, +Z forward, +X right,
     +Y down) has normalised coordinates ``x = X/Z, y = Y/Z``; with
     ``r2 = x*x + y*y`` and ``s = 1 + d1*r2 + d2*r2*r2`` its pixel is
-    ``u = f*x*s + cu``, ``v = f*y*s + cv``.
+    ``u = f*x*s + cu``, ``v = f*aspect*y*s + cv``.
 
     Attributes
     ----------
@@ -82,6 +82,9 @@ class CameraModel:
         Radial distortion coefficients (dimensionless, on normalised coords).
     width, height : int, px
         Image size.
+    aspect : float
+        Pixel aspect ratio fy / fx (1.0 for square pixels, the seed's model;
+        real lenses calibrate to within ~1e-3 of it).
     """
 
     f: float
@@ -91,11 +94,17 @@ class CameraModel:
     d2: float = 0.0
     width: int = 0
     height: int = 0
+    aspect: float = 1.0
+
+    @property
+    def fy(self) -> float:
+        """Vertical focal length, px (``f * aspect``)."""
+        return self.f * self.aspect
 
     @property
     def K(self) -> np.ndarray:  # noqa: N802 - the usual name of the matrix
         """(3, 3) float64 pinhole matrix (no distortion)."""
-        return np.array([[self.f, 0.0, self.cu], [0.0, self.f, self.cv], [0.0, 0.0, 1.0]])
+        return np.array([[self.f, 0.0, self.cu], [0.0, self.fy, self.cv], [0.0, 0.0, 1.0]])
 
     @property
     def dist_coeffs(self) -> np.ndarray:
@@ -107,7 +116,7 @@ class CameraModel:
         xy = np.asarray(xy, dtype=float)
         r2 = np.sum(xy * xy, axis=-1, keepdims=True)
         s = 1.0 + self.d1 * r2 + self.d2 * r2 * r2
-        return xy * s * self.f + np.array([self.cu, self.cv])
+        return xy * s * np.array([self.f, self.fy]) + np.array([self.cu, self.cv])
 
     def undistort_points(self, uv: np.ndarray, iterations: int = 20) -> np.ndarray:
         """Pixels ``(N, 2)`` to normalised undistorted coords ``(N, 2)``.
@@ -116,7 +125,7 @@ class CameraModel:
         distortion of real lenses (|d1 r2| well below 0.5 at the image corners).
         """
         uv = np.asarray(uv, dtype=float)
-        xd = (uv - np.array([self.cu, self.cv])) / self.f
+        xd = (uv - np.array([self.cu, self.cv])) / np.array([self.f, self.fy])
         xy = xd.copy()
         for _ in range(iterations):
             r2 = np.sum(xy * xy, axis=-1, keepdims=True)
@@ -147,6 +156,7 @@ class CameraModel:
             d2=self.d2,
             width=round(self.width * factor),
             height=round(self.height * factor),
+            aspect=self.aspect,
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -154,7 +164,8 @@ class CameraModel:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> CameraModel:
-        return cls(**{k: d[k] for k in ("f", "cu", "cv", "d1", "d2", "width", "height") if k in d})
+        keys = ("f", "cu", "cv", "d1", "d2", "width", "height", "aspect")
+        return cls(**{k: d[k] for k in keys if k in d})
 
 
 @dataclass(frozen=True)

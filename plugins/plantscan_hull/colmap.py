@@ -28,8 +28,7 @@ from plantscan_core.errors import DataError
 from plantscan_core.scanfolder import ScanFolder, atomic_write_bytes, now_iso
 
 SUPPORTED = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
-# fx and fy may differ by this fraction (square pixels) for the one-focal model.
-FOCAL_RTOL = 1e-3
+FOCAL_RTOL = 0.02  # a real pixel aspect ratio is within 1e-3 of 1; 2 % is a mistyped line
 
 
 @dataclass
@@ -60,18 +59,19 @@ def read_cameras(path: Path) -> dict[int, CameraModel]:
         except (IndexError, ValueError) as exc:
             raise DataError(f"{path}:{n}: malformed camera line ({exc})") from None
         where = f"{path}:{n} (camera {cam_id}, {model})"
+        aspect = 1.0
         if model == "SIMPLE_PINHOLE":
             f, cx, cy, d1, d2 = p[0], p[1], p[2], 0.0, 0.0
         elif model == "PINHOLE":
             fx, fy, cx, cy = p[:4]
-            f, d1, d2 = _one_focal(fx, fy, where), 0.0, 0.0
+            f, aspect, d1, d2 = fx, _aspect(fx, fy, where), 0.0, 0.0
         elif model == "SIMPLE_RADIAL":
             f, cx, cy, d1, d2 = p[0], p[1], p[2], p[3], 0.0
         elif model == "RADIAL":
             f, cx, cy, d1, d2 = p[:5]
         elif model == "OPENCV":
             fx, fy, cx, cy, d1, d2, p1, p2 = p[:8]
-            f = _one_focal(fx, fy, where)
+            f, aspect = fx, _aspect(fx, fy, where)
             if abs(p1) > 1e-9 or abs(p2) > 1e-9:
                 raise DataError(
                     f"{where}: tangential distortion (p1={p1:g}, p2={p2:g}) is not in "
@@ -79,17 +79,19 @@ def read_cameras(path: Path) -> dict[int, CameraModel]:
                     "first (`colmap image_undistorter`) and import the PINHOLE model")
         else:
             raise DataError(f"{where}: camera model not supported; valid: {', '.join(SUPPORTED)}")
-        out[cam_id] = CameraModel(f=f, cu=cx - 0.5, cv=cy - 0.5, d1=d1, d2=d2, width=w, height=h)
+        out[cam_id] = CameraModel(f=f, cu=cx - 0.5, cv=cy - 0.5, d1=d1, d2=d2, width=w, height=h,
+                                  aspect=aspect)
     if not out:
         raise DataError(f"{path}: no camera")
     return out
 
 
-def _one_focal(fx: float, fy: float, where: str) -> float:
-    if abs(fx - fy) > FOCAL_RTOL * max(abs(fx), abs(fy)):
-        raise DataError(f"{where}: fx={fx:g} and fy={fy:g} differ (non-square pixels are not in "
-                        "plantscan's camera model); undistort/resample to square pixels first")
-    return 0.5 * (fx + fy)
+def _aspect(fx: float, fy: float, where: str) -> float:
+    """fy / fx; a ratio far from 1 is a mistyped model, not a lens."""
+    if fx <= 0 or fy <= 0 or abs(fx - fy) > FOCAL_RTOL * max(abs(fx), abs(fy)):
+        raise DataError(f"{where}: fx={fx:g} and fy={fy:g} differ by more than "
+                        f"{FOCAL_RTOL:.0%} (pixel aspect ratio); check the camera line")
+    return fy / fx
 
 
 def read_images(path: Path) -> list[ColmapImage]:
@@ -301,8 +303,12 @@ def export_colmap_text(calibration: Calibration, views: list[ViewRecord], out_di
     cam_lines = ["# Camera list: CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]"]
     for n in names:
         m = calibration.models[n]
-        cam_lines.append(f"{ids[n]} RADIAL {m.width} {m.height} {m.f!r} {m.cu + 0.5!r} "
-                         f"{m.cv + 0.5!r} {m.d1!r} {m.d2!r}")
+        if m.aspect == 1.0:
+            cam_lines.append(f"{ids[n]} RADIAL {m.width} {m.height} {m.f!r} {m.cu + 0.5!r} "
+                             f"{m.cv + 0.5!r} {m.d1!r} {m.d2!r}")
+        else:
+            cam_lines.append(f"{ids[n]} OPENCV {m.width} {m.height} {m.f!r} {m.fy!r} "
+                             f"{m.cu + 0.5!r} {m.cv + 0.5!r} {m.d1!r} {m.d2!r} 0.0 0.0")
     img_lines = ["# Image list: IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
                  "#   POINTS2D[] as (X, Y, POINT3D_ID)"]
     for i, v in enumerate(views, start=1):

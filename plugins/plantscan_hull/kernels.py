@@ -31,8 +31,8 @@ except ImportError:  # pragma: no cover - exercised only without numba
 
 # Per-view parameter row layout.
 _R, _T, _F, _CU, _CV, _D1, _D2 = 0, 9, 12, 13, 14, 15, 16
-_W, _H, _GAIN, _U0, _V0, _TW, _TH, _BOX, _OFF = 17, 18, 19, 20, 21, 22, 23, 24, 28
-_NPARAM = 29
+_W, _H, _GAIN, _U0, _V0, _TW, _TH, _BOX, _OFF, _FY = 17, 18, 19, 20, 21, 22, 23, 24, 28, 29
+_NPARAM = 30
 # Points per chunk of the view-major loops (neighbours in the octree's order).
 CHUNK = 2048
 
@@ -43,7 +43,7 @@ def supported(views: Sequence[ViewField]) -> bool:
 
 
 def pack(views: Sequence[ViewField]) -> tuple[np.ndarray, np.ndarray]:
-    """(V, 29) float64 parameter rows and the concatenated float32 distance tables."""
+    """(V, 30) float64 parameter rows and the concatenated float32 distance tables."""
     rows = np.zeros((len(views), _NPARAM))
     tables = []
     offset = 0
@@ -57,6 +57,7 @@ def pack(views: Sequence[ViewField]) -> tuple[np.ndarray, np.ndarray]:
         rows[i, [_TW, _TH]] = [tw, th]
         rows[i, _BOX:_BOX + 4] = v.box
         rows[i, _OFF] = offset
+        rows[i, _FY] = m.fy
         tables.append(np.ascontiguousarray(v.sd, dtype=np.float32).ravel())
         offset += th * tw
     return rows, np.concatenate(tables) if tables else np.zeros(0, np.float32)
@@ -75,7 +76,7 @@ if HAVE_NUMBA:
         yn = yc / zc
         r2 = xn * xn + yn * yn
         s = 1.0 + p[15] * r2 + p[16] * r2 * r2
-        return p[12] * xn * s + p[13], p[12] * yn * s + p[14], zc
+        return p[12] * xn * s + p[13], p[29] * yn * s + p[14], zc
 
     @njit(cache=True, inline="always")
     def _box_bound(p, u, v):

@@ -33,9 +33,16 @@ from plantscan_core.scanfolder import atomic_write_text
 from plantscan_core.stages import Exporter, RunResult, StageParams
 
 
-def colmap_camera_params(model: CameraModel) -> list[float]:
-    """COLMAP ``RADIAL`` parameters ``[f, cx, cy, k1, k2]`` of one of our camera models."""
-    return [model.f, model.cu + 0.5, model.cv + 0.5, model.d1, model.d2]
+def colmap_camera_params(model: CameraModel) -> tuple[str, list[float]]:
+    """COLMAP model name and parameters of one of our camera models.
+
+    ``RADIAL`` ``[f, cx, cy, k1, k2]`` for square pixels, else ``OPENCV``
+    ``[fx, fy, cx, cy, k1, k2, 0, 0]``.
+    """
+    if model.aspect == 1.0:
+        return "RADIAL", [model.f, model.cu + 0.5, model.cv + 0.5, model.d1, model.d2]
+    return "OPENCV", [model.f, model.fy, model.cu + 0.5, model.cv + 0.5, model.d1, model.d2,
+                      0.0, 0.0]
 
 
 def colmap_qvec(pose: Pose) -> np.ndarray:
@@ -62,14 +69,15 @@ def colmap_text_model(calibration: Calibration, views: list[ViewRecord],
         "# Camera list with one line of data per camera:",
         "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]",
         f"# Number of cameras: {len(camera_ids)}",
-        "# plantscan: RADIAL params f, cx, cy, k1, k2; cx = cu + 0.5 (COLMAP pixel centres)",
+        "# plantscan: RADIAL (f, cx, cy, k1, k2) or OPENCV for fx != fy; cx = cu + 0.5 (pixel centres)",
     ]
     for name, cid in camera_ids.items():
         model = calibration.models[name]
         width = model.width or (image_size[0] if image_size else 0)
         height = model.height or (image_size[1] if image_size else 0)
-        params = " ".join(repr(float(p)) for p in colmap_camera_params(model))
-        cam_lines.append(f"{cid} RADIAL {width} {height} {params}")
+        kind, values = colmap_camera_params(model)
+        params = " ".join(repr(float(p)) for p in values)
+        cam_lines.append(f"{cid} {kind} {width} {height} {params}")
     image_lines: list[str] = []
     skipped: list[str] = []
     for view in views:

@@ -55,7 +55,7 @@ def distort_maps(model: CameraModel, size: tuple[int, int]) -> tuple[np.ndarray,
     u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
     xy = model.undistort_points(np.stack([u.ravel(), v.ravel()], axis=1))
     map_u = (xy[:, 0] * model.f + model.cu).reshape(h, w).astype(np.float32)
-    map_v = (xy[:, 1] * model.f + model.cv).reshape(h, w).astype(np.float32)
+    map_v = (xy[:, 1] * model.fy + model.cv).reshape(h, w).astype(np.float32)
     return map_u, map_v
 
 

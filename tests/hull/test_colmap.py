@@ -81,6 +81,12 @@ def test_colmap_pixel_convention(tmp_path):
     assert (m.cu, m.cv, m.d1, m.d2) == (319.5, 239.5, -0.1, 0.0)
 
 
+def test_pinhole_with_fx_ne_fy_keeps_the_aspect_ratio(tmp_path):
+    (tmp_path / "cameras.txt").write_text("1 PINHOLE 640 480 500 500.3 320 240\n")
+    m = read_cameras(tmp_path / "cameras.txt")[1]
+    assert (m.f, m.fy) == (500.0, pytest.approx(500.3, abs=1e-12))
+
+
 @pytest.mark.parametrize("line, message", [
     ("1 OPENCV 640 480 500 500 320 240 0.1 0.0 0.001 0 ", "tangential"),
     ("1 PINHOLE 640 480 500 520 320 240", "fx=500 and fy=520 differ"),
