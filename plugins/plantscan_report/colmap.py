@@ -69,7 +69,7 @@ def colmap_text_model(calibration: Calibration, views: list[ViewRecord],
         "# Camera list with one line of data per camera:",
         "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]",
         f"# Number of cameras: {len(camera_ids)}",
-        "# plantscan: RADIAL (f, cx, cy, k1, k2) or OPENCV for fx != fy; cx = cu + 0.5 (pixel centres)",
+        "# plantscan: RADIAL (f, cx, cy, k1, k2), OPENCV if fx != fy; cx = cu + 0.5",
     ]
     for name, cid in camera_ids.items():
         model = calibration.models[name]
