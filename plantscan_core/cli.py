@@ -175,14 +175,21 @@ def cmd_process(args) -> int:
 
 
 def profile_table(info: dict[str, Any]) -> str:
-    """Seconds per stage of a run (from run.json's info), as a text table."""
-    lines = [f"{'stage':<16}{'seconds':>10}  cached"]
+    """Seconds (wall and CPU) and peak memory per stage of a run (run.json's info), as text.
+
+    CPU above wall time means the stage used both cores; peak memory is the
+    process's high-water mark when the stage ended (it never goes down).
+    """
+    cpu, rss = info.get("cpu_s", {}), info.get("peak_rss_mb", {})
+    lines = [f"{'stage':<16}{'wall s':>9}{'cpu s':>9}{'peak MB':>9}  cached"]
     for stage, sec in info.get("timings_s", {}).items():
         if stage == "total":
             continue
         cached = info.get("stages", {}).get(stage, {}).get("cached", False)
-        lines.append(f"{stage:<16}{sec:>10.3f}  {'yes' if cached else ''}")
-    lines.append(f"{'total':<16}{info.get('timings_s', {}).get('total', 0.0):>10.3f}")
+        lines.append(f"{stage:<16}{sec:>9.2f}{cpu.get(stage, float('nan')):>9.2f}"
+                     f"{rss.get(stage, float('nan')):>9.0f}  {'yes' if cached else ''}")
+    lines.append(f"{'total':<16}{info.get('timings_s', {}).get('total', 0.0):>9.2f}"
+                 f"{cpu.get('total', float('nan')):>9.2f}{rss.get('total', float('nan')):>9.0f}")
     return "\n".join(lines)
 
 

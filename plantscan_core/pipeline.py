@@ -9,9 +9,12 @@ hundreds of 18 MP images — and the scan's ``views.jsonl`` by content.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
+import resource
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -77,6 +80,38 @@ def read_mask(path: Path) -> np.ndarray:
     if img is None:
         raise DataError(f"{path}: mask missing or unreadable")
     return img > 0
+
+
+def calibration_for_masks(calibration: Calibration, silhouettes: Silhouettes,
+                          reduce: int) -> Calibration:
+    """The calibration whose camera models match masks taken at 1/``reduce`` size.
+
+    Masks decoded at a reduced size (``segment.reduce``) keep the lens but not
+    its pixel units: each camera model is scaled by ``1/reduce`` (pixel centres
+    kept, ``CameraModel.scaled``) and its image size set to the masks' own,
+    which decoders round up (5184 -> 2592, 427 -> 214 at 1/2).
+    """
+    if reduce == 1:
+        return calibration
+    sizes = {s.view.camera: s.shape for s in silhouettes}
+    models = dict(calibration.models)
+    for name, (h, w) in sizes.items():
+        if name not in models:
+            continue  # the reconstructor names the view whose camera is missing
+        m = models[name]
+        if m.width and m.height and (-(-m.width // reduce), -(-m.height // reduce)) != (w, h):
+            raise DataError(
+                f"camera {name!r}: masks are {w}x{h} px, but 1/{reduce} of the calibrated "
+                f"{m.width}x{m.height} px images would be "
+                f"{-(-m.width // reduce)}x{-(-m.height // reduce)}")
+        models[name] = dataclasses.replace(m.scaled(1.0 / reduce), width=w, height=h)
+    return dataclasses.replace(calibration, models=models)
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process so far, MB (Linux reports kB, macOS bytes)."""
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / (1024 * 1024) if sys.platform == "darwin" else peak / 1024
 
 
 # --------------------------------------------------------------------------- the run
@@ -154,7 +189,7 @@ class Run:
                                         "key": key}
         cached = self._cached(section, key, outputs)
         self.manager.before_stage(stage, plugin, self.context)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         try:
             if cached:
                 value = load()
@@ -171,6 +206,8 @@ class Run:
         seconds = time.perf_counter() - t0
         self.info["stages"][section]["cached"] = cached
         self.info["timings_s"][section] = round(seconds, 4)
+        self.info.setdefault("cpu_s", {})[section] = round(time.process_time() - c0, 4)
+        self.info.setdefault("peak_rss_mb", {})[section] = round(peak_rss_mb(), 1)
         self.result.timings[section] = seconds
         self.manager.after_stage(stage, plugin, self.context, seconds, cached)
         self._write_info()
@@ -213,6 +250,8 @@ class Run:
         inputs = _sha([views_fingerprint(self.scan, views),
                        views_fingerprint(self.scan, [backgrounds[k] for k in used_bg])])
         self.info["input_hashes"]["plant_views"] = inputs
+        reduce = self.recipe.segment.reduce
+        inputs = _sha([inputs, {"reduce": reduce}])
         mask_dir = self.run_dir / MASKS_DIR
         paths = [mask_dir / f"{v.index:05d}.png" for v in views]
 
@@ -224,13 +263,13 @@ class Run:
                 k = (v.camera, v.tilt_index)
                 with lock:
                     if k not in bg_images:
-                        bg_images[k] = (self.scan.read_image(backgrounds[k])
+                        bg_images[k] = (self.scan.read_image(backgrounds[k], reduce=reduce)
                                         if k in backgrounds else None)
                     return bg_images[k]
 
             def one(i: int) -> Silhouette:
                 v = views[i]
-                image = self.scan.read_image(v)
+                image = self.scan.read_image(v, reduce=reduce)
                 bg = background_for(v)
                 if bg is not None and bg.shape != image.shape:
                     raise DataError(
@@ -284,7 +323,10 @@ class Run:
         out = self.run_dir / "volume.npz"
 
         def compute(plugin):
-            v = plugin.reconstruct(self.result.silhouettes, self.result.calibration)
+            calibration = calibration_for_masks(self.result.calibration,
+                                                self.result.silhouettes,
+                                                self.recipe.segment.reduce)
+            v = plugin.reconstruct(self.result.silhouettes, calibration)
             v.save(out)
             self.info["reconstruct_stats"] = plain(v.stats)
             return v
@@ -377,7 +419,7 @@ def process(
     except OSError as exc:
         raise PlantScanError(f"{run_dir}: cannot create the run folder ({exc.strerror})") from exc
     run = Run(scan, recipe, run_dir, manager, raw_recipe, list(overrides), progress, workers)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     keys: dict[str, str] = {}
     # What each stage needs from earlier ones; a stage runs when the recipe names it and
     # its inputs exist (calibration and silhouettes are independent of each other).
@@ -403,6 +445,8 @@ def process(
             keys[section] = run.measure(keys["segment_mesh"])
     run.export()
     run.info["timings_s"]["total"] = round(time.perf_counter() - t0, 4)
+    run.info.setdefault("cpu_s", {})["total"] = round(time.process_time() - c0, 4)
+    run.info.setdefault("peak_rss_mb", {})["total"] = round(peak_rss_mb(), 1)
     run._write_info()
     return run.result
 

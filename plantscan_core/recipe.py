@@ -29,6 +29,15 @@ class StageSpec(_Model):
     params: dict[str, Any] = Field(default_factory=dict)
 
 
+class SegmentSpec(StageSpec):
+    """The segmenter, and the image resolution it works at."""
+
+    reduce: Literal[1, 2, 4, 8] = Field(
+        default=1,
+        description="decode plant images at 1/reduce of their size (JPEG DCT scaling: faster, "
+                    "4x less memory per step); masks and the hull then work at that size")
+
+
 class CameraSpec(StageSpec):
     """A camera of the rig: its name (used in views and calibration) and its plugin."""
 
@@ -118,7 +127,7 @@ class Recipe(_Model):
     plant: PlantSpec = Field(default_factory=PlantSpec)
     scan: ScanSpec
     calibrate: StageSpec | None = None
-    segment: StageSpec | None = None
+    segment: SegmentSpec | None = None
     reconstruct: StageSpec | None = None
     mesh: StageSpec | None = None
     segment_mesh: StageSpec | None = None

@@ -5,6 +5,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import cv2
+import numpy as np
+
 from plantscan_core.errors import PlantScanError
 from plantscan_core.pipeline import read_mask
 from plantscan_core.scanfolder import ScanFolder
@@ -31,15 +34,25 @@ def evaluate_silhouettes(run_dir: Path, truth_dir: Path) -> dict | None:
         truth_path = truth_masks / path.name
         if not truth_path.exists():
             continue
+        mask, truth = read_mask(path), read_mask(truth_path)
+        reduce = 1
+        if mask.shape != truth.shape:
+            # Masks made at 1/reduce size (recipe segment.reduce) are compared with the
+            # truth at that size: a pixel is plant when most of its footprint is.
+            reduce = round(truth.shape[1] / mask.shape[1])
+            small = cv2.resize(truth.astype(np.float32), mask.shape[::-1],
+                               interpolation=cv2.INTER_AREA)
+            truth = small > 0.5
         image = background = None
         view = views.get(int(path.stem)) if path.stem.isdigit() else None
         if view is not None and (view.camera, view.tilt_index) in plates:
             try:
-                image = scan.read_image(view)
-                background = scan.read_image(plates[(view.camera, view.tilt_index)])
+                image = scan.read_image(view, reduce=reduce)
+                background = scan.read_image(plates[(view.camera, view.tilt_index)],
+                                             reduce=reduce)
             except PlantScanError:
                 image = background = None  # images moved away: IoU and thin recall only
             if image is not None and image.shape != background.shape:
                 image = background = None
-        metrics.append(mask_metrics(read_mask(path), read_mask(truth_path), image, background))
+        metrics.append(mask_metrics(mask, truth, image, background))
     return {"silhouettes": summarise(metrics)} if metrics else None

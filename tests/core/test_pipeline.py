@@ -23,6 +23,7 @@ from plantscan_core.testing import (
 )
 
 CALLS: dict[str, int] = {}
+SEEN: dict[str, object] = {}
 
 
 class ExactCalibrator(Calibrator):
@@ -59,6 +60,7 @@ class CountingReconstructor(Reconstructor):
         fail: bool = False
 
     def reconstruct(self, silhouettes, calibration):
+        SEEN["calibration"] = calibration
         if self.params.fail:
             raise ValueError("bounding box clips the plant")
         area = float(np.mean([s.mask.mean() for s in silhouettes]))
@@ -145,6 +147,34 @@ def test_each_image_is_decoded_once_per_run(tiny_scan, manager, tmp_path):
     assert max(iostats.decodes.values()) == 1, iostats.decodes.most_common(3)
     plant_and_bg = [v for v in tiny_scan.views if v.role in ("plant", "background")]
     assert len(iostats.decodes) == len(plant_and_bg)
+
+
+def test_reduced_decoding_gives_half_size_masks_and_a_matching_calibration(
+        tiny_scan, manager, tmp_path):
+    recipe, raw = _recipe(manager)
+    full = process(tiny_scan.root, recipe, tmp_path / "run", manager, raw_recipe=raw)
+    raw["segment"]["reduce"] = 2
+    recipe2 = validate_recipe(raw, manager.registry)
+    iostats.reset()
+    half = process(tiny_scan.root, recipe2, tmp_path / "run", manager, raw_recipe=raw)
+    info = json.loads((tmp_path / "run/run.json").read_text())
+    # The reduction is part of the segmentation's cache key; calibration is reused.
+    assert info["stages"]["segment"]["cached"] is False
+    assert info["stages"]["calibrate"]["cached"] is True
+    assert max(iostats.decodes.values()) == 1
+    s_full, s_half = full.silhouettes[0], half.silhouettes[0]
+    assert s_half.shape == (32, 48)
+    # Same disc at half the size: area / 4 within a ring of rim pixels of the small disc.
+    r_half = np.sqrt(s_full.mask.sum() / np.pi) / 2
+    assert abs(s_half.mask.sum() - s_full.mask.sum() / 4) <= 2 * np.pi * r_half
+    # The reconstructor sees cameras for the half-size masks: the sphere centre projects
+    # onto the half-size disc's centroid (within half a pixel: rim pixels are all-or-nothing).
+    cal = SEEN["calibration"]
+    cam = cal.camera_for_view(s_half.view)
+    assert (cam.model.width, cam.model.height) == (48, 32)
+    uv = cam.project(np.array([TINY_SPHERE_CENTRE_MM]))[0]
+    rows, cols = np.nonzero(s_half.mask)
+    assert np.hypot(cols.mean() - uv[0], rows.mean() - uv[1]) < 0.5
 
 
 def test_stage_failure_is_wrapped_and_earlier_results_are_kept(tiny_scan, manager, tmp_path):

@@ -1,0 +1,147 @@
+"""End-to-end speed and memory: a virtual 18 MP scan from images to traits + report.
+
+Usage::
+
+    python benchmarks/end_to_end.py --scan /work/e2e_scans/paper-72 \
+        [--config NAME:PATH=VALUE,PATH=VALUE ...] [--doc docs/benchmarks/end_to_end.md]
+
+Each configuration is processed by ``plantscan process --profile`` in its own
+process (so peak memory is that run's own) into a fresh run folder, then
+``plantscan evaluate`` compares it with the scan's truth. Printed per run:
+seconds per stage (wall and CPU), the command's total wall time (imports
+included), peak resident memory, and the trait errors, so speed never hides
+an accuracy loss.
+
+The scans are rendered (not timed) by ``benchmarks/make_e2e_scans.py``; with
+``--render WxH`` a missing scan is rendered here with the paper-72 recipe.
+
+Configurations default to the recipe as stored in the scan (what a user gets)
+and the simplest correct alternative: the same recipe decoding and segmenting
+every image at full resolution (``segment.reduce=1``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+PLANTSCAN = [sys.executable, "-m", "plantscan_core.cli"]
+STAGES = ("calibrate", "segment", "reconstruct", "mesh", "segment_mesh", "measure")
+
+
+def _parse_config(text: str) -> tuple[str, list[str]]:
+    name, _, sets = text.partition(":")
+    return name, [s for s in sets.split(",") if s]
+
+
+def run_one(scan: Path, out: Path, overrides: list[str]) -> dict:
+    """Process ``scan`` into ``out`` in a child process; timings, memory and trait errors."""
+    if out.exists():
+        shutil.rmtree(out)
+    cmd = PLANTSCAN + ["process", str(scan), "--out", str(out), "--profile"]
+    for o in overrides:
+        cmd += ["--set", o]
+    t0 = time.perf_counter()
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if proc.returncode != 0:
+        raise SystemExit(f"{' '.join(cmd)} failed:\n{proc.stdout}\n{proc.stderr}")
+    info = json.loads((out / "run.json").read_text())
+    ev = subprocess.run(PLANTSCAN + ["evaluate", str(out)], capture_output=True, text=True)
+    metrics = json.loads(ev.stdout) if ev.returncode == 0 else {}
+    traits = metrics.get("traits", {})
+    return {
+        "overrides": overrides,
+        "wall_s": wall,
+        "cpu_s": (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime),
+        # ru_maxrss of RUSAGE_CHILDREN is the largest child so far: runs go largest-last
+        # only by chance, so the run's own figure (run.json) is the one reported.
+        "peak_rss_mb": info.get("peak_rss_mb", {}).get("total"),
+        "stages_wall": {s: info["timings_s"].get(s) for s in STAGES},
+        "stages_cpu": {s: info.get("cpu_s", {}).get(s) for s in STAGES},
+        "process_total_s": info["timings_s"].get("total"),
+        "export_s": sum(v for k, v in info["timings_s"].items() if k.startswith("export")),
+        "errors": traits.get("mean_relative_error", {}),
+        "leaves": (traits.get("leaves_found"), traits.get("leaves_truth"),
+                   traits.get("leaves_merged")),
+        "silhouettes": metrics.get("silhouettes", {}),
+        "profile": proc.stdout,
+    }
+
+
+def _fmt(x, nd=1):
+    return "–" if x is None else f"{x:.{nd}f}"
+
+
+def table(scan: Path, results: dict[str, dict]) -> str:
+    head = ("| config | " + " | ".join(STAGES) + " | export | process total | command wall "
+            "| CPU | peak RSS MB | leaves (found/truth, merged) | ε L / W / A / P % |")
+    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+    for name, r in results.items():
+        stages = " | ".join(f"{_fmt(r['stages_wall'][s])} ({_fmt(r['stages_cpu'][s])})"
+                            for s in STAGES)
+        e = r["errors"]
+        errs = " / ".join(_fmt(100 * e[k], 2) if k in e else "–"
+                          for k in ("length", "width", "area", "perimeter"))
+        found, truth, merged = r["leaves"]
+        lines.append(f"| {name} | {stages} | {_fmt(r['export_s'])} | {_fmt(r['process_total_s'])} "
+                     f"| {_fmt(r['wall_s'])} | {_fmt(r['cpu_s'])} | {_fmt(r['peak_rss_mb'], 0)} "
+                     f"| {found}/{truth}, {merged} | {errs} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--scan", type=Path, required=True, help="virtual scan folder")
+    ap.add_argument("--config", action="append", default=[],
+                    help="NAME:PATH=VALUE,PATH=VALUE (recipe overrides); repeatable")
+    ap.add_argument("--runs", type=Path, default=Path("/tmp/plantscan-e2e-runs"))
+    ap.add_argument("--render", metavar="WxH", help="render a missing paper-72 scan at this size")
+    ap.add_argument("--json", type=Path, help="append the results to this JSON file")
+    args = ap.parse_args(argv)
+
+    if not (args.scan / "scan.yaml").exists():
+        if not args.render:
+            raise SystemExit(f"{args.scan}: no scan (render it with benchmarks/make_e2e_scans.py "
+                             "or pass --render 5184x3456)")
+        from plantscan_sim.api import make_scan
+
+        w, h = (int(x) for x in args.render.split("x"))
+        make_scan(args.scan, "plastic-dicot", image_size=(w, h), images_per_revolution=36,
+                  calibration_images_per_revolution=18, image_format="jpg")
+    configs = dict(_parse_config(c) for c in args.config) or {
+        "default": [], "full resolution (reduce 1)": ["segment.reduce=1"]}
+    n_images = sum(1 for _ in (args.scan / "images").iterdir())
+    print(f"scan {args.scan} ({n_images} images), {platform.machine()}, {os.cpu_count()} cores, "
+          f"load {os.getloadavg()[0]:.1f}")
+    results = {}
+    for i, (name, overrides) in enumerate(configs.items()):
+        r = run_one(args.scan, args.runs / f"run{i}", overrides)
+        results[name] = r
+        print(f"\n== {name} {overrides}\n{r['profile']}")
+        print(f"command wall {r['wall_s']:.1f} s, CPU {r['cpu_s']:.1f} s, "
+              f"peak RSS {r['peak_rss_mb']} MB, leaves {r['leaves']}, errors {r['errors']}")
+    print()
+    print(table(args.scan, results))
+    print(f"load after: {os.getloadavg()[0]:.1f}")
+    if args.json:
+        old = json.loads(args.json.read_text()) if args.json.exists() else {}
+        old[str(args.scan)] = {k: {kk: vv for kk, vv in v.items() if kk != "profile"}
+                               for k, v in results.items()}
+        args.json.write_text(json.dumps(old, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
