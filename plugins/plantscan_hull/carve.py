@@ -89,6 +89,8 @@ class CarveStats:
     voxel_view_tests: int = 0
     cell_view_tests: int = 0
     cells_per_level: dict[int, int] = field(default_factory=dict)
+    # Mean number of views the split cells of a level left ambiguous (numba path).
+    split_views_per_level: dict[int, float] = field(default_factory=dict)
     fine_voxels: int = 0
     rescued_voxels: int = 0
     seconds: float = 0.0
@@ -98,6 +100,8 @@ class CarveStats:
         return {"voxel_view_tests": self.voxel_view_tests,
                 "cell_view_tests": self.cell_view_tests,
                 "cells_per_level": {str(k): v for k, v in self.cells_per_level.items()},
+                "split_views_per_level": {str(k): round(v, 1)
+                                          for k, v in self.split_views_per_level.items()},
                 "fine_voxels": self.fine_voxels, "rescued_voxels": self.rescued_voxels,
                 "carve_seconds": self.seconds, "backend": self.backend}
 
@@ -357,6 +361,8 @@ def carve_octree(views: Sequence[ViewField], grid: Grid, k: int, top_cell: int =
     stats = CarveStats()
     kern = _Kernels(views, backend, min_seen)
     stats.backend = kern.name
+    if kern.name == "numba":
+        return _carve_tree(kern, grid, k, top_cell, keep_thin, thin_value, stats, t0)
     shape = np.array(grid.shape)
     s = grid.voxel_size
     padded = -(-shape // top_cell) * top_cell
@@ -387,3 +393,53 @@ def carve_octree(views: Sequence[ViewField], grid: Grid, k: int, top_cell: int =
             grid.centres(cells), s, k, stats)
     phi = np.ascontiguousarray(phi[: shape[0], : shape[1], : shape[2]])
     return _finish(phi, stats, keep_thin, thin_value, t0), stats
+
+
+def _carve_tree(kern: _Kernels, grid: Grid, k: int, top_cell: int, keep_thin: bool,
+                thin_value: float, stats: CarveStats, t0: float) -> tuple[np.ndarray, CarveStats]:
+    """``carve_octree`` with the compiled kernels and inherited view decisions.
+
+    A cell's conservative test in a view holds for all of its points, so its
+    children test only the views it left ambiguous (``kernels.classify_tree``);
+    the field is identical to ``carve_dense``'s (tested).  Decided cells are
+    written as blocks and the thin-part rescue visits only the fine voxels.
+    """
+    from plantscan_hull import kernels
+
+    shape = np.array(grid.shape)
+    s = grid.voxel_size
+    phi = np.full(tuple(shape), -1.0, dtype=np.float32)
+    padded = -(-shape // top_cell) * top_cell
+    ranges = [np.arange(0, p, top_cell) for p in padded]
+    cells = np.stack(np.meshgrid(*ranges, indexing="ij"), axis=-1).reshape(-1, 3)
+    parent = np.zeros(len(cells), dtype=np.int64)
+    tree = kernels.Tree(len(kern.views))
+    size = top_cell
+    while size > 1 and len(cells):
+        stats.cells_per_level[size] = len(cells)
+        centres = grid.centres(cells + (size - 1) / 2.0)
+        decision, tree = kernels.classify_tree(
+            kern._packed, tree, parent, centres, size * s / 2.0, s, k, CELL_SLACK_PX,
+            kern.min_seen, DISTANCE_LIPSCHITZ, stats)
+        kernels._fill_cells(phi, np.ascontiguousarray(cells[decision == 1]), size,
+                            np.float32(1.0))
+        stats.split_views_per_level[size] = float(np.diff(tree.start).mean()) if len(
+            tree.start) > 1 else 0.0
+        split = cells[decision == 2]
+        cells = _children(split, size)
+        parent = np.repeat(np.arange(len(split), dtype=np.int64), 8)
+        # Children entirely beyond the grid (the top level is padded) are dropped.
+        keep = np.all(cells < shape, axis=1)
+        cells, parent = cells[keep], parent[keep]
+        size //= 2
+    if len(cells):
+        stats.cells_per_level[1] = len(cells)
+        stats.fine_voxels = len(cells)
+        values = kernels.voxel_tree(kern._packed, tree, parent, grid.centres(cells), s, k,
+                                    kern.min_seen, stats)
+        cells = np.ascontiguousarray(cells)
+        kernels._scatter(phi, cells, values)
+        stats.rescued_voxels = int(kernels._rescue_band(phi, cells, values,
+                                                        np.float32(thin_value), keep_thin))
+    stats.seconds = time.perf_counter() - t0
+    return phi, stats

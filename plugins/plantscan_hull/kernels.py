@@ -234,6 +234,198 @@ if HAVE_NUMBA:
         return decision, tests.sum()
 
 
+    # ------------------------------------------------------------------ octree with inheritance
+    # A cell's test in a view is conservative for every point of the cell: when a
+    # parent is *out*, *in* or *off* in a view, so is every child and every voxel
+    # (their clamped values are exactly -1, +1, or "not seen").  Children therefore
+    # test only the views their parent left ambiguous.  Per cell: counts of the
+    # decided views (out, in, off) and the list of ambiguous views (CSR, int16).
+
+    @njit(cache=True, parallel=True)
+    def _classify_tree(centres, parent, p_start, p_views, p_out, p_in, p_offc, scratch_off,
+                       half_size, voxel_size, params, tables, k, slack, min_seen, lip, chunk):
+        m_all = centres.shape[0]
+        nv = params.shape[0]
+        rho = half_size * np.sqrt(3.0)
+        max_off = nv - min_seen
+        decision = np.empty(m_all, dtype=np.int8)
+        c_out = np.empty(m_all, dtype=np.int32)
+        c_in = np.empty(m_all, dtype=np.int32)
+        c_off = np.empty(m_all, dtype=np.int32)
+        c_amb = np.empty(m_all, dtype=np.int32)
+        amb = np.empty(scratch_off[m_all], dtype=np.int16)
+        nchunks = (m_all + chunk - 1) // chunk
+        tests = np.zeros(nchunks, dtype=np.int64)
+        for c in prange(nchunks):
+            count = 0
+            for i in range(c * chunk, min(m_all, (c + 1) * chunk)):
+                q = parent[i]
+                n_out = p_out[q]
+                n_in = p_in[q]
+                n_off = p_offc[q]
+                n_on_amb = 0
+                na = 0
+                w = scratch_off[i]
+                x = centres[i, 0]
+                y = centres[i, 1]
+                z = centres[i, 2]
+                for t in range(p_start[q], p_start[q + 1]):
+                    if n_out > k or n_off > max_off:
+                        break  # removed already
+                    j = p_views[t]
+                    p = params[j]
+                    count += 1
+                    u, v, zc = _project(p, x, y, z)
+                    if zc + rho <= 0:
+                        n_off += 1
+                        continue
+                    near = zc - rho
+                    if near <= 0:
+                        amb[w + na] = j
+                        na += 1
+                        continue
+                    inv = p[19] / near
+                    r = rho * inv
+                    hi_u = p[17] - 0.5
+                    hi_v = p[18] - 0.5
+                    if u + r < -0.5 or u - r > hi_u or v + r < -0.5 or v - r > hi_v:
+                        n_off += 1
+                        continue
+                    if not (u - r >= -0.5 and u + r <= hi_u and v - r >= -0.5
+                            and v + r <= hi_v):
+                        amb[w + na] = j
+                        na += 1
+                        continue
+                    margin = lip * r + voxel_size * inv + slack
+                    sd = _nearest(p, tables, u, v)
+                    if sd < -margin:
+                        n_out += 1
+                    elif sd > margin:
+                        n_in += 1
+                    else:
+                        amb[w + na] = j
+                        na += 1
+                        n_on_amb += 1
+                c_out[i] = n_out
+                c_in[i] = n_in
+                c_off[i] = n_off
+                c_amb[i] = na
+                if n_out > k or n_off > max_off:
+                    decision[i] = 0
+                elif n_out + na <= k and n_out + n_in + n_on_amb >= min_seen:
+                    decision[i] = 1
+                else:
+                    decision[i] = 2
+            tests[c] = count
+        return decision, c_out, c_in, c_off, c_amb, amb, tests.sum()
+
+    @njit(cache=True, parallel=True)
+    def _gather_lists(sel, scratch_off, c_amb, amb, out_start):
+        views = np.empty(out_start[-1], dtype=np.int16)
+        for t in prange(sel.shape[0]):
+            a = scratch_off[sel[t]]
+            o = out_start[t]
+            for q in range(c_amb[sel[t]]):
+                views[o + q] = amb[a + q]
+        return views
+
+    @njit(cache=True, parallel=True)
+    def _voxel_tree(points, parent, p_start, p_views, p_out, p_in, voxel_size, params, tables,
+                    k, min_seen, chunk):
+        n = points.shape[0]
+        nchunks = (n + chunk - 1) // chunk
+        out = np.empty(n, dtype=np.float32)
+        tests = np.zeros(nchunks, dtype=np.int64)
+        for c in prange(nchunks):
+            count = 0
+            kept = np.empty(k + 1, dtype=np.float32)
+            for i in range(c * chunk, min(n, (c + 1) * chunk)):
+                q = parent[i]
+                for qq in range(k + 1):
+                    kept[qq] = np.inf
+                # Decided views of the parent: out -> -1, in -> +1 after clamping.
+                filled = 0
+                for _ in range(min(p_out[q], k + 1)):
+                    kept[filled] = -1.0
+                    filled += 1
+                for _ in range(min(p_in[q], k + 1 - filled)):
+                    kept[filled] = 1.0
+                    filled += 1
+                seen = p_out[q] + p_in[q]
+                mx = kept[0]
+                for qq in range(1, k + 1):
+                    mx = max(mx, kept[qq])
+                x = points[i, 0]
+                y = points[i, 1]
+                z = points[i, 2]
+                for t in range(p_start[q], p_start[q + 1]):
+                    if mx <= -1.0:
+                        break  # k+1 views at <= -1: final after clamping
+                    p = params[p_views[t]]
+                    count += 1
+                    u, v, zc = _project(p, x, y, z)
+                    if not (zc > 0 and u >= -0.5 and u <= p[17] - 0.5 and v >= -0.5
+                            and v <= p[18] - 0.5):
+                        continue
+                    seen += 1
+                    d = np.float32(_bilinear(p, tables, u, v) * (zc / (p[12] * voxel_size)))
+                    worst = 0
+                    for qq in range(1, k + 1):
+                        if kept[qq] > kept[worst]:
+                            worst = qq
+                    if d < kept[worst]:
+                        kept[worst] = d
+                        mx = kept[0]
+                        for qq in range(1, k + 1):
+                            mx = max(mx, kept[qq])
+                val = min(max(mx, np.float32(-1.0)), np.float32(1.0))
+                if seen < min_seen and mx > -1.0:
+                    val = np.float32(-1.0)
+                out[i] = val
+            tests[c] = count
+        return out, tests.sum()
+
+    @njit(cache=True, parallel=True)
+    def _fill_cells(phi, cells, size, value):
+        nx, ny, nz = phi.shape
+        for c in prange(cells.shape[0]):
+            x0, y0, z0 = cells[c, 0], cells[c, 1], cells[c, 2]
+            for a in range(x0, min(x0 + size, nx)):
+                for b in range(y0, min(y0 + size, ny)):
+                    for e in range(z0, min(z0 + size, nz)):
+                        phi[a, b, e] = value
+
+    @njit(cache=True, parallel=True)
+    def _scatter(phi, idx, values):
+        for i in prange(idx.shape[0]):
+            phi[idx[i, 0], idx[i, 1], idx[i, 2]] = values[i]
+
+    @njit(cache=True)
+    def _rescue_band(phi, idx, values, thin_value, keep_thin):
+        # Only voxels computed at the fine level can hold a value in (-0.5, 0]:
+        # decided cells hold exactly -1 or +1.  A candidate with no 6-neighbour
+        # inside (before any rescue) gets ``thin_value``; exact zeros -> -1e-3.
+        nx, ny, nz = phi.shape
+        rescue = np.zeros(idx.shape[0], dtype=np.bool_)
+        for i in range(idx.shape[0]):
+            val = values[i]
+            if not (val > -0.5 and val <= 0.0):
+                continue
+            a, b, c = idx[i, 0], idx[i, 1], idx[i, 2]
+            near = ((a > 0 and phi[a - 1, b, c] > 0) or (a + 1 < nx and phi[a + 1, b, c] > 0)
+                    or (b > 0 and phi[a, b - 1, c] > 0) or (b + 1 < ny and phi[a, b + 1, c] > 0)
+                    or (c > 0 and phi[a, b, c - 1] > 0) or (c + 1 < nz and phi[a, b, c + 1] > 0))
+            rescue[i] = keep_thin and not near
+        n = 0
+        for i in range(idx.shape[0]):
+            if rescue[i]:
+                phi[idx[i, 0], idx[i, 1], idx[i, 2]] = thin_value
+                n += 1
+            elif phi[idx[i, 0], idx[i, 1], idx[i, 2]] == 0:
+                phi[idx[i, 0], idx[i, 1], idx[i, 2]] = -1e-3
+        return n
+
+
 def voxel_field(packed, points: np.ndarray, voxel_size: float, k: int, stats=None,
                 min_seen: int = 0) -> np.ndarray:
     """Compiled ``carve.voxel_field`` (``packed`` from ``pack``)."""
@@ -260,3 +452,58 @@ def classify_cells(packed, centres: np.ndarray, half_size: float, voxel_size: fl
 
 def threads() -> int:
     return int(numba.get_num_threads()) if HAVE_NUMBA else 1
+
+
+class Tree:
+    """Octree carve state with per-cell inherited view decisions (see ``_classify_tree``).
+
+    ``start``/``views``: CSR lists of the views each live cell left ambiguous
+    (int16 view indices in the packed, interleaved order); ``n_out``, ``n_in``,
+    ``n_off``: per live cell, views already decided out, in, off the image.
+    """
+
+    def __init__(self, n_views: int):
+        self.start = np.array([0, n_views], dtype=np.int64)
+        self.views = np.arange(n_views, dtype=np.int16)
+        self.n_out = np.zeros(1, np.int32)
+        self.n_in = np.zeros(1, np.int32)
+        self.n_off = np.zeros(1, np.int32)
+
+
+def classify_tree(packed, tree: Tree, parent: np.ndarray, centres: np.ndarray, half_size: float,
+                  voxel_size: float, k: int, slack: float, min_seen: int, lipschitz: float,
+                  stats=None) -> tuple[np.ndarray, Tree]:
+    """Decide cells testing only their parent's ambiguous views.
+
+    Returns the decision (0 removed, 1 full, 2 split) and the ``Tree`` of the
+    cells to split (in the order of ``np.flatnonzero(decision == 2)``).
+    """
+    params, tables = packed
+    lengths = np.diff(tree.start)[parent]
+    scratch_off = np.zeros(len(parent) + 1, dtype=np.int64)
+    np.cumsum(lengths, out=scratch_off[1:])
+    decision, c_out, c_in, c_off, c_amb, amb, tests = _classify_tree(
+        np.ascontiguousarray(centres, dtype=np.float64), parent, tree.start, tree.views,
+        tree.n_out, tree.n_in, tree.n_off, scratch_off, float(half_size), float(voxel_size),
+        params, tables, int(k), float(slack), int(min_seen), float(lipschitz), CHUNK)
+    if stats is not None:
+        stats.cell_view_tests += int(tests)
+    sel = np.flatnonzero(decision == 2)
+    child = Tree.__new__(Tree)
+    child.start = np.zeros(len(sel) + 1, dtype=np.int64)
+    np.cumsum(c_amb[sel], out=child.start[1:])
+    child.views = _gather_lists(sel, scratch_off, c_amb, amb, child.start)
+    child.n_out, child.n_in, child.n_off = c_out[sel], c_in[sel], c_off[sel]
+    return decision, child
+
+
+def voxel_tree(packed, tree: Tree, parent: np.ndarray, points: np.ndarray, voxel_size: float,
+               k: int, min_seen: int, stats=None) -> np.ndarray:
+    """Clamped field of fine voxels, testing only their parent cell's ambiguous views."""
+    params, tables = packed
+    out, tests = _voxel_tree(np.ascontiguousarray(points, dtype=np.float64), parent, tree.start,
+                             tree.views, tree.n_out, tree.n_in, float(voxel_size), params,
+                             tables, int(k), int(min_seen), CHUNK)
+    if stats is not None:
+        stats.voxel_view_tests += int(tests)
+    return out

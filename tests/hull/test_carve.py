@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from hull_phantoms import Box, Cylinder, Sphere, render, ring_calibration, views
+from plantscan_hull import kernels
 from plantscan_hull.carve import Grid, carve_dense, carve_octree
 from plantscan_hull.meshing import marching_cubes, signed_volume
 from plantscan_hull.stages import OctreeHull
@@ -36,17 +37,22 @@ def mixed_sils(rig):
     return render(cal, vl, [Sphere((0.0, 10.0, 30.0), 15.0), LEAF, cyl])
 
 
+BACKENDS = ["numpy"] + (["numba"] if kernels.HAVE_NUMBA else [])
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("k", [0, 3])
 @pytest.mark.parametrize("which", ["sphere", "mixed"])
-def test_octree_equals_dense(rig, sphere_sils, mixed_sils, k, which):
+def test_octree_equals_dense(rig, sphere_sils, mixed_sils, k, which, backend):
     # The octree's cell tests are conservative, so every voxel it decides at a coarse
     # level must get exactly the clamped field the full grid computes: no tolerance.
+    # numba: children test only the views their parent left ambiguous (inheritance).
     cal, _ = rig
     sils = sphere_sils if which == "sphere" else mixed_sils
     vf = prepare_views(list(sils), cal)
     grid = Grid.from_box((-60, -60, -50), (60, 60, 70), 40)
-    dense, sd = carve_dense(vf, grid, k)
-    octree, so = carve_octree(vf, grid, k, top_cell=16)
+    dense, sd = carve_dense(vf, grid, k, backend=backend)
+    octree, so = carve_octree(vf, grid, k, top_cell=16, backend=backend)
     assert np.array_equal(dense > 0, octree > 0)
     assert np.array_equal(dense, octree)
     assert (dense > 0).sum() > 100  # something was kept
