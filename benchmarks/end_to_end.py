@@ -122,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
                   calibration_images_per_revolution=18, image_format="jpg")
     configs = dict(_parse_config(c) for c in args.config) or {
         "default": [], "full resolution (reduce 1)": ["segment.reduce=1"]}
-    n_images = sum(1 for _ in (args.scan / "images").iterdir())
+    n_images = sum(1 for p in (args.scan / "images").rglob("*") if p.is_file())
     print(f"scan {args.scan} ({n_images} images), {platform.machine()}, {os.cpu_count()} cores, "
           f"load {os.getloadavg()[0]:.1f}")
     results = {}

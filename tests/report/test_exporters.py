@@ -238,7 +238,7 @@ def test_report_survives_a_missing_image(synthetic_run):
 
 def test_view_decimation_keeps_the_shape():
     """The 3D view of a dense mesh is decimated to its face budget, its area kept within 2 %
-    (quadric decimation of a smooth sphere loses little surface)."""
+    (vertex clustering of a smooth sphere loses little surface)."""
     import open3d as o3d
     from plantscan_report.html_report import _decimate
 
