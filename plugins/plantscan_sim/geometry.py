@@ -309,3 +309,53 @@ def _orient_outward(m: TriMesh) -> TriMesh:
 def mesh_area(vertices: np.ndarray, faces: np.ndarray) -> float:
     t = vertices[faces]
     return float(0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1).sum())
+
+
+# --------------------------------------------------------------------------- bounding boxes
+@dataclass
+class BoxTree:
+    """Bounding-volume hierarchy of a mesh's triangles (conservative culling only).
+
+    Node ``k`` bounds ``lo[k]..hi[k]`` (mm); ``left[k] < 0`` marks a leaf, else its
+    children are ``left[k]`` and ``right[k]``.  Node 0 is the root; an empty mesh
+    has no nodes.
+    """
+
+    lo: np.ndarray     # (K, 3) float64
+    hi: np.ndarray     # (K, 3) float64
+    left: np.ndarray   # (K,) int64
+    right: np.ndarray  # (K,) int64
+
+
+def box_tree(vertices: np.ndarray, faces: np.ndarray, leaf_size: int = 64,
+             pad: float = 0.1) -> BoxTree:
+    """Median-split hierarchy of triangle boxes, padded by ``pad`` mm on every side.
+
+    Leaves hold at most ``leaf_size`` triangles; the pad absorbs float32 rounding
+    of the rays that are culled with it.
+    """
+    tri = np.asarray(vertices, dtype=float)[np.asarray(faces, dtype=np.int64)]
+    tmin, tmax, centre = tri.min(1), tri.max(1), tri.mean(1)
+    lo, hi, left, right = [], [], [], []
+
+    def build(ids: np.ndarray) -> int:
+        k = len(lo)
+        lo.append(tmin[ids].min(0) - pad)
+        hi.append(tmax[ids].max(0) + pad)
+        left.append(-1)
+        right.append(-1)
+        if len(ids) > leaf_size:
+            c = centre[ids]
+            axis = int(np.argmax(c.max(0) - c.min(0)))
+            order = ids[np.argsort(c[:, axis], kind="stable")]
+            half = len(order) // 2
+            a = build(order[:half])
+            b = build(order[half:])
+            left[k], right[k] = a, b
+        return k
+
+    if len(tri):
+        build(np.arange(len(tri)))
+    return BoxTree(np.array(lo, dtype=float).reshape(-1, 3),
+                   np.array(hi, dtype=float).reshape(-1, 3), np.array(left, dtype=np.int64),
+                   np.array(right, dtype=np.int64))

@@ -22,11 +22,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from plantscan_core.data import Camera, CameraModel, rotation_z
-from plantscan_sim.geometry import TriMesh
+from plantscan_sim.geometry import BoxTree, TriMesh, box_tree
 
 CLASS_BACKGROUND, CLASS_PLANT, CLASS_POT, CLASS_BOARD = 0, 1, 2, 3
 MAX_RAYS_PER_BAND = 2_000_000  # bounds memory (~0.4 GB peak) at 18 MP
-MAX_CACHED_RAYS = 12_000_000
+MAX_CACHED_RAYS = 20_000_000  # one 18 MP lens: 18 M unit rays, 215 MB float32
 
 
 @dataclass
@@ -96,6 +96,98 @@ class _Layer:
     mesh: TriMesh
     scene: object
     face_material: np.ndarray
+    tree: BoxTree | None = None
+
+    @property
+    def corners(self) -> np.ndarray:
+        """(K, 8, 3) corners of the leaf boxes (world frame; rest frame if moving)."""
+        if not hasattr(self, "_corners"):
+            self._corners = _leaf_corners(self.tree) if self.tree is not None \
+                else np.zeros((0, 8, 3))
+        return self._corners
+
+
+def _room(mesh: TriMesh) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Triangles (T, 3, 3), unit normals (T, 3) turned towards the room, materials (T,)
+    of a lab mesh that bounds a convex room (the studio sweep), else None.
+
+    Seen from inside such a room a ray leaves through exactly one plane, so the
+    fast path intersects it analytically instead of casting into Open3D.
+    """
+    if not len(mesh.faces):
+        return None
+    v = np.asarray(mesh.vertices, dtype=float)
+    tri = v[mesh.faces]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    norm = np.linalg.norm(n, axis=1)
+    if np.any(norm <= 1e-12):
+        return None
+    n /= norm[:, None]
+    side = np.einsum("tk,vk->tv", n, v) - np.einsum("tk,tk->t", n, tri[:, 0])[:, None]
+    eps = 1e-6 * float(np.ptp(v, axis=0).max())
+    behind, ahead = (side <= eps).all(1), (side >= -eps).all(1)
+    if not (behind | ahead).all():
+        return None
+    # A convex room lies on the side of each face where the rest of the mesh is.
+    n[~ahead] *= -1.0
+    offset = -np.einsum("tk,tk->t", n, tri[:, 0])
+    key = np.round(np.column_stack([n, offset / max(1.0, float(np.ptp(v, axis=0).max()))]), 9)
+    _, plane_of, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    plane_of = plane_of.ravel()
+    planes = np.zeros((len(counts), 4))
+    plane_tris = np.full((len(counts), int(counts.max())), -1, dtype=np.int64)
+    fill = np.zeros(len(counts), dtype=np.int64)
+    for j, k in enumerate(plane_of):
+        planes[k] = [*n[j], offset[j]]
+        plane_tris[k, fill[k]] = j
+        fill[k] += 1
+    return _Room(tri, planes, plane_tris, np.asarray(mesh.face_attr, dtype=np.int64))
+
+
+SHADOW_MAP = 2048  # texels per side of the light's culling map
+_BOX_EDGES = [(0, 1), (2, 3), (4, 5), (6, 7), (0, 2), (1, 3), (4, 6), (5, 7),
+              (0, 4), (1, 5), (2, 6), (3, 7)]  # corner index = 4 x + 2 y + z
+
+
+@dataclass
+class _Cull:
+    """Per-view culling of the fast path (``Renderer._culling``)."""
+
+    room: _Room | None           # the backdrop as a convex room, or None: cast it
+    foot: np.ndarray             # (H, W) bool: pixels whose ray may meet the turntable scene
+    basis: np.ndarray | None     # (3, 3) light camera axes (rows), world frame
+    window: np.ndarray | None    # (3,) x0, y0, texels per unit of x/z
+    shadow_map: np.ndarray | None  # (M, M) bool: texels an occluder box may cover
+
+
+@dataclass
+class _Room:
+    tri: np.ndarray         # (T, 3, 3) lab frame, mm
+    planes: np.ndarray      # (P, 4): unit normal towards the room, offset
+    plane_tris: np.ndarray  # (P, k) triangle indices per plane, -1 padded
+    attr: np.ndarray        # (T,) material
+
+
+def _leaf_corners(tree: BoxTree) -> np.ndarray:
+    """(K, 8, 3) corners of the tree's leaf boxes."""
+    leaf = tree.left < 0
+    lo, hi = tree.lo[leaf], tree.hi[leaf]
+    sel = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=bool)
+    return np.where(sel[None], hi[:, None, :], lo[:, None, :])
+
+
+def _fill_hulls(points: np.ndarray, shape: tuple[int, int], grow: int) -> np.ndarray:
+    """(H, W) bool: union of the convex hulls of each (8, 2) point set, grown by ``grow`` px."""
+    import cv2
+
+    out = np.zeros(shape, dtype=np.uint8)
+    shift = 4  # sub-pixel vertices for cv2
+    for pts in points:
+        hull = cv2.convexHull(np.round(pts * (1 << shift)).astype(np.int32))
+        cv2.fillConvexPoly(out, hull, 1, lineType=cv2.LINE_8, shift=shift)
+    if grow > 0:
+        out = cv2.dilate(out, np.ones((2 * grow + 1, 2 * grow + 1), np.uint8))
+    return out.astype(bool)
 
 
 @dataclass
@@ -126,16 +218,21 @@ class Renderer:
     _moving: dict = field(default_factory=dict, init=False)
     _cache: dict = field(default_factory=dict, init=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, init=False)
+    fast: bool = True
     rays_cast: int = field(default=0, init=False)
+    rays_analytic: int = field(default=0, init=False)
 
     def __post_init__(self) -> None:
         self._albedo = np.array([m.albedo for m in self.materials], dtype=np.float32)
         self._klass = np.array([m.klass for m in self.materials], dtype=np.int8)
         for role, mesh in self.world.items():
-            self._layers[role] = _Layer(mesh, _raycasting_scene(mesh), mesh.face_attr)
+            self._layers[role] = _Layer(mesh, _raycasting_scene(mesh), mesh.face_attr,
+                                        box_tree(mesh.vertices, mesh.faces))
         self._lab = _Layer(self.lab, _raycasting_scene(self.lab), self.lab.face_attr)
         for role, mesh in self.moving.items():
-            self._moving[role] = _Layer(mesh, _raycasting_scene(mesh), mesh.face_attr)
+            self._moving[role] = _Layer(mesh, _raycasting_scene(mesh), mesh.face_attr,
+                                        box_tree(mesh.vertices, mesh.faces))
+        self._room = _room(self.lab) if HAVE_NUMBA else None
 
     # ------------------------------------------------------------------ rays
     def _centre_bands(self, model: CameraModel):
@@ -146,10 +243,16 @@ class Renderer:
         w, h = model.width, model.height
         rows = max(1, MAX_RAYS_PER_BAND // w)
         bands = []
+        exact = type(model) is CameraModel  # a subclass may have another lens model
         for r0 in range(0, h, rows):
             r1 = min(h, r0 + rows)
-            uu, vv = np.meshgrid(np.arange(w, dtype=float), np.arange(r0, r1, dtype=float))
-            dirs = model.unproject(np.stack([uu.ravel(), vv.ravel()], 1)).astype(np.float32)
+            if HAVE_NUMBA and exact:
+                dirs = np.empty(((r1 - r0) * w, 3), dtype=np.float32)
+                _unproject(0, w, r0, r1, float(model.f), float(model.fy), float(model.cu),
+                           float(model.cv), float(model.d1), float(model.d2), 20, dirs)
+            else:
+                uu, vv = np.meshgrid(np.arange(w, dtype=float), np.arange(r0, r1, dtype=float))
+                dirs = model.unproject(np.stack([uu.ravel(), vv.ravel()], 1)).astype(np.float32)
             bands.append((r0, r1, dirs))
         if w * h <= MAX_CACHED_RAYS:
             with self._lock:
@@ -163,6 +266,7 @@ class Renderer:
                noise_sigma: float = 0.0, rng: np.random.Generator | None = None,
                want_coverage: bool = False, adaptive: bool = True,
                sway: tuple[np.ndarray, np.ndarray] | None = None,
+               fast: bool | None = None,
                ) -> tuple[np.ndarray, np.ndarray | None]:
         """Render ``role`` seen by ``camera`` (world frame, turntable at ``angle_deg``).
 
@@ -173,6 +277,9 @@ class Renderer:
         casts ``ss x ss`` rays through every pixel (the plain reference).
         ``sway = (S, pivot)`` displaces the role's moving geometry (the plant) by
         the rotation ``S`` (3, 3) about ``pivot`` (3,) mm, world frame.
+        ``fast`` (default ``self.fast``) culls rays that cannot hit the turntable
+        scene or be shadowed and intersects the backdrop analytically (same hits,
+        see ``_trace``); ``fast=False`` is the plain Open3D path (``_shade``).
 
         Returns
         -------
@@ -180,10 +287,9 @@ class Renderer:
         coverage : (H, W) float32 in [0, 1] or None
             Fraction of each pixel's samples whose first hit is plant or pot.
         """
-        from scipy.ndimage import maximum_filter, minimum_filter
-
         model = camera.model
         w, h = model.width, model.height
+        fast = (self.fast if fast is None else fast) and HAVE_NUMBA
         layer = self._layers[role]
         moving = None
         if role in self._moving:
@@ -194,20 +300,31 @@ class Renderer:
         rot = camera.pose.R.astype(np.float32)
         centre = camera.pose.centre.astype(np.float32)
         light_w = (rz.T @ self.lighting.key_position_lab.astype(np.float32)).astype(np.float32)
+        cull = self._culling(layer, moving, camera, light_w, rz) if fast else None
         radiance = np.empty((h, w, 3), dtype=np.float32)
         fg = np.empty((h, w), dtype=np.float32)
         key = np.empty((h, w), dtype=np.int32)
         if adaptive or ss == 1:
             for r0, r1, dirs_cam in self._centre_bands(model):
-                rad, cls, k = self._shade(layer, centre, _mul3(dirs_cam, rot), rz, light_w,
-                                          moving)
+                d_w = _mul3(dirs_cam, rot)
+                if fast:
+                    rad, cls, k = self._trace(layer, centre, d_w, rz, light_w, moving, cull,
+                                              cull.foot[r0:r1].ravel())
+                else:
+                    rad, cls, k = self._shade(layer, centre, d_w, rz, light_w, moving)
                 radiance[r0:r1] = rad.reshape(r1 - r0, w, 3)
                 fg[r0:r1] = ((cls == CLASS_PLANT) | (cls == CLASS_POT)).reshape(r1 - r0, w)
                 key[r0:r1] = k.reshape(r1 - r0, w)
         if ss > 1:
             if adaptive:
-                edge = maximum_filter(key, size=3, mode="nearest") != minimum_filter(
-                    key, size=3, mode="nearest")
+                edge = np.empty((h, w), dtype=bool)
+                if fast:
+                    _edges(key, edge)
+                else:
+                    from scipy.ndimage import maximum_filter, minimum_filter
+
+                    edge = maximum_filter(key, size=3, mode="nearest") != minimum_filter(
+                        key, size=3, mode="nearest")
             else:
                 edge = np.ones((h, w), dtype=bool)
             rows, cols = np.nonzero(edge)
@@ -218,19 +335,176 @@ class Renderer:
             for i in range(0, len(rows), chunk):
                 r, c = rows[i:i + chunk], cols[i:i + chunk]
                 uv = np.stack([(c[:, None] + du).ravel(), (r[:, None] + dv).ravel()], 1)
-                dirs_cam = model.unproject(uv).astype(np.float32)
-                rad, cls, _ = self._shade(layer, centre, _mul3(dirs_cam, rot), rz, light_w,
-                                          moving)
+                d_w = _mul3(model.unproject(uv).astype(np.float32), rot)
+                if fast:  # a sample is within half a pixel of its centre: the grown foot holds
+                    rad, cls, _ = self._trace(layer, centre, d_w, rz, light_w, moving, cull,
+                                              np.repeat(cull.foot[r, c], n_ss))
+                else:
+                    rad, cls, _ = self._shade(layer, centre, d_w, rz, light_w, moving)
                 radiance[r, c] = rad.reshape(len(r), n_ss, 3).mean(axis=1)
                 fg[r, c] = ((cls == CLASS_PLANT) | (cls == CLASS_POT)).reshape(
                     len(r), n_ss).mean(axis=1)
             self.last_edge_fraction = float(edge.mean())
+        if fast:
+            img = np.empty((h, w, 3), dtype=np.uint8)
+            rows_per_band = max(1, MAX_RAYS_PER_BAND // w)
+            none = np.zeros((0, 0, 3), dtype=np.float32)
+            if noise_sigma > 0:
+                rng = rng if rng is not None else np.random.default_rng(0)
+            for r0 in range(0, h, rows_per_band):
+                r1 = min(h, r0 + rows_per_band)
+                # Band by band from the same generator: the very draws of one full-size call.
+                noise = rng.normal(0.0, noise_sigma, (r1 - r0, w, 3)).astype(np.float32) \
+                    if noise_sigma > 0 else none
+                _tone(radiance[r0:r1], np.float32(1.0 / self.lighting.gamma), noise, img[r0:r1])
+            return img, (fg if want_coverage else None)
         img = 255.0 * np.power(np.clip(radiance, 0.0, 1.0), 1.0 / self.lighting.gamma)
         if noise_sigma > 0:
             rng = rng if rng is not None else np.random.default_rng(0)
             img += rng.normal(0.0, noise_sigma, img.shape).astype(np.float32)
         img = np.clip(np.rint(img), 0, 255).astype(np.uint8)
         return img[:, :, ::-1].copy(), (fg if want_coverage else None)
+
+    def _culling(self, layer: _Layer, moving, camera: Camera, light_w, rz) -> _Cull:
+        """What the fast path may skip in this view (see ``_trace``)."""
+        model = camera.model
+        corners = [layer.corners]
+        if moving is not None:
+            lay, m, piv = moving
+            # rest frame -> world: x = pivot + (X - pivot) @ S.T
+            corners.append(piv + (lay.corners - piv) @ m.T.astype(float))
+        corners = np.concatenate(corners).astype(float)
+        room = self._room
+        if room is not None:
+            ol = rz.astype(float) @ camera.pose.centre
+            if not np.all(room.planes[:, :3] @ ol + room.planes[:, 3] > 0):
+                room = None  # the camera is outside the room: cast the backdrop
+        everything = np.ones((model.height, model.width), dtype=bool)
+        if not len(corners):
+            return _Cull(room, np.zeros_like(everything), None, None, None)
+        # Camera footprint: pixels whose centre ray may meet a leaf box.  Box edges bend
+        # under the lens distortion by at most their midpoint's offset from the chord.
+        foot = everything
+        flat = corners.reshape(-1, 3)
+        if np.all(camera.depth(flat) > 1.0):
+            uv = camera.project(flat).reshape(-1, 8, 2)
+            a_i, b_i = np.array(_BOX_EDGES).T
+            mid = camera.project(0.5 * (corners[:, a_i] + corners[:, b_i]).reshape(-1, 3))
+            bend = np.abs(mid.reshape(len(corners), -1, 2)
+                          - 0.5 * (uv[:, a_i] + uv[:, b_i])).max()
+            if np.all(np.isfinite(uv)) and np.isfinite(bend):
+                foot = _fill_hulls(uv, (model.height, model.width), int(np.ceil(bend)) + 2)
+        # Shadow map: a pinhole at the light looking at the occluders' boxes.
+        fwd = flat.mean(0) - light_w
+        fwd /= np.linalg.norm(fwd)
+        right = np.cross(fwd, [0.0, 0.0, 1.0] if abs(fwd[2]) < 0.9 else [1.0, 0.0, 0.0])
+        right /= np.linalg.norm(right)
+        basis = np.stack([right, np.cross(fwd, right), fwd])
+        v = (flat - light_w) @ basis.T
+        if np.any(v[:, 2] <= 1.0):  # the light is among the occluders: test every ray
+            return _Cull(room, foot, basis, np.array([-1e9, -1e9, 0.0]),
+                         np.ones((1, 1), dtype=bool))
+        xy = v[:, :2] / v[:, 2:]
+        lo = xy.min(0)
+        scale = (SHADOW_MAP - 8) / float(max((xy.max(0) - lo).max(), 1e-9))
+        origin = lo - 4.0 / scale
+        pts = ((xy - origin) * scale).reshape(-1, 8, 2)
+        shadow_map = _fill_hulls(pts, (SHADOW_MAP, SHADOW_MAP), 2)
+        return _Cull(room, foot, basis, np.array([origin[0], origin[1], scale]), shadow_map)
+
+    def _trace(self, layer: _Layer, centre, d_w, rz, light_w, moving, cull: _Cull,
+               foot: np.ndarray):
+        """``_shade``'s radiance, class and key, casting only rays that can matter.
+
+        The backdrop is hit analytically when it bounds a convex room around the
+        camera (else cast as in ``_shade``); a camera ray enters Open3D's turntable
+        scene only inside the view's footprint of that scene's boxes (``foot`` (N,)),
+        and a shadow ray is cast only where the occluders' boxes cover its texel in
+        the light's shadow map.  Culled rays are rays that would miss, so the hits
+        and the image are those of ``_shade``.
+        """
+        n_rays = len(d_w)
+        c64 = centre.astype(float)
+        t = np.empty(n_rays, dtype=np.float32)
+        mat = np.empty(n_rays, dtype=np.int64)
+        normal = np.empty((n_rays, 3), dtype=np.float32)
+        room = cull.room
+        if room is not None:
+            _camera_rays(d_w, c64, rz.astype(float), room.planes, room.plane_tris, room.tri,
+                         room.attr, t, mat, normal)
+            self.rays_analytic += n_rays
+            cast_lab = np.zeros(0, dtype=np.int64)
+        else:
+            t[:] = np.inf
+            mat[:] = -1
+            normal[:] = 0.0
+            cast_lab = np.arange(n_rays)
+        idx = np.flatnonzero(foot)
+        cands = [(self._lab, rz.T, None, cast_lab), (layer, None, None, idx)]
+        if moving is not None:
+            cands.append((*moving, idx))
+        for lay, m, piv, sel_rays in cands:
+            if not len(sel_rays):
+                continue
+            d_c = d_w[sel_rays]
+            if m is None:
+                o, d = centre, d_c
+            elif piv is None:
+                o, d = centre @ m, _mul3(d_c, m)
+            else:
+                o, d = piv + (centre - piv) @ m, _mul3(d_c, m)
+            hc = self._cast(lay.scene, o.astype(np.float32), d)
+            closer = hc["t_hit"] < t[sel_rays]
+            if not closer.any():
+                continue
+            sel = sel_rays[closer]
+            t[sel] = hc["t_hit"][closer]
+            mat[sel] = lay.face_material[hc["primitive_ids"][closer].astype(np.int64)]
+            nn = hc["primitive_normals"][closer]
+            normal[sel] = nn if m is None else _mul3(nn, m.T)
+        board_albedo = np.full(n_rays, -1.0, dtype=np.float32)
+        if self.board is not None and self.board_material >= 0:
+            ob = np.flatnonzero(mat == self.board_material)
+            if len(ob):
+                p = centre + t[ob, None] * d_w[ob]
+                board_albedo[ob] = self.board.albedo(p.astype(np.float64))
+        lam = np.empty(n_rays, dtype=np.float32)
+        shadow_cand = np.empty(n_rays, dtype=bool)
+        _light_terms(d_w, c64, t, normal, light_w.astype(float), cull.basis, cull.window,
+                     cull.shadow_map, lam, shadow_cand)
+        vis = (lam > 0).astype(np.float32)
+        si = np.flatnonzero(shadow_cand)
+        if len(si):
+            p = centre + t[si, None] * d_w[si]
+            vis[si[self._occluded(layer, moving, p + 0.05 * normal[si], light_w)]] = 0.0
+        rad = np.empty((n_rays, 3), dtype=np.float32)
+        cls = np.empty(n_rays, dtype=np.int8)
+        key = np.empty(n_rays, dtype=np.int32)
+        _radiance(mat, lam, vis, board_albedo, self._albedo, self._klass,
+                  np.float32(self.lighting.ambient), np.float32(self.lighting.key),
+                  np.asarray(self.lighting.miss_colour, dtype=np.float32), rad, cls, key)
+        return rad, cls, key
+
+    def _occluded(self, layer: _Layer, moving, origin: np.ndarray, light_w) -> np.ndarray:
+        """(N,) bool: the segment from each ``origin`` (N, 3) to the light is blocked.
+
+        Origins are already moved 0.05 mm off their surface (float32 at ~1 m).
+        """
+        import open3d as o3d
+
+        rays = np.empty((len(origin), 6), dtype=np.float32)
+        rays[:, :3] = origin
+        rays[:, 3:] = light_w - origin
+        occluded = layer.scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0,
+                                               tfar=1.0).numpy()
+        if moving is not None:
+            lay, m, pivot = moving
+            rays[:, :3] = pivot + _mul3(origin - pivot, m)
+            rays[:, 3:] = _mul3(light_w - origin, m)
+            occluded |= lay.scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0,
+                                                  tfar=1.0).numpy()
+        self.rays_cast += len(rays)
+        return occluded
 
     def _cast(self, scene, origin: np.ndarray, dirs: np.ndarray) -> dict[str, np.ndarray]:
         import open3d as o3d
@@ -250,7 +524,6 @@ class Renderer:
         is ``(layer, S, pivot)``: geometry displaced in this view by the rotation
         ``S`` about ``pivot`` (plant sway), hit in its rest frame.
         """
-        import open3d as o3d
 
         n_rays = len(d_w)
         # Each candidate: (layer, M) with rays mapped into the layer's frame by row @ M.
@@ -301,19 +574,7 @@ class Renderer:
         lit = lam > 0
         vis = np.zeros(len(idx), dtype=np.float32)
         if lit.any():
-            origin = p[lit] + 0.05 * n_hit[lit]  # leave the surface (float32 at ~1 m)
-            rays = np.empty((len(origin), 6), dtype=np.float32)
-            rays[:, :3] = origin
-            rays[:, 3:] = light_w - origin
-            occluded = layer.scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0,
-                                                   tfar=1.0).numpy()
-            if moving is not None:
-                lay, m, pivot = moving
-                rays[:, :3] = pivot + _mul3(origin - pivot, m)
-                rays[:, 3:] = _mul3(light_w - origin, m)
-                occluded |= lay.scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0,
-                                                      tfar=1.0).numpy()
-            self.rays_cast += len(rays)
+            occluded = self._occluded(layer, moving, p[lit] + 0.05 * n_hit[lit], light_w)
             vis[lit] = (~occluded).astype(np.float32)
         key[idx] += 2 * (vis > 0)
         light = self.lighting.ambient + self.lighting.key * np.clip(lam, 0.0, None) * vis
@@ -326,3 +587,214 @@ class Renderer:
 def _mul3(a: np.ndarray, m: np.ndarray) -> np.ndarray:
     """``a @ m`` for (N, 3) x (3, 3) float32 (einsum: much faster than matmul for this shape)."""
     return np.einsum("ij,jk->ik", a, m, dtype=np.float32)
+
+
+# --------------------------------------------------------------------------- fast path kernels
+# The fast path (``Renderer(fast=True)``, the default) gives the same hits and shading as
+# ``_shade`` but skips work that cannot change a pixel: the lab backdrop is intersected
+# analytically (a convex room seen from inside: one front-facing plane is the exit),
+# camera rays enter Open3D's turntable scene only where they cross its box tree before the
+# backdrop, and shadow rays are cast only where the segment to the light crosses that
+# tree.  Serial kernels that release the GIL: the acquisition renders its cameras in
+# parallel threads, so each kernel runs on one core.
+try:
+    from numba import njit
+
+    HAVE_NUMBA = True
+except ImportError:  # pragma: no cover - numba ships with the project's environment
+    HAVE_NUMBA = False
+
+if HAVE_NUMBA:
+    _jit = njit(cache=True, nogil=True, error_model="numpy")
+
+    @_jit
+    def _camera_rays(d_w, centre, rz, planes, plane_tris, tri, tri_attr, t_out, mat_out, n_out):
+        """Backdrop hit of each world ray ``(centre, d_w[i])`` in the lab frame.
+
+        The backdrop bounds a convex room around the camera: the ray leaves it
+        through the nearest plane it faces (``planes`` (P, 4): unit normal towards
+        the room, offset ``n . x + offset = 0``), and hits the backdrop iff that point
+        lies in one of the plane's triangles (``plane_tris`` (P, 2) indices, -1 = none).
+        Writes t (inf: miss), material (-1: miss), world normal.
+        """
+        o0 = rz[0, 0] * centre[0] + rz[0, 1] * centre[1] + rz[0, 2] * centre[2]
+        o1 = rz[1, 0] * centre[0] + rz[1, 1] * centre[1] + rz[1, 2] * centre[2]
+        o2 = rz[2, 0] * centre[0] + rz[2, 1] * centre[1] + rz[2, 2] * centre[2]
+        n_pl = planes.shape[0]
+        for i in range(d_w.shape[0]):
+            t_out[i] = np.inf
+            mat_out[i] = -1
+            n_out[i, 0] = 0.0
+            n_out[i, 1] = 0.0
+            n_out[i, 2] = 0.0
+            d0, d1, d2 = d_w[i, 0], d_w[i, 1], d_w[i, 2]
+            l0 = rz[0, 0] * d0 + rz[0, 1] * d1 + rz[0, 2] * d2
+            l1 = rz[1, 0] * d0 + rz[1, 1] * d1 + rz[1, 2] * d2
+            l2 = rz[2, 0] * d0 + rz[2, 1] * d1 + rz[2, 2] * d2
+            best = np.inf
+            best_k = -1
+            for k in range(n_pl):
+                den = planes[k, 0] * l0 + planes[k, 1] * l1 + planes[k, 2] * l2
+                if den < 0.0:
+                    tk = -(planes[k, 0] * o0 + planes[k, 1] * o1 + planes[k, 2] * o2
+                           + planes[k, 3]) / den
+                    if tk < best:
+                        best = tk
+                        best_k = k
+            if best_k < 0:
+                continue
+            p0, p1, p2 = o0 + best * l0, o1 + best * l1, o2 + best * l2
+            hit_j = -1
+            # The exit point lies on the nearest plane; at a seam between two planes
+            # it is on both, so the barycentric test allows a hair's tolerance.
+            for s in range(plane_tris.shape[1]):
+                j = plane_tris[best_k, s]
+                if j < 0:
+                    continue
+                e10 = tri[j, 1, 0] - tri[j, 0, 0]
+                e11 = tri[j, 1, 1] - tri[j, 0, 1]
+                e12 = tri[j, 1, 2] - tri[j, 0, 2]
+                e20 = tri[j, 2, 0] - tri[j, 0, 0]
+                e21 = tri[j, 2, 1] - tri[j, 0, 1]
+                e22 = tri[j, 2, 2] - tri[j, 0, 2]
+                q0 = p0 - tri[j, 0, 0]
+                q1 = p1 - tri[j, 0, 1]
+                q2 = p2 - tri[j, 0, 2]
+                a11 = e10 * e10 + e11 * e11 + e12 * e12
+                a12 = e10 * e20 + e11 * e21 + e12 * e22
+                a22 = e20 * e20 + e21 * e21 + e22 * e22
+                b1 = q0 * e10 + q1 * e11 + q2 * e12
+                b2 = q0 * e20 + q1 * e21 + q2 * e22
+                det = a11 * a22 - a12 * a12
+                u = (a22 * b1 - a12 * b2) / det
+                v = (a11 * b2 - a12 * b1) / det
+                if u >= -1e-7 and v >= -1e-7 and u + v <= 1.0 + 1e-7:
+                    hit_j = j
+                    break
+            if hit_j < 0:
+                continue  # left the room through an open side: nothing else can be hit
+            t_out[i] = best
+            mat_out[i] = tri_attr[hit_j]
+            # lab normal back to the world frame: n_w = n_lab @ rz
+            for ax in range(3):
+                n_out[i, ax] = (planes[best_k, 0] * rz[0, ax] + planes[best_k, 1] * rz[1, ax]
+                                + planes[best_k, 2] * rz[2, ax])
+
+    @_jit
+    def _light_terms(d_w, centre, t, normal, light, basis, window, shadow_map, lam_out,
+                     shadow_cand):
+        """Lambert term of each hit (normal turned towards the camera, in place) and
+        whether its shadow ray may be blocked.
+
+        ``shadow_map`` is a pinhole view from the light (axes ``basis`` (3, 3) rows:
+        right, down, forward) where every box of the occluders' trees is filled;
+        ``window = (x0, y0, scale)`` maps ``(x/z, y/z)`` to its texels.  All points of
+        the segment from a surface point to the light fall in one texel, so an empty
+        texel proves the shadow ray free.
+        """
+        mh, mw = shadow_map.shape
+        for i in range(d_w.shape[0]):
+            lam_out[i] = 0.0
+            shadow_cand[i] = False
+            if not np.isfinite(t[i]):
+                continue
+            if normal[i, 0] * d_w[i, 0] + normal[i, 1] * d_w[i, 1] + normal[i, 2] * d_w[i, 2] > 0:
+                normal[i, 0] = -normal[i, 0]
+                normal[i, 1] = -normal[i, 1]
+                normal[i, 2] = -normal[i, 2]
+            p0 = np.float32(centre[0] + t[i] * d_w[i, 0])
+            p1 = np.float32(centre[1] + t[i] * d_w[i, 1])
+            p2 = np.float32(centre[2] + t[i] * d_w[i, 2])
+            v0, v1, v2 = light[0] - p0, light[1] - p1, light[2] - p2
+            dist = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+            lam = (normal[i, 0] * v0 + normal[i, 1] * v1 + normal[i, 2] * v2) / max(dist, 1e-6)
+            lam_out[i] = lam
+            if lam <= 0:
+                continue
+            z = -(basis[2, 0] * v0 + basis[2, 1] * v1 + basis[2, 2] * v2)
+            if z <= 0.0:
+                continue  # behind the light's image plane: no occluder there
+            x = -(basis[0, 0] * v0 + basis[0, 1] * v1 + basis[0, 2] * v2) / z
+            y = -(basis[1, 0] * v0 + basis[1, 1] * v1 + basis[1, 2] * v2) / z
+            cx = int(np.floor((x - window[0]) * window[2]))
+            cy = int(np.floor((y - window[1]) * window[2]))
+            if 0 <= cx < mw and 0 <= cy < mh and shadow_map[cy, cx]:
+                shadow_cand[i] = True
+
+    @_jit
+    def _radiance(mat, lam, vis, board_albedo, albedo, klass, ambient, key_light, miss,
+                  rad, cls, key):
+        """Radiance (N, 3), class and shading key from material, Lambert term, visibility."""
+        for i in range(mat.shape[0]):
+            m = mat[i]
+            if m < 0:
+                rad[i, 0], rad[i, 1], rad[i, 2] = miss[0], miss[1], miss[2]
+                cls[i] = 0
+                key[i] = -8
+                continue
+            k = 8 * m
+            light = np.float32(ambient + key_light * max(lam[i], np.float32(0.0)) * vis[i])
+            if board_albedo[i] >= 0:
+                a = board_albedo[i]
+                rad[i, 0] = a * light
+                rad[i, 1] = a * light
+                rad[i, 2] = a * light
+                if a < 0.4:
+                    k += 4
+            else:
+                rad[i, 0] = albedo[m, 0] * light
+                rad[i, 1] = albedo[m, 1] * light
+                rad[i, 2] = albedo[m, 2] * light
+            if vis[i] > 0:
+                k += 2
+            cls[i] = klass[m]
+            key[i] = k
+
+    @_jit
+    def _edges(key, out):
+        """Pixels whose 3 x 3 neighbourhood (clamped at the border) holds two keys."""
+        h, w = key.shape
+        for r in range(h):
+            for c in range(w):
+                k = key[r, c]
+                e = False
+                for rr in range(max(r - 1, 0), min(r + 2, h)):
+                    for cc in range(max(c - 1, 0), min(c + 2, w)):
+                        if key[rr, cc] != k:
+                            e = True
+                out[r, c] = e
+
+    @_jit
+    def _unproject(u0, u1, v0, v1, f, fy, cu, cv, d1, d2, iterations, out):
+        """Unit camera rays through the pixel centres of rows v0..v1, columns u0..u1
+        (the fixed-point inversion of ``CameraModel.undistort_points``)."""
+        w = u1 - u0
+        for r in range(v0, v1):
+            for c in range(u0, u1):
+                xd = (c - cu) / f
+                yd = (r - cv) / fy
+                x, y = xd, yd
+                for _ in range(iterations):
+                    r2 = x * x + y * y
+                    s = 1.0 + d1 * r2 + d2 * r2 * r2
+                    x, y = xd / s, yd / s
+                nrm = np.sqrt(x * x + y * y + 1.0)
+                i = (r - v0) * w + (c - u0)
+                out[i, 0] = x / nrm
+                out[i, 1] = y / nrm
+                out[i, 2] = 1.0 / nrm
+
+    @_jit
+    def _tone(rad, inv_gamma, noise, out):
+        """8-bit BGR of linear radiance: gamma, additive noise (or none), rounding."""
+        h, w, _ = rad.shape
+        has_noise = noise.shape[0] > 0
+        for r in range(h):
+            for c in range(w):
+                for ch in range(3):
+                    x = min(max(rad[r, c, ch], np.float32(0.0)), np.float32(1.0))
+                    y = np.float32(255.0) * np.float32(x ** inv_gamma)
+                    if has_noise:
+                        y += noise[r, c, ch]
+                    y = np.rint(y)
+                    out[r, c, 2 - ch] = min(max(y, 0.0), 255.0)

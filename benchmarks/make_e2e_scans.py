@@ -1,0 +1,88 @@
+"""Render (and cache) the 18 MP virtual plastic-dicot scans of the end-to-end benchmark.
+
+Two scans of the default plastic dicot (seed 0) at 5184 x 3456 JPEG, through the
+real acquisition code (``plantscan_sim.make_scan``), rendering not timed by the
+benchmark that reads them (issue #10):
+
+* ``paper-72``: ``recipes/plastic-dicot.yaml`` as shipped (2 cameras, tilt 0,
+  36 stops = 72 plant images, 36 calibration board views, 2 background plates:
+  110 images).
+* ``paper-360``: no recipe is shipped for it, so it is the same recipe with the
+  overrides its header documents: ``scan.protocol=paper-360`` and
+  ``scan.tilts_deg=[-10,0,10,20,30]`` (2 cameras x 5 tilts x 36 stops = 360
+  plant images, 180 board views, 10 background plates: 550 images).
+
+A finished scan is skipped (``<out>/<name>.done.json`` records how it was made);
+an interrupted one resumes where it stopped.  The two scans may run in two
+processes at once (``--protocol paper-72`` and ``--protocol paper-360``).
+
+    python benchmarks/make_e2e_scans.py [--out /work/e2e_scans] [--protocol both]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+SIZE = (5184, 3456)
+PROTOCOLS = {
+    "paper-72": [],
+    "paper-360": ["scan.protocol=paper-360", "scan.tilts_deg=[-10,0,10,20,30]",
+                  "name=plastic-dicot-paper-360"],
+}
+
+
+def scan_name(protocol: str, size: tuple[int, int]) -> str:
+    return f"plastic-dicot-{protocol}-{size[0]}x{size[1]}"
+
+
+def make(out: Path, protocol: str, size: tuple[int, int] = SIZE) -> Path:
+    """Render one scan into ``out/<name>`` unless its ``.done.json`` says it is complete."""
+    from plantscan_sim import make_scan
+
+    name = scan_name(protocol, size)
+    folder, done = out / name, out / f"{name}.done.json"
+    if done.exists():
+        print(f"{name}: cached ({done})", flush=True)
+        return folder
+    resume = (folder / "views.jsonl").exists()
+    print(f"{name}: rendering into {folder}{' (resuming)' if resume else ''}", flush=True)
+    t0, c0 = time.perf_counter(), time.process_time()
+    scan = make_scan(folder, preset="plastic-dicot", image_size=size,
+                     images_per_revolution=None, image_format="jpg",
+                     overrides=PROTOCOLS[protocol], resume=resume)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    n = len(scan.views)
+    commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True,
+                            text=True).stdout.strip()
+    info = {"scan": str(folder), "protocol": protocol, "image_size": list(size),
+            "images": n, "roles": {r: len(scan.views_by_role(r))
+                                       for r in ("calibration", "background", "plant")},
+            "render_wall_s": round(wall, 1), "render_cpu_s": round(cpu, 1),
+            "load_average_at_end": os.getloadavg()[0], "git_commit": commit,
+            "resumed": resume}
+    done.write_text(json.dumps(info, indent=1) + "\n")
+    print(f"{name}: {n} images in {wall:.0f} s wall, {cpu:.0f} s CPU", flush=True)
+    return folder
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=Path("/work/e2e_scans"))
+    ap.add_argument("--protocol", choices=[*PROTOCOLS, "both"], default="both")
+    ap.add_argument("--size", default=f"{SIZE[0]}x{SIZE[1]}", help="WxH pixels")
+    args = ap.parse_args(argv)
+    size = tuple(int(v) for v in args.size.lower().split("x"))
+    args.out.mkdir(parents=True, exist_ok=True)
+    for protocol in (PROTOCOLS if args.protocol == "both" else [args.protocol]):
+        make(args.out, protocol, size)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
