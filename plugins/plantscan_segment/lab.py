@@ -18,6 +18,8 @@ even thin and partly covered pixels, score high.
 from __future__ import annotations
 
 import threading
+from collections import OrderedDict
+from dataclasses import dataclass
 from typing import Literal
 
 import cv2
@@ -27,111 +29,229 @@ from pydantic import Field
 from plantscan_core.data import ViewRecord
 from plantscan_core.errors import DataError
 from plantscan_core.stages import Segmenter, StageParams
+from plantscan_segment.lab_reference import (
+    L_OFFSET,
+    NEIGHBOURHOOD,
+    chromaticity_distance,
+    chromaticity_distance_planes,
+    lab_shadow_mask_reference,
+    lab_shadow_score,
+    normalised_rgb,
+    remove_small_blobs,
+)
 
-# Ratios of L use L + 1: an 8-bit L of 0 (pure black) must not divide by zero, and
-# one DN of offset changes a ratio of mid-grey pixels by < 1 %.
-_L_OFFSET = 1.0
-_NEIGHBOURHOOD = np.ones((3, 3), np.uint8)
+__all__ = ["LabShadowSegmenter", "lab_shadow_mask", "lab_shadow_score", "chromaticity_distance",
+           "median_background", "remove_small_blobs"]
+
+# How many plates one segmenter keeps converted: a scan has one per camera and tilt.
+_PLATES_KEPT = 16
+# Pixels per band of rows in lab_shadow_mask: the band's ~12 float32/uint8 planes stay
+# within a core's share of the CPU cache (measured in docs/benchmarks/segmentation.md).
+_BAND_PIXELS = 65536
 
 
-def to_lab(image: np.ndarray) -> np.ndarray:
-    """(H, W, 3) uint8 BGR -> (H, W, 3) float32 LAB on OpenCV's 8-bit scale."""
-    return cv2.cvtColor(image, cv2.COLOR_BGR2LAB).astype(np.float32)
+@dataclass(frozen=True)
+class PlateTerms:
+    """Everything the score needs of one background plate, computed once per plate.
+
+    Attributes
+    ----------
+    source : (H, W, 3) uint8 BGR, the caller's array (the cache key, by identity)
+    pixels : a copy of it: a plate changed in place since is converted again
+    lum, a, b : (H, W) uint8, OpenCV's 8-bit LAB planes
+    right, down : (H, W) float32, L(u,v)/L(u+1,v) and L(u,v)/L(u,v+1) (with L + 1)
+    shadow_lum_min, shadow_lum_max : (H, W) uint8, the image luminances whose ratio L/L'
+        to this plate pixel lies in [shadow_ratio_min, shadow_ratio_max] (min > max:
+        none)
+    """
+
+    source: np.ndarray
+    pixels: np.ndarray
+    lum: np.ndarray
+    a: np.ndarray
+    b: np.ndarray
+    right: np.ndarray
+    down: np.ndarray
+    shadow_lum_min: np.ndarray
+    shadow_lum_max: np.ndarray
+
+    @classmethod
+    def build(cls, background: np.ndarray, ratio_min: float, ratio_max: float) -> PlateTerms:
+        lum, a, b = cv2.split(cv2.cvtColor(background, cv2.COLOR_BGR2LAB))
+        right, down = _ratios(lum)
+        lo, hi = _shadow_luminance_tables(ratio_min, ratio_max)
+        return cls(background, background.copy(), lum, a, b, right, down,
+                   cv2.LUT(lum, lo), cv2.LUT(lum, hi))
+
+    def matches(self, background: np.ndarray) -> bool:
+        return (background is self.source and background.shape == self.pixels.shape
+                and cv2.norm(background, self.pixels, cv2.NORM_INF) == 0)
 
 
-def _ratios(lum: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """L(u,v)/L(u+1,v) and L(u,v)/L(u,v+1); the last column/row repeats its neighbour."""
-    l1 = lum + _L_OFFSET
-    right = np.empty_like(l1)
-    right[:, :-1] = l1[:, :-1] / l1[:, 1:]
-    right[:, -1] = right[:, -2] if l1.shape[1] > 1 else 1.0
-    down = np.empty_like(l1)
-    down[:-1] = l1[:-1] / l1[1:]
-    down[-1] = down[-2] if l1.shape[0] > 1 else 1.0
+def _shadow_luminance_tables(ratio_min: float, ratio_max: float):
+    """Per plate luminance L' (0..255): the smallest and largest image L passing the ratio test.
+
+    Evaluated with the reference's own float32 expression on every (L, L') pair,
+    so the per-pixel test ``min <= L <= max`` decides exactly as the reference's
+    ``ratio_min <= (L + 1) / (L' + 1) <= ratio_max``. For a fixed L' the ratio
+    grows with L, so the passing L form one interval.
+    """
+    lum = np.arange(256, dtype=np.float32)[:, None]  # image L, rows
+    lum_bg = np.arange(256, dtype=np.float32)[None, :]  # plate L', columns
+    ratio = (lum + L_OFFSET) / (lum_bg + L_OFFSET)
+    ok = (ratio >= ratio_min) & (ratio <= ratio_max)
+    lo = np.full(256, 255, np.uint8)
+    hi = np.zeros(256, np.uint8)
+    for col in range(256):
+        rows = np.flatnonzero(ok[:, col])
+        if rows.size:
+            if rows[-1] - rows[0] + 1 != rows.size:  # cannot happen: the ratio is monotone in L
+                raise AssertionError("lab-shadow: shadow ratio test is not an interval")
+            lo[col], hi[col] = rows[0], rows[-1]
+    return lo, hi
+
+
+def _ratios(lum: np.ndarray, reaches_last_row: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """L(u,v)/L(u+1,v) and L(u,v)/L(u,v+1) (with L + 1, float32) of rows of an 8-bit L.
+
+    The same float32 operations as the reference's ``ratios`` (so the same
+    values) without its float copies of the image. ``lum`` : (R, W) uint8,
+    consecutive rows of the image; when they end at the image's last row
+    (``reaches_last_row``) that row repeats its neighbour's vertical ratio and
+    both outputs are (R, W); otherwise the last row only serves as the row
+    below and the outputs are (R - 1, W). The last column repeats its neighbour.
+    """
+    l1 = np.add(lum, np.float32(L_OFFSET), dtype=np.float32)
+    n, width = (l1.shape[0] if reaches_last_row else l1.shape[0] - 1), l1.shape[1]
+    right = np.empty((n, width), np.float32)
+    np.divide(l1[:n, :-1], l1[:n, 1:], out=right[:, :-1])
+    right[:, -1] = right[:, -2] if width > 1 else 1.0
+    down = np.empty((n, width), np.float32)
+    np.divide(l1[:-1], l1[1:], out=down[:l1.shape[0] - 1])
+    if reaches_last_row:
+        down[-1] = down[-2] if n > 1 else 1.0
     return right, down
 
 
-def lab_terms(image_lab: np.ndarray, background_lab: np.ndarray):
-    """Δ, Θ, Ψ and the luminance ratio L/L' per pixel (each (H, W) float32)."""
-    lum, lum_bg = image_lab[..., 0], background_lab[..., 0]
-    delta = np.abs(lum - lum_bg)
-    theta = np.abs(image_lab[..., 1] - background_lab[..., 1]) + np.abs(
-        image_lab[..., 2] - background_lab[..., 2])
-    r, d = _ratios(lum)
-    rb, db = _ratios(lum_bg)
-    psi = np.abs(r - rb) + np.abs(d - db)
-    ratio = (lum + _L_OFFSET) / (lum_bg + _L_OFFSET)
-    return delta, theta, psi, ratio
+def _suppress_chromatic_candidates(shadow: np.ndarray, image: np.ndarray,
+                                   background: np.ndarray, chroma_max: float) -> None:
+    """Keep in ``shadow`` ((R, W) bool, in place) only pixels with the plate's chromaticity.
+
+    ``image`` and ``background`` are the same (R, W, 3) rows. The distance is
+    evaluated on the bounding box of the candidates only: shadows cover a few %
+    of an image.
+    """
+    x, y, w, h = cv2.boundingRect(shadow.view(np.uint8))
+    if w == 0:
+        return
+    rows, cols = slice(y, y + h), slice(x, x + w)
+    chroma = chromaticity_distance_planes(normalised_rgb(image[rows, cols]),
+                                          normalised_rgb(background[rows, cols]))
+    shadow[rows, cols] &= chroma < chroma_max
 
 
-def lab_shadow_score(
-    image: np.ndarray,
-    background: np.ndarray,
-    alpha: float = 0.1,
-    beta: float = 0.5,
-    gamma: float = 0.4,
-) -> np.ndarray:
-    """The seed's score Ω per pixel.
+def remove_tiny_blobs(mask: np.ndarray, min_px: int) -> np.ndarray:
+    """:func:`remove_small_blobs` for ``min_px <= 3`` from neighbour counts, no labelling.
+
+    A 1 px blob is a pixel with no 8-neighbour; a 2 px blob is a pair of pixels
+    with exactly one neighbour each, each other. Two 3 x 3 box sums find both
+    (~10x cheaper than labelling the image); larger ``min_px`` label components.
+    """
+    if min_px <= 1:
+        return mask
+    if min_px > 3:
+        return remove_small_blobs(mask, min_px)
+    # 3 x 3 sums of a 0/1 image (the pixel itself included); outside the image is background.
+    count = cv2.boxFilter(mask.view(np.uint8), -1, (3, 3), normalize=False,
+                          borderType=cv2.BORDER_CONSTANT)
+    drop = mask & (count == 1)
+    if min_px == 3:
+        single_neighbour = mask & (count == 2)
+        pair = cv2.boxFilter(single_neighbour.view(np.uint8), -1, (3, 3), normalize=False,
+                             borderType=cv2.BORDER_CONSTANT)
+        drop |= single_neighbour & (pair == 2)
+    return mask & ~drop
+
+
+def lab_shadow_mask(image: np.ndarray, background: np.ndarray, p,
+                    plate: PlateTerms | None = None, band_rows: int | None = None) -> np.ndarray:
+    """``lab-shadow``'s mask: (H, W) bool, True = plant or pot.
+
+    The same decisions as :func:`lab_shadow_mask_reference` (tested equal on
+    the virtual scanner's images), ~5x faster: the plate's LAB planes and
+    ratios converted once (``plate``), Δ and Θ in integers, the shadow ratio
+    test as a per-pixel luminance interval, the chromaticity only on the
+    bounding box of shadow candidates, tiny blobs removed without labelling,
+    and all of it in bands of rows whose temporaries stay in the CPU cache
+    (full-image float temporaries made it memory bound, and cost page faults
+    on fresh threads).
 
     Parameters
     ----------
-    image, background : (H, W, 3) uint8 BGR arrays of the same size
-    alpha, beta, gamma : weights of luminance, colour and texture differences
-
-    Returns
-    -------
-    omega : (H, W) float32, in 8-bit LAB units
+    image, background : (H, W, 3) uint8 BGR, the plant view and its plate
+    p : ``LabShadowSegmenter.Params``
+    plate : ``PlateTerms.build(background, ...)`` when the caller keeps it
+    band_rows : rows per band (default: ~``_BAND_PIXELS`` pixels per band)
     """
-    delta, theta, psi, _ = lab_terms(to_lab(image), to_lab(background))
-    return (alpha * delta + beta * theta + gamma * psi) / (alpha + beta + gamma)
+    if plate is None:
+        plate = PlateTerms.build(background, p.shadow_ratio_min, p.shadow_ratio_max)
+    height, width = image.shape[:2]
+    band_rows = band_rows or max(8, _BAND_PIXELS // width)
+    mask = np.empty((height, width), bool)
+    alpha_delta = np.arange(256, dtype=np.float32) * np.float32(p.alpha)  # αΔ for each Δ
+    for top in range(0, height, band_rows):
+        bottom = min(top + band_rows, height)
+        mask[top:bottom] = _band_mask(image, background, plate, p, alpha_delta, top, bottom)
+    return remove_tiny_blobs(mask, p.min_blob_px)
 
 
-def chromaticity_distance(image: np.ndarray, background: np.ndarray) -> np.ndarray:
-    """L1 distance of normalised rgb ``(B, G, R) / (B + G + R)`` per pixel ((H, W) float32).
-
-    A shadow scales the plate's light by a factor: normalised rgb is unchanged
-    (also through a power-law tone curve), whereas OpenCV's a*, b* shrink
-    towards neutral when a tinted plate darkens; brown soil or a grey-brown
-    stem keep a clearly different chromaticity from the plate.
-    """
-    # Per channel with OpenCV calls: a numpy reduction over the last axis of (H, W, 3)
-    # is ~5x slower at 18 MP.
-    f = cv2.split(image.astype(np.float32) + 1.0)  # + 1: black pixels must not divide by zero
-    fb = cv2.split(background.astype(np.float32) + 1.0)
-    inv = cv2.divide(1.0, cv2.add(cv2.add(f[0], f[1]), f[2]))
-    inv_b = cv2.divide(1.0, cv2.add(cv2.add(fb[0], fb[1]), fb[2]))
-    out = None
-    for ch, ch_b in zip(f, fb, strict=True):
-        d = cv2.absdiff(cv2.multiply(ch, inv), cv2.multiply(ch_b, inv_b))
-        out = d if out is None else cv2.add(out, d)
-    return out
-
-
-def shadow_like(theta, psi, ratio, ratio_min, ratio_max, colour_max, texture_max,
-                chroma=None, chroma_max=None) -> np.ndarray:
-    """Pixels that look like the plate in a cast shadow ((H, W) bool).
-
-    A shadow darkens the plate by a bounded factor (ambient over ambient plus
-    key light: never to black), keeps its colour (small Θ, and small
-    chromaticity distance ``chroma`` when given) and its texture ratios (small
-    Ψ); dark objects (a black pot) are darker than any shadow, and leaves and
-    soil differ in colour.
-    """
-    out = ((ratio >= ratio_min) & (ratio <= ratio_max) & (theta < colour_max)
-           & (psi < texture_max))
-    if chroma is not None and chroma_max is not None:
-        out &= chroma < chroma_max
-    return out
-
-
-def remove_small_blobs(mask: np.ndarray, min_px: int) -> np.ndarray:
-    """Drop 8-connected foreground blobs smaller than ``min_px`` pixels."""
-    if min_px <= 1:
-        return mask
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
-    keep = stats[:, cv2.CC_STAT_AREA] >= min_px
-    keep[0] = False
-    return keep[labels]
+def _band_mask(image, background, plate: PlateTerms, p, alpha_delta, top: int,
+               bottom: int) -> np.ndarray:
+    """Mask rows ``top:bottom`` ((bottom - top, W) bool) before the blob clean-up."""
+    height = image.shape[0]
+    # Ω is needed one row above and below (the edge test's 3 x 3 maximum), Ψ of a row
+    # needs the row below it.
+    first, last = max(top - 1, 0), min(bottom + 1, height)
+    end = min(last + 1, height)
+    lum, a, b = cv2.split(cv2.cvtColor(image[first:end], cv2.COLOR_BGR2LAB))
+    n = last - first
+    psi, down = _ratios(lum, reaches_last_row=end == height)
+    psi, down, lum, a, b = psi[:n], down[:n], lum[:n], a[:n], b[:n]
+    rows = slice(first, last)
+    np.subtract(psi, plate.right[rows], out=psi)
+    np.abs(psi, out=psi)
+    np.subtract(down, plate.down[rows], out=down)
+    np.abs(down, out=down)
+    np.add(psi, down, out=psi)
+    # Θ is a sum of integers (exact in float32); αΔ is looked up.
+    theta = cv2.add(cv2.absdiff(a, plate.a[rows]), cv2.absdiff(b, plate.b[rows]),
+                    dtype=cv2.CV_32F)
+    # Ω = (αΔ + βΘ + γΨ) / (α + β + γ) in the reference's order of float32 operations.
+    omega = cv2.LUT(cv2.absdiff(lum, plate.lum[rows]), alpha_delta)
+    np.add(omega, np.multiply(theta, np.float32(p.beta)), out=omega)
+    texture_like_plate = psi < p.shadow_texture_max if p.suppress_shadows else None
+    np.multiply(psi, np.float32(p.gamma), out=psi)
+    np.add(omega, psi, out=omega)
+    weights = p.alpha + p.beta + p.gamma
+    if weights != 1.0:
+        np.divide(omega, np.float32(weights), out=omega)
+    inner = slice(top - first, bottom - first)  # the band's own rows among first:last
+    mask = omega[inner] > p.threshold
+    if p.edge_fraction > 0:
+        local_max = cv2.dilate(omega, NEIGHBOURHOOD)[inner]
+        np.multiply(local_max, np.float32(p.edge_fraction), out=local_max)
+        mask &= omega[inner] >= local_max
+    if p.suppress_shadows:
+        shadow = mask & texture_like_plate[inner]
+        shadow &= theta[inner] < np.float32(p.shadow_colour_max)
+        lum, own = lum[inner], slice(top, bottom)
+        shadow &= lum >= plate.shadow_lum_min[own]
+        shadow &= lum <= plate.shadow_lum_max[own]
+        if p.shadow_chroma_max is not None:
+            _suppress_chromatic_candidates(shadow, image[own], background[own],
+                                           p.shadow_chroma_max)
+        mask &= ~shadow
+    return mask
 
 
 def median_background(images: list[np.ndarray]) -> np.ndarray:
@@ -177,6 +297,9 @@ class LabShadowSegmenter(Segmenter):
             description="plate: the scan's background view of the same camera and tilt; "
             "median: per-pixel median of the plant views of that camera and tilt "
             "(scans without a plate)")
+        implementation: Literal["fast", "reference"] = Field(
+            default="fast", description="reference: the plain float32 code path the fast one "
+            "is tested against (same masks, ~5x slower; docs/segmentation.md)")
 
     def __init__(self, params=None, context=None):
         super().__init__(params, context)
@@ -185,6 +308,21 @@ class LabShadowSegmenter(Segmenter):
         self._median_cache: dict[tuple[str, int], np.ndarray] = {}
         # segment() runs on several threads at once: one median per camera/tilt, built once.
         self._median_lock = threading.Lock()
+        # Each plate serves every image of its camera and tilt: converted once, kept by identity.
+        self._plates: OrderedDict[int, PlateTerms] = OrderedDict()
+        self._plates_lock = threading.Lock()
+
+    def _plate_terms(self, background: np.ndarray) -> PlateTerms:
+        p = self.params
+        with self._plates_lock:
+            plate = self._plates.get(id(background))
+            if plate is None or not plate.matches(background):
+                plate = PlateTerms.build(background, p.shadow_ratio_min, p.shadow_ratio_max)
+                self._plates[id(background)] = plate
+                while len(self._plates) > _PLATES_KEPT:
+                    self._plates.popitem(last=False)
+            self._plates.move_to_end(id(background))
+            return plate
 
     def _median_plate(self, view: ViewRecord) -> np.ndarray:
         key = (view.camera, view.tilt_index)
@@ -229,25 +367,6 @@ class LabShadowSegmenter(Segmenter):
             raise DataError(f"lab-shadow: background plate is {background.shape[1]}x"
                             f"{background.shape[0]} but the image is {image.shape[1]}x"
                             f"{image.shape[0]}")
-        delta, theta, psi, ratio = lab_terms(to_lab(image), to_lab(background))
-        omega = (p.alpha * delta + p.beta * theta + p.gamma * psi) / (p.alpha + p.beta + p.gamma)
-        mask = omega > p.threshold
-        if p.edge_fraction > 0:
-            # A pixel half covered by a leaf has, after the camera's tone curve, Ω ~ 0.3 of a
-            # fully covered neighbour; along a 1 px leaf the neighbours are as weak, so it stays.
-            local_max = cv2.dilate(omega, _NEIGHBOURHOOD)
-            mask &= omega >= p.edge_fraction * local_max
-        if p.suppress_shadows:
-            shadow = mask & shadow_like(theta, psi, ratio, p.shadow_ratio_min,
-                                        p.shadow_ratio_max, p.shadow_colour_max,
-                                        p.shadow_texture_max)
-            if p.shadow_chroma_max is not None:
-                # Chromaticity only where it can still decide (shadow candidates, a few % of
-                # the image): the full-image version is a third of the run time at 18 MP.
-                rows, cols = np.nonzero(shadow)
-                if rows.size:
-                    chroma = chromaticity_distance(image[rows, cols][None],
-                                                   background[rows, cols][None])[0]
-                    shadow[rows, cols] = chroma < p.shadow_chroma_max
-            mask &= ~shadow
-        return remove_small_blobs(mask, p.min_blob_px)
+        if p.implementation == "reference":
+            return lab_shadow_mask_reference(image, background, p)
+        return lab_shadow_mask(image, background, p, self._plate_terms(background))

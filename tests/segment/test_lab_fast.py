@@ -1,0 +1,96 @@
+"""The fast ``lab-shadow`` against its plain reference implementation (same masks)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from plantscan_segment import lab
+from plantscan_segment.lab import LabShadowSegmenter, lab_shadow_mask, remove_tiny_blobs
+from plantscan_segment.lab_reference import lab_shadow_mask_reference, remove_small_blobs
+
+# Parameter sets that switch each clean-up on and off and leave the weights unnormalised,
+# so every branch of the fast path is compared with the reference.
+PARAMS = [
+    {},
+    {"edge_fraction": 0.0, "shadow_chroma_max": None, "min_blob_px": 0},
+    {"suppress_shadows": False, "threshold": 5.0, "min_blob_px": 2},
+    {"alpha": 0.3, "beta": 0.2, "gamma": 0.9, "shadow_ratio_min": 0.45, "min_blob_px": 5,
+     "shadow_colour_max": 12.5},
+]
+
+
+def _plant_views(scan):
+    plates = {(v.camera, v.tilt_index): scan.read_image(v)
+              for v in scan.views_by_role("background")}
+    return [(scan.read_image(v), plates[(v.camera, v.tilt_index)])
+            for v in scan.views_by_role("plant")]
+
+
+@pytest.mark.parametrize("preset", ["plastic-dicot", "wheat"])
+@pytest.mark.parametrize("overrides", PARAMS)
+def test_fast_path_gives_the_reference_masks_on_virtual_scans(sim_scans, preset, overrides):
+    # Exactly equal, not within a tolerance: the fast path does the reference's float32
+    # operations in the same order (or integer ones that are exact), so no pixel may flip.
+    p = LabShadowSegmenter.Params(**overrides)
+    views = _plant_views(sim_scans[preset])
+    for image, plate in views:
+        reference = lab_shadow_mask_reference(image, plate, p)
+        assert reference.any() and not reference.all()
+        # Default bands, and bands of 7 rows (320 = 45 * 7 + 5: a short last band), so the
+        # one-row overlaps of the edge test and of the vertical ratios are exercised.
+        for band_rows in (None, 7):
+            fast = lab_shadow_mask(image, plate, p, band_rows=band_rows)
+            assert fast.dtype == bool and fast.shape == reference.shape
+            assert np.array_equal(fast, reference), (
+                f"{np.count_nonzero(fast != reference)} pixels differ ({overrides}, "
+                f"bands of {band_rows} rows)")
+
+
+def test_fast_path_on_tiny_and_one_row_images():
+    rng = np.random.default_rng(3)
+    p = LabShadowSegmenter.Params(threshold=2.0)
+    for shape in [(1, 9), (2, 1), (5, 5), (17, 3)]:
+        plate = rng.integers(0, 256, (*shape, 3), dtype=np.uint8)
+        image = plate.copy()
+        image[rng.random(shape) < 0.4] = (30, 150, 40)
+        for band_rows in (None, 1, 2):
+            assert np.array_equal(lab_shadow_mask(image, plate, p, band_rows=band_rows),
+                                  lab_shadow_mask_reference(image, plate, p)), (shape, band_rows)
+
+
+def test_tiny_blob_removal_equals_connected_components():
+    rng = np.random.default_rng(2)
+    for i in range(60):
+        mask = rng.random((40, 50)) < rng.uniform(0.02, 0.5)
+        for min_px in (0, 1, 2, 3, 4):
+            assert np.array_equal(remove_tiny_blobs(mask, min_px),
+                                  remove_small_blobs(mask, min_px)), (i, min_px)
+
+
+def test_each_plate_is_converted_once_and_again_when_changed(sim_scans, monkeypatch):
+    built = []
+    original = lab.PlateTerms.build.__func__
+
+    def counting_build(cls, background, *args):
+        built.append(background)
+        return original(cls, background, *args)
+
+    monkeypatch.setattr(lab.PlateTerms, "build", classmethod(counting_build))
+    seg = LabShadowSegmenter()
+    views = _plant_views(sim_scans["plastic-dicot"])
+    plates = {id(plate) for _, plate in views}
+    for image, plate in views:
+        seg.segment(image, plate)
+    assert len(built) == len(plates) == 2  # one plate per camera, 2 views each
+    # A plate array changed in place must not be served from the cache.
+    image, plate = views[0]
+    plate[:50] = 255 - plate[:50]
+    mask = seg.segment(image, plate)
+    assert len(built) == 3
+    assert np.array_equal(mask, lab_shadow_mask_reference(image, plate, seg.params))
+
+
+def test_reference_implementation_is_selectable(sim_scans):
+    image, plate = _plant_views(sim_scans["wheat"])[0]
+    seg = LabShadowSegmenter(LabShadowSegmenter.Params(implementation="reference"))
+    assert np.array_equal(seg.segment(image, plate), LabShadowSegmenter().segment(image, plate))
