@@ -11,14 +11,19 @@ Writes nothing by itself; the figures go into docs/benchmarks/segmentation.md by
 3. Undistortion: IoU of truth masks undistorted then re-distorted (the loss a
    pipeline that carves undistorted masks pays on top of the segmentation).
 4. Speed at 18 MP, one thread: megapixels per second per core.
+5. ``lab-shadow`` fast path against its plain reference in the same run, at the
+   pipeline's 4.5 MP (18 MP decoded at 1/2) and at 18 MP, on a synthetic scene
+   and on virtual-scanner views (JPEG q95 round trip), 1 and 2 threads.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import pathlib
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import cv2
 import numpy as np
@@ -43,6 +48,8 @@ REAL = pathlib.Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / 
 def segmenters():
     return {
         "lab-shadow": LabShadowSegmenter(),
+        "lab-shadow (reference implementation)": LabShadowSegmenter(
+            LabShadowSegmenter.Params(implementation="reference")),
         "lab-shadow (seed score only, t=8)": LabShadowSegmenter(
             LabShadowSegmenter.Params(suppress_shadows=False, min_blob_px=0)),
         "threshold": ThresholdSegmenter(),
@@ -125,13 +132,9 @@ def real_photos() -> dict | None:
     return out
 
 
-def speed(size=(5184, 3456), repeats=3) -> dict[str, float]:
-    """Megapixels per second of CPU time on one thread (one core) at 18 MP.
-
-    Process CPU time, not wall time: on a shared machine the wall clock also
-    counts other people's work; with one OpenCV thread (numpy is single
-    threaded) CPU seconds are core seconds.
-    """
+def synthetic_scene(size=(5184, 3456)) -> tuple[np.ndarray, np.ndarray]:
+    """(image, plate), (H, W, 3) uint8: a noisy grey plate, a green ellipse and a hard
+    shadow over the left third of the frame (a pessimistic share of shadow)."""
     rng = np.random.default_rng(0)
     h, w = size[1], size[0]
     bg = np.full((h, w, 3), (200, 195, 190), np.uint8)
@@ -139,6 +142,17 @@ def speed(size=(5184, 3456), repeats=3) -> dict[str, float]:
     img = bg.copy()
     cv2.ellipse(img, (w // 2, h // 2), (w // 6, h // 4), 30, 0, 360, (40, 140, 50), -1)
     img[:, : w // 3] = (img[:, : w // 3] * 0.6).astype(np.uint8)
+    return img, bg
+
+
+def speed(size=(5184, 3456), repeats=3) -> dict[str, float]:
+    """Megapixels per second of CPU time on one thread (one core) at 18 MP.
+
+    Process CPU time, not wall time: on a shared machine the wall clock also
+    counts other people's work; with one OpenCV thread (numpy is single
+    threaded) CPU seconds are core seconds.
+    """
+    img, bg = synthetic_scene(size)
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)
     try:
@@ -148,10 +162,78 @@ def speed(size=(5184, 3456), repeats=3) -> dict[str, float]:
             t0 = time.process_time()
             for _ in range(repeats):
                 seg.segment(img, bg)
-            out[name] = w * h * 1e-6 * repeats / (time.process_time() - t0)
+            out[name] = img.shape[0] * img.shape[1] * 1e-6 * repeats / (time.process_time() - t0)
         return out
     finally:
         cv2.setNumThreads(threads)
+
+
+def virtual_views(root: pathlib.Path, size: tuple[int, int]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(image, plate) of every plant view of a 2-view-per-camera dicot scan at ``size``,
+    through a JPEG q95 round trip (the virtual scanner's default image format)."""
+    scan = virtual_scan(root, "plastic-dicot", size, 2)
+
+    def jpeg(a):
+        return cv2.imdecode(cv2.imencode(".jpg", a, [cv2.IMWRITE_JPEG_QUALITY, 95])[1],
+                            cv2.IMREAD_COLOR)
+
+    plates = {(v.camera, v.tilt_index): jpeg(scan.read_image(v))
+              for v in scan.views_by_role("background")}
+    return [(jpeg(scan.read_image(v)), plates[(v.camera, v.tilt_index)])
+            for v in scan.views_by_role("plant")]
+
+
+def lab_shadow_speed(pairs, threads: int, rounds: int = 3) -> dict[str, dict[str, float]]:
+    """Fast and reference ``lab-shadow`` on the same (image, plate) pairs, interleaved.
+
+    Each round segments every pair with ``threads`` threads (one OpenCV thread
+    each, as images are the unit of parallelism); one segmenter per
+    implementation serves all rounds, so the fast path's plate conversion is paid
+    once per plate as in the pipeline. Returns per implementation: ``mp_per_cpu_s``
+    (megapixels per CPU second = per core), ``mp_per_wall_s`` and ``cpu_s`` per
+    image (median round).
+    """
+    mp = sum(img.shape[0] * img.shape[1] for img, _ in pairs) * 1e-6
+    segs = {impl: LabShadowSegmenter(LabShadowSegmenter.Params(implementation=impl))
+            for impl in ("reference", "fast")}
+    per: dict[str, list[tuple[float, float]]] = {impl: [] for impl in segs}
+    opencv_threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        with ThreadPoolExecutor(threads) as pool:
+            for r in range(rounds + 1):
+                for impl, seg in segs.items():
+                    c0, w0 = time.process_time(), time.perf_counter()
+                    list(pool.map(lambda pair, seg=seg: seg.segment(*pair), pairs))
+                    if r:  # round 0 warms up (and converts the plates)
+                        per[impl].append((time.process_time() - c0, time.perf_counter() - w0))
+    finally:
+        cv2.setNumThreads(opencv_threads)
+    out = {}
+    for impl, runs in per.items():
+        cpu = float(np.median([c for c, _ in runs]))
+        wall = float(np.median([w for _, w in runs]))
+        out[impl] = {"mp_per_cpu_s": mp / cpu, "mp_per_wall_s": mp / wall,
+                     "cpu_s_per_image": cpu / len(pairs)}
+    return out
+
+
+def print_lab_shadow_speed(root: pathlib.Path) -> None:
+    print(f"\n## lab-shadow: fast path vs reference, same run (load {os.getloadavg()[0]:.1f} on "
+          f"{os.cpu_count()} cores)\n")
+    print("| images | threads | implementation | MP/s per core (CPU) | MP/s wall | "
+          "CPU s per image |")
+    print("|---|---|---|---|---|---|")
+    cases = [
+        ("synthetic 4.5 MP (1/3 in shadow)", [synthetic_scene((2592, 1728))] * 4),
+        ("virtual dicot 4.5 MP, JPEG", virtual_views(root, (2592, 1728))),
+        ("synthetic 18 MP (1/3 in shadow)", [synthetic_scene()] * 2),
+    ]
+    for label, pairs in cases:
+        for threads in (1, 2):
+            for impl, s in lab_shadow_speed(pairs, threads).items():
+                print(f"| {label} | {threads} | {impl} | {s['mp_per_cpu_s']:.1f} | "
+                      f"{s['mp_per_wall_s']:.1f} | {s['cpu_s_per_image']:.3f} |", flush=True)
 
 
 def main() -> None:
@@ -166,6 +248,7 @@ def main() -> None:
     size = tuple(int(x) for x in args.size.split("x"))
     root = pathlib.Path(args.scans)
     if args.only_speed:
+        print_lab_shadow_speed(root)
         print_speed()
         return
 
@@ -196,6 +279,7 @@ def main() -> None:
             print(f"| {label} | {iou:.4f} | {iou_min:.4f} | {prec:.4f} | {rec:.4f} |")
 
     if not args.skip_speed:
+        print_lab_shadow_speed(root)
         print_speed()
 
 

@@ -145,9 +145,12 @@ def _suppress_chromatic_candidates(shadow: np.ndarray, image: np.ndarray,
     if w == 0:
         return
     rows, cols = slice(y, y + h), slice(x, x + w)
-    chroma = chromaticity_distance_planes(normalised_rgb(image[rows, cols]),
-                                          normalised_rgb(background[rows, cols]))
-    shadow[rows, cols] &= chroma < chroma_max
+    # As one row of pixels, as the reference does: OpenCV's Python binding reads a (4, 1)
+    # float plane as a scalar.
+    chroma = chromaticity_distance_planes(
+        normalised_rgb(image[rows, cols].reshape(1, -1, 3)),
+        normalised_rgb(background[rows, cols].reshape(1, -1, 3)))
+    shadow[rows, cols] &= (chroma < chroma_max).reshape(h, w)
 
 
 def remove_tiny_blobs(mask: np.ndarray, min_px: int) -> np.ndarray:
