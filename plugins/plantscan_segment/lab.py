@@ -47,7 +47,7 @@ __all__ = ["LabShadowSegmenter", "lab_shadow_mask", "lab_shadow_score", "chromat
 _PLATES_KEPT = 16
 # Pixels per band of rows in lab_shadow_mask: the band's ~12 float32/uint8 planes stay
 # within a core's share of the CPU cache (measured in docs/benchmarks/segmentation.md).
-_BAND_PIXELS = 65536
+_BAND_PIXELS = 131072
 
 
 @dataclass(frozen=True)
