@@ -91,6 +91,7 @@ class CarveStats:
     cells_per_level: dict[int, int] = field(default_factory=dict)
     # Mean number of views the split cells of a level left ambiguous (numba path).
     split_views_per_level: dict[int, float] = field(default_factory=dict)
+    seconds_per_level: dict[int, float] = field(default_factory=dict)
     fine_voxels: int = 0
     rescued_voxels: int = 0
     seconds: float = 0.0
@@ -102,6 +103,8 @@ class CarveStats:
                 "cells_per_level": {str(k): v for k, v in self.cells_per_level.items()},
                 "split_views_per_level": {str(k): round(v, 1)
                                           for k, v in self.split_views_per_level.items()},
+                "seconds_per_level": {str(k): round(v, 3)
+                                      for k, v in self.seconds_per_level.items()},
                 "fine_voxels": self.fine_voxels, "rescued_voxels": self.rescued_voxels,
                 "carve_seconds": self.seconds, "backend": self.backend}
 
@@ -400,9 +403,10 @@ def _carve_tree(kern: _Kernels, grid: Grid, k: int, top_cell: int, keep_thin: bo
     """``carve_octree`` with the compiled kernels and inherited view decisions.
 
     A cell's conservative test in a view holds for all of its points, so its
-    children test only the views it left ambiguous (``kernels.classify_tree``);
-    the field is identical to ``carve_dense``'s (tested).  Decided cells are
-    written as blocks and the thin-part rescue visits only the fine voxels.
+    children test only the views it left ambiguous (``kernels.classify_tree``,
+    ``classify_group``: the 8 siblings together); the field equals
+    ``carve_dense``'s (tested).  Decided cells are written as blocks and the
+    thin-part rescue visits only the fine voxels.
     """
     from plantscan_hull import kernels
 
@@ -412,34 +416,43 @@ def _carve_tree(kern: _Kernels, grid: Grid, k: int, top_cell: int, keep_thin: bo
     padded = -(-shape // top_cell) * top_cell
     ranges = [np.arange(0, p, top_cell) for p in padded]
     cells = np.stack(np.meshgrid(*ranges, indexing="ij"), axis=-1).reshape(-1, 3)
-    parent = np.zeros(len(cells), dtype=np.int64)
-    tree = kernels.Tree(len(kern.views))
     size = top_cell
-    while size > 1 and len(cells):
-        stats.cells_per_level[size] = len(cells)
-        centres = grid.centres(cells + (size - 1) / 2.0)
-        decision, tree = kernels.classify_tree(
-            kern._packed, tree, parent, centres, size * s / 2.0, s, k, CELL_SLACK_PX,
-            kern.min_seen, DISTANCE_LIPSCHITZ, stats)
+    t_level = time.perf_counter()
+    stats.cells_per_level[size] = len(cells)
+    decision, tree = kernels.classify_tree(
+        kern._packed, kernels.Tree(len(kern.views)), np.zeros(len(cells), dtype=np.int64),
+        grid.centres(cells + (size - 1) / 2.0), size * s / 2.0, s, k, CELL_SLACK_PX,
+        kern.min_seen, DISTANCE_LIPSCHITZ, stats)
+    while True:
         kernels._fill_cells(phi, np.ascontiguousarray(cells[decision == 1]), size,
                             np.float32(1.0))
+        split = cells[decision == 2]  # (P, 3) corners, in the order of ``tree``
         stats.split_views_per_level[size] = float(np.diff(tree.start).mean()) if len(
-            tree.start) > 1 else 0.0
-        split = cells[decision == 2]
+            split) else 0.0
+        stats.seconds_per_level[size] = time.perf_counter() - t_level
+        t_level = time.perf_counter()
+        if size == 1 or not len(split):
+            return _done(phi, stats, t0)
         cells = _children(split, size)
-        parent = np.repeat(np.arange(len(split), dtype=np.int64), 8)
-        # Children entirely beyond the grid (the top level is padded) are dropped.
-        keep = np.all(cells < shape, axis=1)
-        cells, parent = cells[keep], parent[keep]
+        valid = np.all(cells < shape, axis=1)  # the top level is padded
+        centres = grid.centres(split + (size - 1) / 2.0)
         size //= 2
-    if len(cells):
-        stats.cells_per_level[1] = len(cells)
-        stats.fine_voxels = len(cells)
-        values = kernels.voxel_tree(kern._packed, tree, parent, grid.centres(cells), s, k,
-                                    kern.min_seen, stats)
-        cells = np.ascontiguousarray(cells)
-        kernels._scatter(phi, cells, values)
-        stats.rescued_voxels = int(kernels._rescue_band(phi, cells, values,
-                                                        np.float32(thin_value), keep_thin))
+        if size == 1:
+            break
+        stats.cells_per_level[size] = int(valid.sum())
+        decision, tree = kernels.classify_group(
+            kern._packed, tree, centres, valid, size * s / 2.0, s, k, CELL_SLACK_PX,
+            kern.min_seen, DISTANCE_LIPSCHITZ, stats)
+    stats.cells_per_level[1] = stats.fine_voxels = int(valid.sum())
+    values = kernels.voxel_group(kern._packed, tree, centres, valid, s, k, kern.min_seen, stats)
+    cells, values = np.ascontiguousarray(cells[valid]), values[valid]
+    kernels._scatter(phi, cells, values)
+    stats.rescued_voxels = int(kernels._rescue_band(phi, cells, values, np.float32(thin_value),
+                                                    keep_thin))
+    stats.seconds_per_level[1] = time.perf_counter() - t_level
+    return _done(phi, stats, t0)
+
+
+def _done(phi: np.ndarray, stats: CarveStats, t0: float) -> tuple[np.ndarray, CarveStats]:
     stats.seconds = time.perf_counter() - t0
     return phi, stats

@@ -35,6 +35,8 @@ _W, _H, _GAIN, _U0, _V0, _TW, _TH, _BOX, _OFF, _FY = 17, 18, 19, 20, 21, 22, 23,
 _NPARAM = 30
 # Points per chunk of the view-major loops (neighbours in the octree's order).
 CHUNK = 2048
+# Parent cells per chunk of the sibling-group kernels.
+GROUP_CHUNK = 256
 
 
 def supported(views: Sequence[ViewField]) -> bool:
@@ -66,32 +68,49 @@ def pack(views: Sequence[ViewField]) -> tuple[np.ndarray, np.ndarray]:
 if HAVE_NUMBA:
 
     @njit(cache=True, inline="always")
-    def _project(p, x, y, z):
-        xc = p[0] * x + p[1] * y + p[2] * z + p[9]
-        yc = p[3] * x + p[4] * y + p[5] * z + p[10]
-        zc = p[6] * x + p[7] * y + p[8] * z + p[11]
+    def _project(params, j, x, y, z):
+        xc = params[j, 0] * x + params[j, 1] * y + params[j, 2] * z + params[j, 9]
+        yc = params[j, 3] * x + params[j, 4] * y + params[j, 5] * z + params[j, 10]
+        zc = params[j, 6] * x + params[j, 7] * y + params[j, 8] * z + params[j, 11]
         if zc <= 0.0:
             return np.nan, np.nan, zc
         xn = xc / zc
         yn = yc / zc
         r2 = xn * xn + yn * yn
-        s = 1.0 + p[15] * r2 + p[16] * r2 * r2
-        return p[12] * xn * s + p[13], p[29] * yn * s + p[14], zc
+        s = 1.0 + params[j, 15] * r2 + params[j, 16] * r2 * r2
+        return params[j, 12] * xn * s + params[j, 13], params[j, 29] * yn * s + params[j, 14], zc
 
     @njit(cache=True, inline="always")
-    def _box_bound(p, u, v):
-        du = max(max(p[24] - 0.5 - u, u - p[26] - 0.5), 0.0)
-        dv = max(max(p[25] - 0.5 - v, v - p[27] - 0.5), 0.0)
+    def _to_camera(params, j, x, y, z):
+        return (params[j, 0] * x + params[j, 1] * y + params[j, 2] * z + params[j, 9],
+                params[j, 3] * x + params[j, 4] * y + params[j, 5] * z + params[j, 10],
+                params[j, 6] * x + params[j, 7] * y + params[j, 8] * z + params[j, 11])
+
+    @njit(cache=True, inline="always")
+    def _project_cam(params, j, xc, yc, zc):
+        # Camera frame -> pixels (same arithmetic as the tail of ``_project``).
+        if zc <= 0.0:
+            return np.nan, np.nan, zc
+        xn = xc / zc
+        yn = yc / zc
+        r2 = xn * xn + yn * yn
+        s = 1.0 + params[j, 15] * r2 + params[j, 16] * r2 * r2
+        return params[j, 12] * xn * s + params[j, 13], params[j, 29] * yn * s + params[j, 14], zc
+
+    @njit(cache=True, inline="always")
+    def _box_bound(params, j, u, v):
+        du = max(max(params[j, 24] - 0.5 - u, u - params[j, 26] - 0.5), 0.0)
+        dv = max(max(params[j, 25] - 0.5 - v, v - params[j, 27] - 0.5), 0.0)
         return -np.float32(np.sqrt(du * du + dv * dv))
 
     @njit(cache=True, inline="always")
-    def _bilinear(p, tables, u, v):
-        w = int(p[22])
-        h = int(p[23])
-        lu = u - p[20]
-        lv = v - p[21]
+    def _bilinear(params, j, tables, u, v):
+        w = int(params[j, 22])
+        h = int(params[j, 23])
+        lu = u - params[j, 20]
+        lv = v - params[j, 21]
         if not (lu >= -0.5 and lu <= w - 0.5 and lv >= -0.5 and lv <= h - 0.5):
-            return _box_bound(p, u, v)
+            return _box_bound(params, j, u, v)
         lu = min(max(lu, 0.0), w - 1.0)
         lv = min(max(lv, 0.0), h - 1.0)
         x0 = min(int(np.floor(lu)), w - 2 if w > 1 else 0)
@@ -100,7 +119,7 @@ if HAVE_NUMBA:
         y1 = min(y0 + 1, h - 1)
         fx = np.float32(lu - x0)
         fy = np.float32(lv - y0)
-        off = int(p[28])
+        off = int(params[j, 28])
         a = tables[off + y0 * w + x0]
         b = tables[off + y0 * w + x1]
         c = tables[off + y1 * w + x0]
@@ -110,16 +129,16 @@ if HAVE_NUMBA:
         return top * (1 - fy) + bot * fy
 
     @njit(cache=True, inline="always")
-    def _nearest(p, tables, u, v):
-        w = int(p[22])
-        h = int(p[23])
-        lu = u - p[20]
-        lv = v - p[21]
+    def _nearest(params, j, tables, u, v):
+        w = int(params[j, 22])
+        h = int(params[j, 23])
+        lu = u - params[j, 20]
+        lv = v - params[j, 21]
         if not (lu >= -0.5 and lu <= w - 0.5 and lv >= -0.5 and lv <= h - 0.5):
-            return _box_bound(p, u, v)
+            return _box_bound(params, j, u, v)
         iu = min(max(int(np.rint(lu)), 0), w - 1)
         iv = min(max(int(np.rint(lv)), 0), h - 1)
-        return tables[int(p[28]) + iv * w + iu]
+        return tables[int(params[j, 28]) + iv * w + iu]
 
     @njit(cache=True, parallel=True)
     def _voxel_field(points, params, tables, voxel_size, k, min_seen, chunk):
@@ -139,18 +158,18 @@ if HAVE_NUMBA:
             done = np.zeros(m, dtype=np.bool_)
             count = 0
             for j in range(nv):
-                p = params[j]
                 for ii in range(m):
                     if done[ii]:
                         continue
                     i = a + ii
                     count += 1
-                    u, v, zc = _project(p, points[i, 0], points[i, 1], points[i, 2])
-                    if not (zc > 0 and u >= -0.5 and u <= p[17] - 0.5 and v >= -0.5
-                            and v <= p[18] - 0.5):
+                    u, v, zc = _project(params, j, points[i, 0], points[i, 1], points[i, 2])
+                    if not (zc > 0 and u >= -0.5 and u <= params[j, 17] - 0.5 and v >= -0.5
+                            and v <= params[j, 18] - 0.5):
                         continue
                     seen[ii] += 1
-                    d = np.float32(_bilinear(p, tables, u, v) * (zc / (p[12] * voxel_size)))
+                    d = np.float32(_bilinear(params, j, tables, u, v)
+                                   * (zc / (params[j, 12] * voxel_size)))
                     worst = 0
                     for q in range(1, k + 1):
                         if kept[ii, q] > kept[ii, worst]:
@@ -192,14 +211,13 @@ if HAVE_NUMBA:
             n_off = np.zeros(m, dtype=np.int32)
             count = 0
             for j in range(nv):
-                p = params[j]
-                lo_u, hi_u, lo_v, hi_v = -0.5, p[17] - 0.5, -0.5, p[18] - 0.5
+                lo_u, hi_u, lo_v, hi_v = -0.5, params[j, 17] - 0.5, -0.5, params[j, 18] - 0.5
                 for ii in range(m):
                     if n_out[ii] > k or n_off[ii] > max_off:
                         continue  # removed already
                     i = a + ii
                     count += 1
-                    u, v, zc = _project(p, centres[i, 0], centres[i, 1], centres[i, 2])
+                    u, v, zc = _project(params, j, centres[i, 0], centres[i, 1], centres[i, 2])
                     if zc + rho <= 0:
                         n_off[ii] += 1  # wholly behind the camera: not seen
                         continue
@@ -207,7 +225,7 @@ if HAVE_NUMBA:
                     if near <= 0:
                         n_amb[ii] += 1
                         continue
-                    inv = p[19] / near
+                    inv = params[j, 19] / near
                     r = rho * inv
                     if u + r < lo_u or u - r > hi_u or v + r < lo_v or v - r > hi_v:
                         n_off[ii] += 1  # footprint off the image: not seen
@@ -218,7 +236,7 @@ if HAVE_NUMBA:
                         continue
                     n_on[ii] += 1
                     margin = lip * r + voxel_size * inv + slack
-                    sd = _nearest(p, tables, u, v)
+                    sd = _nearest(params, j, tables, u, v)
                     if sd < -margin:
                         n_out[ii] += 1
                     elif not sd > margin:
@@ -253,6 +271,7 @@ if HAVE_NUMBA:
         c_in = np.empty(m_all, dtype=np.int32)
         c_off = np.empty(m_all, dtype=np.int32)
         c_amb = np.empty(m_all, dtype=np.int32)
+        c_neg = np.empty(m_all, dtype=np.int32)
         amb = np.empty(scratch_off[m_all], dtype=np.int16)
         nchunks = (m_all + chunk - 1) // chunk
         tests = np.zeros(nchunks, dtype=np.int64)
@@ -264,8 +283,10 @@ if HAVE_NUMBA:
                 n_in = p_in[q]
                 n_off = p_offc[q]
                 n_on_amb = 0
-                na = 0
+                na = 0  # views likely out (sd < 0) first, from the front of the scratch
+                nb = 0  # the other ambiguous views, from its back
                 w = scratch_off[i]
+                e = scratch_off[i + 1] - 1
                 x = centres[i, 0]
                 y = centres[i, 1]
                 z = centres[i, 2]
@@ -273,117 +294,71 @@ if HAVE_NUMBA:
                     if n_out > k or n_off > max_off:
                         break  # removed already
                     j = p_views[t]
-                    p = params[j]
                     count += 1
-                    u, v, zc = _project(p, x, y, z)
+                    u, v, zc = _project(params, j, x, y, z)
                     if zc + rho <= 0:
                         n_off += 1
                         continue
                     near = zc - rho
                     if near <= 0:
-                        amb[w + na] = j
-                        na += 1
+                        amb[e - nb] = j
+                        nb += 1
                         continue
-                    inv = p[19] / near
+                    inv = params[j, 19] / near
                     r = rho * inv
-                    hi_u = p[17] - 0.5
-                    hi_v = p[18] - 0.5
+                    hi_u = params[j, 17] - 0.5
+                    hi_v = params[j, 18] - 0.5
                     if u + r < -0.5 or u - r > hi_u or v + r < -0.5 or v - r > hi_v:
                         n_off += 1
                         continue
                     if not (u - r >= -0.5 and u + r <= hi_u and v - r >= -0.5
                             and v + r <= hi_v):
-                        amb[w + na] = j
-                        na += 1
+                        amb[e - nb] = j
+                        nb += 1
                         continue
                     margin = lip * r + voxel_size * inv + slack
-                    sd = _nearest(p, tables, u, v)
+                    sd = _nearest(params, j, tables, u, v)
                     if sd < -margin:
                         n_out += 1
                     elif sd > margin:
                         n_in += 1
-                    else:
+                    elif sd < 0:
                         amb[w + na] = j
                         na += 1
+                        n_on_amb += 1
+                    else:
+                        amb[e - nb] = j
+                        nb += 1
                         n_on_amb += 1
                 c_out[i] = n_out
                 c_in[i] = n_in
                 c_off[i] = n_off
-                c_amb[i] = na
+                c_amb[i] = na + nb
+                c_neg[i] = na
                 if n_out > k or n_off > max_off:
                     decision[i] = 0
-                elif n_out + na <= k and n_out + n_in + n_on_amb >= min_seen:
+                elif n_out + na + nb <= k and n_out + n_in + n_on_amb >= min_seen:
                     decision[i] = 1
                 else:
                     decision[i] = 2
             tests[c] = count
-        return decision, c_out, c_in, c_off, c_amb, amb, tests.sum()
+        return decision, c_out, c_in, c_off, c_amb, c_neg, amb, tests.sum()
 
     @njit(cache=True, parallel=True)
-    def _gather_lists(sel, scratch_off, c_amb, amb, out_start):
+    def _gather_lists(sel, scratch_off, c_amb, c_neg, amb, out_start):
+        # Each child list: the views where the parent read sd < 0 first (an outside
+        # point then meets its k+1 outside views early and stops), then the others.
         views = np.empty(out_start[-1], dtype=np.int16)
         for t in prange(sel.shape[0]):
             a = scratch_off[sel[t]]
+            e = scratch_off[sel[t] + 1] - 1
             o = out_start[t]
-            for q in range(c_amb[sel[t]]):
+            neg = c_neg[sel[t]]
+            for q in range(neg):
                 views[o + q] = amb[a + q]
+            for q in range(c_amb[sel[t]] - neg):
+                views[o + neg + q] = amb[e - q]
         return views
-
-    @njit(cache=True, parallel=True)
-    def _voxel_tree(points, parent, p_start, p_views, p_out, p_in, voxel_size, params, tables,
-                    k, min_seen, chunk):
-        n = points.shape[0]
-        nchunks = (n + chunk - 1) // chunk
-        out = np.empty(n, dtype=np.float32)
-        tests = np.zeros(nchunks, dtype=np.int64)
-        for c in prange(nchunks):
-            count = 0
-            kept = np.empty(k + 1, dtype=np.float32)
-            for i in range(c * chunk, min(n, (c + 1) * chunk)):
-                q = parent[i]
-                for qq in range(k + 1):
-                    kept[qq] = np.inf
-                # Decided views of the parent: out -> -1, in -> +1 after clamping.
-                filled = 0
-                for _ in range(min(p_out[q], k + 1)):
-                    kept[filled] = -1.0
-                    filled += 1
-                for _ in range(min(p_in[q], k + 1 - filled)):
-                    kept[filled] = 1.0
-                    filled += 1
-                seen = p_out[q] + p_in[q]
-                mx = kept[0]
-                for qq in range(1, k + 1):
-                    mx = max(mx, kept[qq])
-                x = points[i, 0]
-                y = points[i, 1]
-                z = points[i, 2]
-                for t in range(p_start[q], p_start[q + 1]):
-                    if mx <= -1.0:
-                        break  # k+1 views at <= -1: final after clamping
-                    p = params[p_views[t]]
-                    count += 1
-                    u, v, zc = _project(p, x, y, z)
-                    if not (zc > 0 and u >= -0.5 and u <= p[17] - 0.5 and v >= -0.5
-                            and v <= p[18] - 0.5):
-                        continue
-                    seen += 1
-                    d = np.float32(_bilinear(p, tables, u, v) * (zc / (p[12] * voxel_size)))
-                    worst = 0
-                    for qq in range(1, k + 1):
-                        if kept[qq] > kept[worst]:
-                            worst = qq
-                    if d < kept[worst]:
-                        kept[worst] = d
-                        mx = kept[0]
-                        for qq in range(1, k + 1):
-                            mx = max(mx, kept[qq])
-                val = min(max(mx, np.float32(-1.0)), np.float32(1.0))
-                if seen < min_seen and mx > -1.0:
-                    val = np.float32(-1.0)
-                out[i] = val
-            tests[c] = count
-        return out, tests.sum()
 
     @njit(cache=True, parallel=True)
     def _fill_cells(phi, cells, size, value):
@@ -424,6 +399,222 @@ if HAVE_NUMBA:
             elif phi[idx[i, 0], idx[i, 1], idx[i, 2]] == 0:
                 phi[idx[i, 0], idx[i, 1], idx[i, 2]] = -1e-3
         return n
+
+
+    # ------------------------------------------------------------------ groups of 8 siblings
+    # The 8 children of a split cell share their parent's list of ambiguous views:
+    # they are tested together, view by view, from the projection of the parent's
+    # centre plus the rotated half-offsets (3 additions per child instead of a
+    # matrix product), and their table reads fall on the same cache lines.
+
+    @njit(cache=True)
+    def _classify_range(lo, hi, centres, valid, p_start, p_views, p_out, p_in, p_offc,
+                        scratch_off, half_size, voxel_size, params, tables, k, slack, min_seen,
+                        lip, decision, c_out, c_in, c_off, c_amb, c_neg, amb):
+        # Serial body of ``_classify_group`` (parents lo..hi); a separate function keeps
+        # numba's parallel analysis simple.
+        nv = params.shape[0]
+        rho = half_size * np.sqrt(3.0)
+        max_off = nv - min_seen
+        count = 0
+        n_out = np.empty(8, np.int32)
+        n_in = np.empty(8, np.int32)
+        n_off = np.empty(8, np.int32)
+        n_on_amb = np.empty(8, np.int32)
+        na = np.empty(8, np.int32)
+        nb = np.empty(8, np.int32)
+        live = np.empty(8, np.bool_)
+        for i in range(lo, hi):
+            alive = 0
+            for ch in range(8):
+                n_out[ch] = p_out[i]
+                n_in[ch] = p_in[i]
+                n_off[ch] = p_offc[i]
+                n_on_amb[ch] = 0
+                na[ch] = 0
+                nb[ch] = 0
+                live[ch] = valid[i * 8 + ch]
+                alive += live[ch]
+            for t in range(p_start[i], p_start[i + 1]):
+                if alive == 0:
+                    break
+                j = p_views[t]
+                xc0, yc0, zc0 = _to_camera(params, j, centres[i, 0], centres[i, 1], centres[i, 2])
+                hi_u = params[j, 17] - 0.5
+                hi_v = params[j, 18] - 0.5
+                for ch in range(8):
+                    if not live[ch]:
+                        continue
+                    sx = half_size if ch & 4 else -half_size
+                    sy = half_size if ch & 2 else -half_size
+                    sz = half_size if ch & 1 else -half_size
+                    zc = zc0 + params[j, 6] * sx + params[j, 7] * sy + params[j, 8] * sz
+                    count += 1
+                    w = scratch_off[i * 8 + ch]
+                    e = scratch_off[i * 8 + ch + 1] - 1
+                    if zc + rho <= 0:
+                        n_off[ch] += 1
+                    elif zc - rho <= 0:
+                        amb[e - nb[ch]] = j
+                        nb[ch] += 1
+                    else:
+                        u, v, _zc = _project_cam(
+                            params, j,
+                            xc0 + params[j, 0] * sx + params[j, 1] * sy + params[j, 2] * sz,
+                            yc0 + params[j, 3] * sx + params[j, 4] * sy + params[j, 5] * sz, zc)
+                        inv = params[j, 19] / (zc - rho)
+                        r = rho * inv
+                        if u + r < -0.5 or u - r > hi_u or v + r < -0.5 or v - r > hi_v:
+                            n_off[ch] += 1
+                        elif not (u - r >= -0.5 and u + r <= hi_u and v - r >= -0.5
+                                  and v + r <= hi_v):
+                            amb[e - nb[ch]] = j
+                            nb[ch] += 1
+                        else:
+                            margin = lip * r + voxel_size * inv + slack
+                            sd = _nearest(params, j, tables, u, v)
+                            if sd < -margin:
+                                n_out[ch] += 1
+                            elif sd > margin:
+                                n_in[ch] += 1
+                            elif sd < 0:
+                                amb[w + na[ch]] = j
+                                na[ch] += 1
+                                n_on_amb[ch] += 1
+                            else:
+                                amb[e - nb[ch]] = j
+                                nb[ch] += 1
+                                n_on_amb[ch] += 1
+                    if n_out[ch] > k or n_off[ch] > max_off:
+                        live[ch] = False  # removed already
+                        alive -= 1
+            for ch in range(8):
+                f = i * 8 + ch
+                if not valid[f]:
+                    continue  # beyond the grid: decision 0
+                c_out[f] = n_out[ch]
+                c_in[f] = n_in[ch]
+                c_off[f] = n_off[ch]
+                c_amb[f] = na[ch] + nb[ch]
+                c_neg[f] = na[ch]
+                if n_out[ch] > k or n_off[ch] > max_off:
+                    decision[f] = 0
+                elif (n_out[ch] + na[ch] + nb[ch] <= k
+                      and n_out[ch] + n_in[ch] + n_on_amb[ch] >= min_seen):
+                    decision[f] = 1
+                else:
+                    decision[f] = 2
+        return count
+
+    @njit(cache=True, parallel=True)
+    def _classify_group(centres, valid, p_start, p_views, p_out, p_in, p_offc, scratch_off,
+                        half_size, voxel_size, params, tables, k, slack, min_seen, lip, chunk):
+        # centres: (P, 3) parents' centres; children have half-side ``half_size``.
+        n_par = centres.shape[0]
+        decision = np.zeros(n_par * 8, dtype=np.int8)
+        c_out = np.zeros(n_par * 8, dtype=np.int32)
+        c_in = np.zeros(n_par * 8, dtype=np.int32)
+        c_off = np.zeros(n_par * 8, dtype=np.int32)
+        c_amb = np.zeros(n_par * 8, dtype=np.int32)
+        c_neg = np.zeros(n_par * 8, dtype=np.int32)
+        amb = np.empty(scratch_off[n_par * 8], dtype=np.int16)
+        nchunks = (n_par + chunk - 1) // chunk
+        tests = np.zeros(nchunks, dtype=np.int64)
+        for c in prange(nchunks):
+            tests[c] = _classify_range(
+                c * chunk, min(n_par, (c + 1) * chunk), centres, valid, p_start, p_views, p_out,
+                p_in, p_offc, scratch_off, half_size, voxel_size, params, tables, k, slack,
+                min_seen, lip, decision, c_out, c_in, c_off, c_amb, c_neg, amb)
+        return decision, c_out, c_in, c_off, c_amb, c_neg, amb, tests.sum()
+
+    @njit(cache=True)
+    def _voxel_range(lo, hi, centres, valid, p_start, p_views, p_out, p_in, voxel_size, params,
+                     tables, k, min_seen, out):
+        # Serial body of ``_voxel_group`` (parents lo..hi).
+        h = 0.5 * voxel_size
+        count = 0
+        kept = np.empty((8, k + 1), dtype=np.float32)
+        mx = np.empty(8, dtype=np.float32)
+        seen = np.empty(8, dtype=np.int32)
+        live = np.empty(8, np.bool_)
+        for i in range(lo, hi):
+            alive = 0
+            for ch in range(8):
+                for q in range(k + 1):
+                    kept[ch, q] = np.inf
+                # Decided views of the parent: out -> -1, in -> +1 after clamping.
+                filled = 0
+                for _ in range(min(p_out[i], k + 1)):
+                    kept[ch, filled] = -1.0
+                    filled += 1
+                for _ in range(min(p_in[i], k + 1 - filled)):
+                    kept[ch, filled] = 1.0
+                    filled += 1
+                m = kept[ch, 0]
+                for q in range(1, k + 1):
+                    m = max(m, kept[ch, q])
+                mx[ch] = m
+                seen[ch] = p_out[i] + p_in[i]
+                live[ch] = valid[i * 8 + ch] and m > -1.0
+                alive += live[ch]
+            for t in range(p_start[i], p_start[i + 1]):
+                if alive == 0:
+                    break
+                j = p_views[t]
+                xc0, yc0, zc0 = _to_camera(params, j, centres[i, 0], centres[i, 1], centres[i, 2])
+                fs = params[j, 12] * voxel_size
+                for ch in range(8):
+                    if not live[ch]:
+                        continue
+                    sx = h if ch & 4 else -h
+                    sy = h if ch & 2 else -h
+                    sz = h if ch & 1 else -h
+                    count += 1
+                    xc = xc0 + params[j, 0] * sx + params[j, 1] * sy + params[j, 2] * sz
+                    yc = yc0 + params[j, 3] * sx + params[j, 4] * sy + params[j, 5] * sz
+                    zc = zc0 + params[j, 6] * sx + params[j, 7] * sy + params[j, 8] * sz
+                    u, v, _z = _project_cam(params, j, xc, yc, zc)
+                    if not (zc > 0 and u >= -0.5 and u <= params[j, 17] - 0.5 and v >= -0.5
+                            and v <= params[j, 18] - 0.5):
+                        continue
+                    seen[ch] += 1
+                    d = np.float32(_bilinear(params, j, tables, u, v) * (zc / fs))
+                    if d < mx[ch]:
+                        worst = 0
+                        for q in range(1, k + 1):
+                            if kept[ch, q] > kept[ch, worst]:
+                                worst = q
+                        kept[ch, worst] = d
+                        m = kept[ch, 0]
+                        for q in range(1, k + 1):
+                            m = max(m, kept[ch, q])
+                        mx[ch] = m
+                        if m <= -1.0:
+                            live[ch] = False  # k+1 views at <= -1: final after clamping
+                            alive -= 1
+            for ch in range(8):
+                if not valid[i * 8 + ch]:
+                    continue
+                m = mx[ch]
+                val = min(max(m, np.float32(-1.0)), np.float32(1.0))
+                if seen[ch] < min_seen and m > -1.0:
+                    val = np.float32(-1.0)
+                out[i * 8 + ch] = val
+        return count
+
+    @njit(cache=True, parallel=True)
+    def _voxel_group(centres, valid, p_start, p_views, p_out, p_in, voxel_size, params, tables,
+                     k, min_seen, chunk):
+        # centres: (P, 3) centres of split 2-voxel cells; out: (P * 8,) voxel values.
+        n_par = centres.shape[0]
+        nchunks = (n_par + chunk - 1) // chunk
+        out = np.full(n_par * 8, np.float32(-1.0))
+        tests = np.zeros(nchunks, dtype=np.int64)
+        for c in prange(nchunks):
+            tests[c] = _voxel_range(c * chunk, min(n_par, (c + 1) * chunk), centres, valid,
+                                    p_start, p_views, p_out, p_in, voxel_size, params, tables,
+                                    k, min_seen, out)
+        return out, tests.sum()
 
 
 def voxel_field(packed, points: np.ndarray, voxel_size: float, k: int, stats=None,
@@ -470,6 +661,23 @@ class Tree:
         self.n_off = np.zeros(1, np.int32)
 
 
+def _offsets(lengths: np.ndarray) -> np.ndarray:
+    """CSR offsets (len + 1,) int64 of segments of ``lengths``."""
+    out = np.zeros(len(lengths) + 1, dtype=np.int64)
+    np.cumsum(lengths, out=out[1:])
+    return out
+
+
+def _split_tree(decision, c_out, c_in, c_off, c_amb, c_neg, amb, scratch_off) -> Tree:
+    """The ``Tree`` of the cells with decision 2, their lists gathered from the scratch."""
+    sel = np.flatnonzero(decision == 2)
+    child = Tree.__new__(Tree)
+    child.start = _offsets(c_amb[sel])
+    child.views = _gather_lists(sel, scratch_off, c_amb, c_neg, amb, child.start)
+    child.n_out, child.n_in, child.n_off = c_out[sel], c_in[sel], c_off[sel]
+    return child
+
+
 def classify_tree(packed, tree: Tree, parent: np.ndarray, centres: np.ndarray, half_size: float,
                   voxel_size: float, k: int, slack: float, min_seen: int, lipschitz: float,
                   stats=None) -> tuple[np.ndarray, Tree]:
@@ -479,31 +687,43 @@ def classify_tree(packed, tree: Tree, parent: np.ndarray, centres: np.ndarray, h
     cells to split (in the order of ``np.flatnonzero(decision == 2)``).
     """
     params, tables = packed
-    lengths = np.diff(tree.start)[parent]
-    scratch_off = np.zeros(len(parent) + 1, dtype=np.int64)
-    np.cumsum(lengths, out=scratch_off[1:])
-    decision, c_out, c_in, c_off, c_amb, amb, tests = _classify_tree(
+    scratch_off = _offsets(np.diff(tree.start)[parent])
+    decision, c_out, c_in, c_off, c_amb, c_neg, amb, tests = _classify_tree(
         np.ascontiguousarray(centres, dtype=np.float64), parent, tree.start, tree.views,
         tree.n_out, tree.n_in, tree.n_off, scratch_off, float(half_size), float(voxel_size),
         params, tables, int(k), float(slack), int(min_seen), float(lipschitz), CHUNK)
     if stats is not None:
         stats.cell_view_tests += int(tests)
-    sel = np.flatnonzero(decision == 2)
-    child = Tree.__new__(Tree)
-    child.start = np.zeros(len(sel) + 1, dtype=np.int64)
-    np.cumsum(c_amb[sel], out=child.start[1:])
-    child.views = _gather_lists(sel, scratch_off, c_amb, amb, child.start)
-    child.n_out, child.n_in, child.n_off = c_out[sel], c_in[sel], c_off[sel]
-    return decision, child
+    return decision, _split_tree(decision, c_out, c_in, c_off, c_amb, c_neg, amb, scratch_off)
 
 
-def voxel_tree(packed, tree: Tree, parent: np.ndarray, points: np.ndarray, voxel_size: float,
-               k: int, min_seen: int, stats=None) -> np.ndarray:
-    """Clamped field of fine voxels, testing only their parent cell's ambiguous views."""
+def classify_group(packed, tree: Tree, centres: np.ndarray, valid: np.ndarray, half_size: float,
+                   voxel_size: float, k: int, slack: float, min_seen: int, lipschitz: float,
+                   stats=None) -> tuple[np.ndarray, Tree]:
+    """Decide the 8 children of every split cell (``centres`` (P, 3): the parents').
+
+    Children are ordered as ``carve._children``; ``valid`` (P * 8,) bool marks
+    those inside the grid.  Returns the (P * 8,) decision (0 removed, 1 full, 2
+    split) and the ``Tree`` of the children to split.
+    """
     params, tables = packed
-    out, tests = _voxel_tree(np.ascontiguousarray(points, dtype=np.float64), parent, tree.start,
-                             tree.views, tree.n_out, tree.n_in, float(voxel_size), params,
-                             tables, int(k), int(min_seen), CHUNK)
+    scratch_off = _offsets(np.repeat(np.diff(tree.start), 8))
+    decision, c_out, c_in, c_off, c_amb, c_neg, amb, tests = _classify_group(
+        np.ascontiguousarray(centres, dtype=np.float64), valid, tree.start, tree.views,
+        tree.n_out, tree.n_in, tree.n_off, scratch_off, float(half_size), float(voxel_size),
+        params, tables, int(k), float(slack), int(min_seen), float(lipschitz), GROUP_CHUNK)
+    if stats is not None:
+        stats.cell_view_tests += int(tests)
+    return decision, _split_tree(decision, c_out, c_in, c_off, c_amb, c_neg, amb, scratch_off)
+
+
+def voxel_group(packed, tree: Tree, centres: np.ndarray, valid: np.ndarray, voxel_size: float,
+                k: int, min_seen: int, stats=None) -> np.ndarray:
+    """Clamped field of the 8 voxels of every split 2-voxel cell (``centres``: the cells')."""
+    params, tables = packed
+    out, tests = _voxel_group(np.ascontiguousarray(centres, dtype=np.float64), valid,
+                              tree.start, tree.views, tree.n_out, tree.n_in, float(voxel_size),
+                              params, tables, int(k), int(min_seen), GROUP_CHUNK)
     if stats is not None:
         stats.voxel_view_tests += int(tests)
     return out
