@@ -70,15 +70,15 @@ def load_original_calibration(path: Path, boards: dict[int, np.ndarray]
 
     Follows the README: ``M = Rz Ry Rx``; ``x_cam = M^T Rz(alpha) X - M^T C`` with
     ``alpha = -angle * angle_factor`` for a clockwise turntable.  Its separate
-    ``fx``, ``fy`` are kept in ``quality["fx_fy"]``; use ``project_original`` to
-    reproduce its pixels exactly.
+    ``fx``, ``fy`` become ``f = fx``, ``aspect = fy / fx`` (exact); they are also
+    kept in ``quality["fx_fy"]``.
     """
     d = json.loads(Path(path).read_text())
     models, poses, fxfy = {}, {}, {}
     for cam, p in d["cameras_parameters"].items():
         w, h = int(p["_width_image"]), int(p["_height_image"])
         fx, fy = float(p["_focal_length_x"]), float(p["_focal_length_y"])
-        models[cam] = CameraModel(math.sqrt(fx * fy), w / 2.0, h / 2.0, 0.0, 0.0, w, h)
+        models[cam] = CameraModel(fx, w / 2.0, h / 2.0, 0.0, 0.0, w, h, fy / fx)
         fxfy[cam] = (fx, fy)
         m = _euler(p)
         c = np.array([p["_pos_x"], p["_pos_y"], p["_pos_z"]], dtype=float)

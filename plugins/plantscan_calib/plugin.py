@@ -44,9 +44,15 @@ class TurntableCalibrator(Calibrator):
         min_views: int = Field(3, ge=1, description="fewest board detections per camera and tilt")
         fix_principal_point: bool = False
         fix_distortion: bool = False
+        fit_aspect: bool = Field(False, description="estimate the pixel aspect ratio "
+                                 "(fy = f * aspect); off: square pixels, as the seed")
         fit_angle_scale: bool = False
+        joint_tilt_axis: bool = Field(True, description="solve the (camera, tilt) poses as one "
+                                      "rigid tilting arm (one axis, one angle error per tilt)")
         angle_jitter_deg: float | None = Field(None, gt=0)
         outlier_sigma: float = Field(4.0, gt=1)
+        min_outlier_px: float = Field(0.3, ge=0, description="a corner closer than this is "
+                                      "never rejected as an outlier")
         cauchy_scale_px: float = Field(1.0, gt=0)
         max_rms_px: float = Field(2.0, gt=0)
         max_rejected_fraction: float = Field(0.05, ge=0, le=1)
@@ -67,7 +73,9 @@ class TurntableCalibrator(Calibrator):
         p = self.params
         return SolveOptions(fix_principal_point=p.fix_principal_point,
                             fix_distortion=p.fix_distortion, fit_angle_scale=p.fit_angle_scale,
+                            fit_aspect=p.fit_aspect, joint_tilt_axis=p.joint_tilt_axis,
                             angle_jitter_deg=p.angle_jitter_deg, outlier_sigma=p.outlier_sigma,
+                            min_outlier_px=p.min_outlier_px,
                             cauchy_scale_px=p.cauchy_scale_px, min_views=p.min_views,
                             max_rms_px=p.max_rms_px,
                             max_rejected_fraction=p.max_rejected_fraction,

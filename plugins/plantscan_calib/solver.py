@@ -12,9 +12,11 @@ A board corner ``P`` (mm, board frame) of board ``b`` photographed by camera
     X     = Rz(theta * s + e) X0              the plate turned by theta (s: angle scale,
                                               e: error of this turntable stop, optional)
     x_cam = R_ct (X - C_ct)                   world -> camera of (c, t)
-    uv    = CameraModel(f, cu, cv, d1, d2)    pinhole + two radial terms
+    uv    = CameraModel(f, cu, cv, d1, d2, aspect)   pinhole + two radial terms,
+                                              fy = f * aspect
 
-Unknowns: per camera ``[f, cu, cv, d1, d2]``; per (camera, tilt) the rotation
+Unknowns: per camera ``[f, cu, cv, d1, d2, aspect]`` (aspect held at 1 unless
+``fit_aspect``); per (camera, tilt) the rotation
 vector of ``R_ct`` and the centre ``C_ct`` (mm); per board the rotation vector of
 ``R_b`` and ``t_b``; optionally ``s``.  Images alone cannot tell a rotation of
 the world about the turntable axis nor a shift along it (the gauge): they are
@@ -84,6 +86,8 @@ class SolveOptions:
     principal_points : dict camera -> (cu, cv) px, optional
     fix_distortion : bool
         Hold d1 = d2 = 0 (a rig whose lenses are modelled as distortion-free).
+    fit_aspect : bool
+        Estimate the pixel aspect ratio (fy = f * aspect) instead of holding it at 1.
     fit_angle_scale : bool
         Estimate the turntable's angle scale (gear ratio error) instead of 1.
     refine : bool
@@ -92,6 +96,8 @@ class SolveOptions:
         Scale of the Cauchy loss of the robust solve.
     outlier_sigma : float
         Corners whose residual exceeds this many sigma (robust) are rejected.
+    min_outlier_px : float
+        ... unless their residual is below this (px).
     min_views : int
         Fewest detections needed per (camera, tilt).
     lowest_corner_height_mm : float
@@ -115,15 +121,27 @@ class SolveOptions:
     covariance : bool
         Report parameter 1-sigma from the Ceres covariance.
     max_iterations : int
+    joint_tilt_axis : bool
+        With two or more tilts, solve the (camera, tilt) poses as one rigid arm:
+        each camera's pose at the reference tilt, one tilt axis (origin,
+        direction) shared by all cameras and one angle error per tilt index,
+        instead of a free pose per (camera, tilt).  A free-pose solve runs
+        first; its misfit to the arm model is reported (``quality.tilt_axis``).
+    max_arm_rms_ratio : float
+        When the arm model's residual RMS of some (camera, tilt) exceeds the free
+        poses' by this factor (on the free fit's inliers), the arm is not rigid:
+        the free poses are kept and a flag raised.
     """
 
     fix_principal_point: bool = False
     principal_points: dict[str, tuple[float, float]] = field(default_factory=dict)
     fix_distortion: bool = False
+    fit_aspect: bool = False
     fit_angle_scale: bool = False
     refine: bool = True
     cauchy_scale_px: float = 1.0
     outlier_sigma: float = 4.0
+    min_outlier_px: float = 0.3
     min_views: int = 3
     lowest_corner_height_mm: float = 0.0
     reference_tilt_index: int | None = None
@@ -137,6 +155,8 @@ class SolveOptions:
     covariance: bool = True
     max_iterations: int = 100
     max_init_views: int = 40
+    joint_tilt_axis: bool = True
+    max_arm_rms_ratio: float = 1.05
 
 
 # --------------------------------------------------------------------------- rotations
@@ -170,9 +190,10 @@ def mean_rotation(rs: Sequence[np.ndarray]) -> np.ndarray:
 
 # --------------------------------------------------------------------------- projection
 # Layout of the parameter vector of one view's cost: intrinsics, camera pose, board pose, scale.
-N_INTR, N_POSE = 5, 6
-I_INTR, I_CAM, I_BOARD, I_SCALE, I_STOP = 0, 5, 11, 17, 18
-N_ALL = 19
+N_INTR, N_POSE = 6, 6
+I_INTR, I_CAM, I_BOARD, I_SCALE, I_STOP = 0, 6, 12, 18, 19
+N_ALL = 20
+INTR_NAMES = ("f", "cu", "cv", "d1", "d2", "aspect")
 
 
 def project_batch(params: np.ndarray, points: np.ndarray, angle_deg: float) -> np.ndarray:
@@ -180,8 +201,8 @@ def project_batch(params: np.ndarray, points: np.ndarray, angle_deg: float) -> n
 
     Parameters
     ----------
-    params : (K, 19) float64 array
-        ``[f, cu, cv, d1, d2, rc(3), C(3) mm, rb(3), tb(3) mm, s, e deg]`` per row.
+    params : (K, 20) float64 array
+        ``[f, cu, cv, d1, d2, aspect, rc(3), C(3) mm, rb(3), tb(3) mm, s, e deg]`` per row.
     points : (N, 3) float64 array, mm, board frame
     angle_deg : float, deg, commanded turntable angle
 
@@ -190,18 +211,41 @@ def project_batch(params: np.ndarray, points: np.ndarray, angle_deg: float) -> n
     (K, N, 2) float64 array, px
     """
     p = np.atleast_2d(params)
-    rb = rotmats(p[:, 11:14])
-    x0 = np.einsum("kij,nj->kni", rb, points) + p[:, None, 14:17]
-    a = np.radians(angle_deg * p[:, 17] + p[:, 18])
+    return project_mats(p[:, :N_INTR], rotmats(p[:, I_CAM:I_CAM + 3]), p[:, I_CAM + 3:I_BOARD],
+                        rotmats(p[:, I_BOARD:I_BOARD + 3]), p[:, I_BOARD + 3:I_SCALE],
+                        p[:, I_SCALE], p[:, I_STOP], points, angle_deg)
+
+
+def project_mats(intr: np.ndarray, rc: np.ndarray, centre: np.ndarray, rb: np.ndarray,
+                 tb: np.ndarray, scale: np.ndarray, stop_deg: np.ndarray, points: np.ndarray,
+                 angle_deg: float) -> np.ndarray:
+    """``project_batch`` with the rotations given as matrices.
+
+    Parameters
+    ----------
+    intr : (K, 6) ``[f, cu, cv, d1, d2, aspect]``
+    rc : (K, 3, 3) world -> camera rotations
+    centre : (K, 3) camera centres, mm, world frame
+    rb : (K, 3, 3), tb : (K, 3) mm, board -> turntable frame at angle 0
+    scale, stop_deg : (K,) angle scale and stop error (deg)
+    points : (N, 3) mm, board frame
+    angle_deg : float, commanded turntable angle
+
+    Returns
+    -------
+    (K, N, 2) float64 array, px
+    """
+    x0 = np.einsum("kij,nj->kni", rb, points) + tb[:, None, :]
+    a = np.radians(angle_deg * scale + stop_deg)
     ca, sa = np.cos(a)[:, None], np.sin(a)[:, None]
     xw = np.stack([ca * x0[..., 0] - sa * x0[..., 1], sa * x0[..., 0] + ca * x0[..., 1],
                    x0[..., 2]], axis=-1)
-    rc = rotmats(p[:, 5:8])
-    xc = np.einsum("kij,knj->kni", rc, xw - p[:, None, 8:11])
+    xc = np.einsum("kij,knj->kni", rc, xw - centre[:, None, :])
     xy = xc[..., :2] / xc[..., 2:3]
     r2 = np.sum(xy * xy, axis=-1, keepdims=True)
-    s = 1.0 + p[:, None, 3:4] * r2 + p[:, None, 4:5] * r2 * r2
-    return xy * s * p[:, None, 0:1] + p[:, None, 1:3]
+    s = 1.0 + intr[:, None, 3:4] * r2 + intr[:, None, 4:5] * r2 * r2
+    focal = np.stack([intr[:, 0], intr[:, 0] * intr[:, 5]], axis=-1)[:, None, :]
+    return xy * s * focal + intr[:, None, 1:3]
 
 
 def _fd_steps(p: np.ndarray) -> np.ndarray:
@@ -258,6 +302,141 @@ def _make_view_cost():
     return ViewCost
 
 
+def axis_direction(angles: np.ndarray) -> np.ndarray:
+    """Unit vectors ``(K, 3)`` from ``(K, 2)`` [azimuth, elevation] rad (tilt axes are
+    near horizontal, far from the poles of this parametrisation)."""
+    a = np.atleast_2d(angles)
+    ce = np.cos(a[:, 1])
+    return np.stack([ce * np.cos(a[:, 0]), ce * np.sin(a[:, 0]), np.sin(a[:, 1])], axis=1)
+
+
+def arm_pose(ref_pose: np.ndarray, origin: np.ndarray, dir_angles: np.ndarray,
+             dphi_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World -> camera rotation ``(K, 3, 3)`` and centre ``(K, 3)`` mm of a camera moved
+    by ``dphi_deg`` ``(K,)`` about the tilt axis from its reference pose ``(K, 6)``.
+
+    The arm turns by ``q`` about the line through ``origin`` ``(K, 3)``: the
+    camera centre goes to ``o + q (C - o)``, its rotation to ``R q^T``.
+    """
+    q = rotmats(axis_direction(dir_angles) * np.radians(dphi_deg)[:, None])
+    rc = rotmats(ref_pose[:, :3]) @ np.transpose(q, (0, 2, 1))
+    c = origin + np.einsum("kij,kj->ki", q, ref_pose[:, 3:6] - origin)
+    return rc, c
+
+
+# Layout of the arm cost's parameters: intrinsics, reference pose, axis origin, axis
+# direction (azimuth, elevation), tilt error, board pose, scale, stop error.
+ARM_SIZES = (N_INTR, N_POSE, 3, 2, 1, N_POSE, 1, 1)
+ARM_STARTS = tuple(int(x) for x in np.cumsum((0,) + ARM_SIZES[:-1]))
+N_ARM = sum(ARM_SIZES)
+
+
+def project_arm(params: np.ndarray, points: np.ndarray, angle_deg: float,
+                dtilt_deg: float) -> np.ndarray:
+    """Pixels ``(K, N, 2)`` of board points seen from a tilt ``dtilt_deg`` away from the
+    reference tilt, under ``K`` arm parameter vectors ``(K, 27)`` (``ARM_SIZES``)."""
+    p = np.atleast_2d(params)
+    o = ARM_STARTS
+    rc, c = arm_pose(p[:, o[1]:o[1] + 6], p[:, o[2]:o[2] + 3], p[:, o[3]:o[3] + 2],
+                     dtilt_deg + p[:, o[4]])
+    return project_mats(p[:, :N_INTR], rc, c, rotmats(p[:, o[5]:o[5] + 3]), p[:, o[5] + 3:o[6]],
+                        p[:, o[6]], p[:, o[7]], points, angle_deg)
+
+
+def _make_arm_cost():
+    import pyceres
+
+    class ArmViewCost(pyceres.CostFunction):
+        """One view at a non-reference tilt, its camera placed by the arm model."""
+
+        def __init__(self, points: np.ndarray, uv: np.ndarray, angle_deg: float,
+                     dtilt_deg: float):
+            super().__init__()
+            self.points = np.ascontiguousarray(points, dtype=float)
+            self.uv = np.ascontiguousarray(uv, dtype=float)
+            self.angle_deg = float(angle_deg)
+            self.dtilt_deg = float(dtilt_deg)
+            self.set_num_residuals(2 * len(self.uv))
+            self.set_parameter_block_sizes(list(ARM_SIZES))
+
+        def Evaluate(self, parameters, residuals, jacobians):  # noqa: N802 - Ceres API
+            p = np.concatenate([np.asarray(b) for b in parameters])
+            if jacobians is None or all(j is None for j in jacobians):
+                uv = project_arm(p[None], self.points, self.angle_deg, self.dtilt_deg)[0]
+                if not np.all(np.isfinite(uv)):
+                    return False
+                residuals[:] = (uv - self.uv).ravel()
+                return True
+            h = 1e-6 * np.maximum(1.0, np.abs(p))
+            h[3:5] = 1e-7  # distortion terms are dimensionless and small
+            stack = np.repeat(p[None], 1 + 2 * N_ARM, axis=0)
+            idx = np.arange(N_ARM)
+            stack[1 + idx, idx] += h
+            stack[1 + N_ARM + idx, idx] -= h
+            uv = project_arm(stack, self.points, self.angle_deg, self.dtilt_deg)
+            if not np.all(np.isfinite(uv)):
+                return False
+            residuals[:] = (uv[0] - self.uv).ravel()
+            jac = ((uv[1:1 + N_ARM] - uv[1 + N_ARM:]).reshape(N_ARM, -1) / (2 * h[:, None])).T
+            for j, (s0, n) in enumerate(zip(ARM_STARTS, ARM_SIZES, strict=True)):
+                if jacobians[j] is not None:
+                    jacobians[j][:] = jac[:, s0:s0 + n].ravel()
+            return True
+
+    return ArmViewCost
+
+
+def _make_axis_gauge_cost():
+    import pyceres
+
+    class AxisGaugeCost(pyceres.CostFunction):
+        """``w * (origin . direction)``: pins the axis origin's free slide along the axis."""
+
+        def __init__(self, weight: float):
+            super().__init__()
+            self.weight = float(weight)
+            self.set_num_residuals(1)
+            self.set_parameter_block_sizes([3, 2])
+
+        def Evaluate(self, parameters, residuals, jacobians):  # noqa: N802 - Ceres API
+            o, a = np.asarray(parameters[0]), np.asarray(parameters[1])
+            d = axis_direction(a)[0]
+            residuals[0] = self.weight * float(o @ d)
+            if jacobians is not None:
+                if jacobians[0] is not None:
+                    jacobians[0][:] = self.weight * d
+                if jacobians[1] is not None:
+                    ce, se = math.cos(a[1]), math.sin(a[1])
+                    dd = np.array([[-ce * math.sin(a[0]), -se * math.cos(a[0])],
+                                   [ce * math.cos(a[0]), -se * math.sin(a[0])], [0.0, ce]])
+                    jacobians[1][:] = self.weight * (o @ dd)
+            return True
+
+    return AxisGaugeCost
+
+
+@dataclass
+class ArmModel:
+    """Parameter blocks of the rigid-arm model (``SolveOptions.joint_tilt_axis``)."""
+
+    reference_tilt_index: int
+    tilts_deg: dict[int, float]
+    origin: np.ndarray                      # (3,) mm, world frame at angle 0
+    direction: np.ndarray                   # (2,) azimuth, elevation, rad
+    tilt_errors: dict[int, np.ndarray]      # tilt index -> (1,) deg (reference: held at 0)
+
+    def copy(self) -> ArmModel:
+        return ArmModel(self.reference_tilt_index, dict(self.tilts_deg), self.origin.copy(),
+                        self.direction.copy(), {k: v.copy() for k, v in self.tilt_errors.items()})
+
+    def dtilt(self, tilt_index: int) -> float:
+        """Commanded tilt change from the reference tilt, deg."""
+        return self.tilts_deg[tilt_index] - self.tilts_deg[self.reference_tilt_index]
+
+    def unit_direction(self) -> np.ndarray:
+        return axis_direction(self.direction)[0]
+
+
 # --------------------------------------------------------------------------- state
 @dataclass
 class RigState:
@@ -269,6 +448,7 @@ class RigState:
     scale: np.ndarray                            # (1,)
     image_sizes: dict[str, tuple[int, int]]
     stops: dict[tuple[int, float], np.ndarray] = field(default_factory=dict)  # (1,) deg each
+    arm: ArmModel | None = None    # set: (camera, tilt) poses follow the rigid-arm model
 
     def stop(self, d: Detection) -> np.ndarray:
         """Angle-error block of the turntable stop of ``d`` (created at 0 on first use)."""
@@ -279,7 +459,23 @@ class RigState:
                         {k: v.copy() for k, v in self.cam_poses.items()},
                         {k: v.copy() for k, v in self.board_poses.items()},
                         self.scale.copy(), dict(self.image_sizes),
-                        {k: v.copy() for k, v in self.stops.items()})
+                        {k: v.copy() for k, v in self.stops.items()},
+                        None if self.arm is None else self.arm.copy())
+
+    def sync_arm(self) -> None:
+        """Write the arm model's poses into ``cam_poses`` of the non-reference tilts."""
+        arm = self.arm
+        if arm is None:
+            return
+        ref = arm.reference_tilt_index
+        for (cam, ti), p in self.cam_poses.items():
+            if ti == ref:
+                continue
+            dphi = np.array([arm.dtilt(ti) + arm.tilt_errors[ti][0]])
+            rc, c = arm_pose(self.cam_poses[(cam, ref)][None], arm.origin[None],
+                             arm.direction[None], dphi)
+            p[:3] = rotvec(rc[0])
+            p[3:6] = c[0]
 
     def params_for(self, d: Detection) -> np.ndarray:
         return np.concatenate([self.intrinsics[d.camera], self.cam_poses[(d.camera, d.tilt_index)],
@@ -291,9 +487,9 @@ class RigState:
         return project_batch(self.params_for(d)[None], pts, d.angle_deg)[0] - d.uv
 
     def model(self, camera: str) -> CameraModel:
-        f, cu, cv, d1, d2 = (float(x) for x in self.intrinsics[camera])
+        f, cu, cv, d1, d2, aspect = (float(x) for x in self.intrinsics[camera])
         w, h = self.image_sizes[camera]
-        return CameraModel(f, cu, cv, d1, d2, int(w), int(h))
+        return CameraModel(f, cu, cv, d1, d2, int(w), int(h), aspect)
 
     def pose(self, key: tuple[str, int]) -> Pose:
         p = self.cam_poses[key]
@@ -310,6 +506,10 @@ class RigState:
         for p in self.board_poses.values():
             p[:3] = rotvec(q @ rotmats(p[:3])[0])
             p[3:6] = q @ p[3:6] + [0.0, 0.0, dz]
+        if self.arm is not None:
+            d = q @ self.arm.unit_direction()
+            self.arm.direction[:] = [math.atan2(d[1], d[0]), math.asin(np.clip(d[2], -1, 1))]
+            self.arm.origin[:] = q @ self.arm.origin + [0.0, 0.0, dz]
 
 
 def stop_key(d: Detection) -> tuple[int, float]:
@@ -370,12 +570,12 @@ def _init_intrinsics(cam: str, dets: list[Detection], boards: dict[int, np.ndarr
         flags |= cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2
     _, k, dist, _, _ = cv2.calibrateCamera(obj, img, size, k, np.zeros(5), flags=flags)
     return np.array([(k[0, 0] + k[1, 1]) / 2, k[0, 2], k[1, 2], dist.ravel()[0],
-                     dist.ravel()[1]], dtype=float)
+                     dist.ravel()[1], 1.0], dtype=float)
 
 
 def _board_to_camera(d: Detection, intr: np.ndarray, boards: dict[int, np.ndarray]):
     """(R, t) board -> camera of one detection (PnP with the camera's intrinsics)."""
-    k = np.array([[intr[0], 0, intr[1]], [0, intr[0], intr[2]], [0, 0, 1.0]])
+    k = np.array([[intr[0], 0, intr[1]], [0, intr[0] * intr[5], intr[2]], [0, 0, 1.0]])
     dist = np.array([intr[3], intr[4], 0.0, 0.0, 0.0])
     obj = boards[d.board][d.corner_ids].astype(np.float64)
     ok, rv, tv = cv2.solvePnP(obj, d.uv.astype(np.float64), k, dist, flags=cv2.SOLVEPNP_IPPE)
@@ -533,6 +733,25 @@ def reference_key(state: RigState) -> tuple[str, int]:
     return min(state.cam_poses)
 
 
+def gauge_key(state: RigState) -> tuple[str, int]:
+    """The pose block held by the gauge (with an arm model: one at the arm's reference tilt)."""
+    if state.arm is None:
+        return reference_key(state)
+    return min(k for k in state.cam_poses if k[1] == state.arm.reference_tilt_index)
+
+
+def attach_arm(state: RigState, axis: TiltAxis, tilts_deg: dict[int, float]) -> None:
+    """Switch ``state`` to the rigid-arm model, starting from a fitted ``axis``."""
+    d = np.asarray(axis.direction, dtype=float) / np.linalg.norm(axis.direction)
+    o = np.asarray(axis.origin, dtype=float)
+    tilts = sorted({t for _, t in state.cam_poses})
+    state.arm = ArmModel(axis.reference_tilt_index, {t: float(tilts_deg[t]) for t in tilts},
+                         o - d * (o @ d),
+                         np.array([math.atan2(d[1], d[0]), math.asin(np.clip(d[2], -1, 1))]),
+                         {t: np.zeros(1) for t in tilts})
+    state.sync_arm()
+
+
 def _normalise_gauge(state: RigState, ref: tuple[str, int]) -> None:
     """Turn the world so the reference camera centre is on -Y and at Z = 0."""
     c = state.cam_poses[ref][3:6]
@@ -559,6 +778,8 @@ def _build_problem(state: RigState, detections: list[Detection], boards: dict[in
     import pyceres
 
     view_cost = _make_view_cost()
+    arm = state.arm
+    arm_cost = _make_arm_cost() if arm is not None else None
     problem = pyceres.Problem()
     loss = pyceres.CauchyLoss(opt.cauchy_scale_px) if robust else pyceres.TrivialLoss()
     n_res = 0
@@ -566,17 +787,26 @@ def _build_problem(state: RigState, detections: list[Detection], boards: dict[in
         keep = masks[i]
         if keep.sum() < 4:
             continue
-        cost = view_cost(boards[d.board][d.corner_ids[keep]], d.uv[keep], d.angle_deg)
-        problem.add_residual_block(cost, loss, [state.intrinsics[d.camera],
-                                                state.cam_poses[(d.camera, d.tilt_index)],
-                                                state.board_poses[d.board], state.scale,
-                                                state.stop(d)])
+        pts = boards[d.board][d.corner_ids[keep]]
+        if arm is not None and d.tilt_index != arm.reference_tilt_index:
+            # The camera of this tilt is its reference-tilt pose moved about the arm's axis.
+            cost = arm_cost(pts, d.uv[keep], d.angle_deg, arm.dtilt(d.tilt_index))
+            blocks = [state.intrinsics[d.camera],
+                      state.cam_poses[(d.camera, arm.reference_tilt_index)], arm.origin,
+                      arm.direction, arm.tilt_errors[d.tilt_index], state.board_poses[d.board],
+                      state.scale, state.stop(d)]
+        else:
+            cost = view_cost(pts, d.uv[keep], d.angle_deg)
+            blocks = [state.intrinsics[d.camera], state.cam_poses[(d.camera, d.tilt_index)],
+                      state.board_poses[d.board], state.scale, state.stop(d)]
+        problem.add_residual_block(cost, loss, blocks)
         n_res += 2 * int(keep.sum())
-    fixed = []
-    if opt.fix_principal_point:
-        fixed += [1, 2]
-    if opt.fix_distortion:
-        fixed += [3, 4]
+    if arm is not None:
+        # Sliding the axis origin along the axis changes nothing: pin it nearest the world
+        # origin (weight: 1 mm of slide weighs like one corner's noise).
+        problem.add_residual_block(_make_axis_gauge_cost()(1.0), None,
+                                   [arm.origin, arm.direction])
+    fixed = fixed_intrinsics(opt)
     for arr in state.intrinsics.values():
         if len(fixed) == N_INTR:
             problem.set_parameter_block_constant(arr)
@@ -589,7 +819,7 @@ def _build_problem(state: RigState, detections: list[Detection], boards: dict[in
                 _make_prior_cost(N_INTR, [3, 4])(opt.prior_noise_px / opt.distortion_prior),
                 None, [arr])
     # Gauge: the reference camera centre stays at x = 0 and z = 0 (see module docstring).
-    problem.set_manifold(state.cam_poses[reference_key(state)], pyceres.SubsetManifold(6, [3, 5]))
+    problem.set_manifold(state.cam_poses[gauge_key(state)], pyceres.SubsetManifold(6, [3, 5]))
     if not opt.fit_angle_scale:
         problem.set_parameter_block_constant(state.scale)
     stops = {stop_key(d) for i, d in enumerate(detections) if masks[i].sum() >= 4}
@@ -603,6 +833,12 @@ def _build_problem(state: RigState, detections: list[Detection], boards: dict[in
             weight = opt.prior_noise_px / opt.angle_jitter_deg
             problem.add_residual_block(_make_prior_cost()(weight), None, [block])
     return problem, n_res
+
+
+def fixed_intrinsics(opt: SolveOptions) -> list[int]:
+    """Indices of ``[f, cu, cv, d1, d2, aspect]`` held constant under ``opt``."""
+    return (([1, 2] if opt.fix_principal_point else []) + ([3, 4] if opt.fix_distortion else [])
+            + ([] if opt.fit_aspect else [5]))
 
 
 def _make_prior_cost(size: int = 1, which: Sequence[int] = (0,)):
@@ -651,35 +887,46 @@ def _solve(problem, opt: SolveOptions) -> SolveReport:
                        float(summary.final_cost), bool(summary.IsSolutionUsable()))
 
 
+def inlier_masks(state: RigState, detections: list[Detection], boards: dict[int, np.ndarray],
+                 opt: SolveOptions, masks: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+    """``masks`` minus the corners beyond ``outlier_sigma`` robust sigma (per camera)."""
+    norms = {i: np.linalg.norm(state.residuals(d, boards), axis=1)
+             for i, d in enumerate(detections)}
+    # Noise differs between cameras (sensor, focus, a detector that rounds): one sigma
+    # per camera.  The median of a 2-D Gaussian residual norm is 1.1774 sigma (Rayleigh).
+    sigma = {}
+    for cam in state.intrinsics:
+        kept = np.concatenate([norms[i][masks[i]] for i in norms
+                               if detections[i].camera == cam] or [np.zeros(1)])
+        sigma[cam] = max(float(np.median(kept)) / 1.1774, 1e-6)
+    # A corner within min_outlier_px is never an outlier: rendered or very sharp corners
+    # have tiny noise but non-Gaussian tails, and a few tenths of a pixel is detector-level.
+    return {i: masks[i] & (norms[i] <= max(opt.outlier_sigma * sigma[detections[i].camera],
+                                           opt.min_outlier_px)) for i in norms}
+
+
 def refine(state: RigState, detections: list[Detection], boards: dict[int, np.ndarray],
            opt: SolveOptions, masks: dict[int, np.ndarray] | None = None,
-           ) -> tuple[dict[int, np.ndarray], list[SolveReport], Any]:
+           reject: bool = True) -> tuple[dict[int, np.ndarray], list[SolveReport], Any]:
     """Robust (Cauchy) solve, reject outliers at ``outlier_sigma``, then plain solves.
 
-    ``state`` is updated in place.  Returns the kept-corner masks per detection,
-    the solve reports and the final Ceres problem (for the covariance).
+    ``state`` is updated in place; ``reject=False`` stops after the robust solve.
+    Returns the kept-corner masks per detection, the solve reports and the final
+    Ceres problem (for the covariance).
     """
     masks = {i: np.ones(len(d.uv), bool) for i, d in enumerate(detections)} if masks is None \
         else masks
     reports = []
     problem, _ = _build_problem(state, detections, boards, masks, opt, robust=True)
     reports.append(_solve(problem, opt))
-    for _ in range(3):
-        norms = {i: np.linalg.norm(state.residuals(d, boards), axis=1)
-                 for i, d in enumerate(detections)}
-        # Noise differs between cameras (sensor, focus, a detector that rounds): one sigma
-        # per camera.  The median of a 2-D Gaussian residual norm is 1.1774 sigma (Rayleigh).
-        sigma = {}
-        for cam in state.intrinsics:
-            kept = np.concatenate([norms[i][masks[i]] for i in norms
-                                   if detections[i].camera == cam] or [np.zeros(1)])
-            sigma[cam] = max(float(np.median(kept)) / 1.1774, 1e-6)
-        new = {i: masks[i] & (norms[i] <= opt.outlier_sigma * sigma[detections[i].camera])
-               for i in norms}
+    state.sync_arm()
+    for _ in range(3 if reject else 0):
+        new = inlier_masks(state, detections, boards, opt, masks)
         changed = any(np.any(new[i] != masks[i]) for i in masks)
         masks = new
         problem, _ = _build_problem(state, detections, boards, masks, opt, robust=False)
         reports.append(_solve(problem, opt))
+        state.sync_arm()
         if not changed:
             break
     return masks, reports, problem
@@ -772,6 +1019,28 @@ def _rms(n: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.asarray(n) ** 2)))
 
 
+def _arm_pose_covariance(state: RigState, cam: str, tilt: int, ambient) -> np.ndarray:
+    """(6, 6) covariance of ``[rotvec, C]`` of an arm-model pose, propagated (first order)
+    from its reference pose, the axis and its tilt error."""
+    arm = state.arm
+    bs = [state.cam_poses[(cam, arm.reference_tilt_index)], arm.origin, arm.direction,
+          arm.tilt_errors[tilt]]
+    x0 = np.concatenate(bs)
+
+    def pose_of(x):
+        rc, c = arm_pose(x[None, :6], x[None, 6:9], x[None, 9:11],
+                         np.array([arm.dtilt(tilt) + x[11]]))
+        return np.concatenate([rotvec(rc[0]), c[0]])
+
+    jac = np.zeros((6, len(x0)))
+    for k in range(len(x0)):
+        h = 1e-6 * max(1.0, abs(x0[k]))
+        e = np.zeros_like(x0)
+        e[k] = h
+        jac[:, k] = (pose_of(x0 + e) - pose_of(x0 - e)) / (2 * h)
+    return jac @ ambient(bs) @ jac.T
+
+
 def _covariance(problem, state: RigState, n_res: int, final_cost: float,
                 opt: SolveOptions) -> dict[str, Any]:
     """Parameter 1-sigma from the Jacobian Ceres evaluates at the solution.
@@ -783,10 +1052,14 @@ def _covariance(problem, state: RigState, n_res: int, final_cost: float,
     """
     import pyceres
 
+    arm = state.arm
     blocks = (list(state.intrinsics.values()) + list(state.cam_poses.values())
               + list(state.board_poses.values()) + [state.scale]
-              + [state.stops[k] for k in sorted(state.stops) if problem.has_parameter_block(
-                  state.stops[k])])
+              + [state.stops[k] for k in sorted(state.stops)])
+    if arm is not None:
+        blocks += [arm.origin, arm.direction] + [arm.tilt_errors[t]
+                                                 for t in sorted(arm.tilt_errors)]
+    blocks = [b for b in blocks if problem.has_parameter_block(b)]
     eopt = pyceres.EvaluateOptions()
     eopt.set_parameter_blocks(blocks)
     eopt.apply_loss_function = False
@@ -815,17 +1088,35 @@ def _covariance(problem, state: RigState, n_res: int, final_cost: float,
         i = next(k for k, x in enumerate(blocks) if x is b)
         return cov[offs[i]:offs[i + 1], offs[i]:offs[i + 1]]
 
+    gauge = state.cam_poses[gauge_key(state)]
+
+    def ambient(bs):
+        """Covariance of the ambient entries of blocks ``bs`` (held entries: 0)."""
+        idx_cov, idx_amb, n = [], [], 0
+        for b in bs:
+            i = next(k for k, x in enumerate(blocks) if x is b)
+            free = [0, 1, 2, 4] if b is gauge else list(range(offs[i + 1] - offs[i]))
+            idx_cov += list(range(offs[i], offs[i + 1]))
+            idx_amb += [n + k for k in free]
+            n += len(b)
+        out_ = np.zeros((n, n))
+        out_[np.ix_(idx_amb, idx_amb)] = cov[np.ix_(idx_cov, idx_cov)]
+        return out_
+
     out: dict[str, Any] = {"residual_sigma_px": math.sqrt(sigma2), "models": {}, "poses": {}}
-    fixed = ([1, 2] if opt.fix_principal_point else []) + ([3, 4] if opt.fix_distortion else [])
+    fixed = fixed_intrinsics(opt)
     free = [k for k in range(N_INTR) if k not in fixed]
-    names = ("f", "cu", "cv", "d1", "d2")
+    names = INTR_NAMES
     for cam, arr in state.intrinsics.items():
         c = block(arr)
         if c.shape[0] == len(free):
             out["models"][cam] = {names[k]: float(np.sqrt(max(c[i, i], 0)))
                                   for i, k in enumerate(free)}
     for (cam, ti), arr in state.cam_poses.items():
-        c = block(arr)
+        if not problem.has_parameter_block(arr):  # an arm-model pose: propagate
+            c = _arm_pose_covariance(state, cam, ti, ambient)
+        else:
+            c = block(arr)
         if c.shape[0] == 6:
             centre = float(np.sqrt(max(np.trace(c[3:, 3:]), 0)))
         else:  # the gauge-anchored reference camera: only C_y free
@@ -908,8 +1199,54 @@ def calibrate_turntable(detections: list[Detection], boards: dict[int, np.ndarra
                   if v < 0.6],
     }
     masks = None
+    tilt_indices = {t for _, t in state.cam_poses}
+    ref_tilt = opt.reference_tilt_index if opt.reference_tilt_index is not None \
+        else min(tilt_indices)
     if opt.refine:
-        masks, reports, problem = refine(state, detections, boards, opt)
+        arm_mode = opt.joint_tilt_axis and len(tilt_indices) >= 2
+        # With the arm model to follow, the free poses need only the robust solve (a start
+        # and the model check); outliers are rejected in the final model.
+        masks, reports, problem = refine(state, detections, boards, opt, reject=not arm_mode)
+        if arm_mode:
+            # Free poses first: their misfit to one rigid arm checks the model, then the arm
+            # model is solved jointly (far fewer pose parameters, every tilt informs all).
+            free = {k: state.pose(k) for k in state.cam_poses}
+            fitted = fit_tilt_axis(free, tilts_deg, ref_tilt)
+            missing = sorted({c for c, _ in free} - {c for c, t in free if t == ref_tilt})
+            if fitted is None or missing:
+                quality["flags"].append(
+                    "joint tilt-axis model not used: cameras without the reference tilt "
+                    f"{ref_tilt}: {', '.join(missing) or 'all'}")
+            else:
+                axis, quality["tilt_axis"] = fitted
+                quality["tilt_axis"]["model_check"] = (
+                    "free (camera, tilt) poses vs the best one-axis arm through them")
+                free_state, free_masks = state.copy(), masks
+                attach_arm(state, axis, tilts_deg)
+                masks, more, problem = refine(state, detections, boards, opt, masks)
+                reports += more
+                # A rigid arm costs almost nothing in residual when true (fewer parameters,
+                # same fit); a clearly worse fit of some (camera, tilt) means the arm is not
+                # one rigid rotation.  Compared on the inliers of the free fit, per pose.
+                inl = inlier_masks(free_state, detections, boards, opt, free_masks)
+                per_free = residual_stats(free_state, detections, boards, inl)["per_camera_tilt"]
+                per_arm = residual_stats(state, detections, boards, inl)["per_camera_tilt"]
+                ratio = {k: per_arm[k]["rms_px"] / max(v["rms_px"], 1e-12)
+                         for k, v in per_free.items()}
+                worst = max(ratio, key=ratio.get)
+                quality["tilt_axis"].update({
+                    "rms_free_poses_px": {k: v["rms_px"] for k, v in per_free.items()},
+                    "rms_arm_model_px": {k: v["rms_px"] for k, v in per_arm.items()},
+                    "worst_rms_ratio": ratio[worst]})
+                if ratio[worst] > opt.max_arm_rms_ratio:
+                    quality["flags"].append(
+                        f"the tilting arm is not one rigid rotation: with the joint tilt-axis "
+                        f"model {worst} leaves {per_arm[worst]['rms_px']:.3g} px RMS against "
+                        f"{per_free[worst]['rms_px']:.3g} px with free poses (free poses kept; "
+                        "cameras at uncalibrated tilts are approximate)")
+                    state = free_state
+                    masks, more, problem = refine(state, detections, boards, opt, free_masks)
+                    reports += more
         final = reports[-1]
         quality["solver"] = {"solves": [r.__dict__ for r in reports]}
         if not final.usable or final.termination not in ("CONVERGENCE", "NO_CONVERGENCE"):
@@ -929,7 +1266,7 @@ def calibrate_turntable(detections: list[Detection], boards: dict[int, np.ndarra
              "view_index": detections[i].view_index,
              "corner": int(detections[i].corner_ids[j]),
              "residual_px": float(np.linalg.norm(state.residuals(detections[i], boards)[j]))}
-            for i, js in rejected for j in js][:200]
+            for i, js in rejected for j in js][:2000]
         n_res = 2 * (total - n_rej)
         if opt.covariance:
             try:
@@ -941,8 +1278,10 @@ def calibrate_turntable(detections: list[Detection], boards: dict[int, np.ndarra
     stats = residual_stats(state, detections, boards, masks)
     quality.update({k: stats[k] for k in ("rms_px", "mean_px", "max_px", "corners",
                                           "per_camera", "per_camera_tilt", "per_view")})
-    n_params = sum(len(v) for v in state.intrinsics.values()) + 6 * (
-        len(state.cam_poses) + len(state.board_poses))
+    n_poses = len(state.cam_poses) if state.arm is None else sum(
+        1 for _, t in state.cam_poses if t == state.arm.reference_tilt_index)
+    n_params = (N_INTR - len(fixed_intrinsics(opt))) * len(state.intrinsics) + 6 * (
+        n_poses + len(state.board_poses)) + (0 if state.arm is None else 3 + len(tilt_indices))
     quality["corner_noise_px"] = stats["rms_px"] * math.sqrt(
         2 * stats["corners"] / max(2 * stats["corners"] - n_params, 1) / 2.0)
     # Gauge along the axis: the lowest board corner at the requested height.
@@ -960,13 +1299,18 @@ def calibrate_turntable(detections: list[Detection], boards: dict[int, np.ndarra
                         for e, k in errs[:10]]}
     quality["boards"] = {str(b): {"R": rotmats(p[:3])[0].tolist(), "t": p[3:].tolist()}
                          for b, p in state.board_poses.items()}
-    ref_tilt = opt.reference_tilt_index if opt.reference_tilt_index is not None \
-        else min(t for _, t in poses)
     tilt_axis = None
-    if len({t for _, t in poses}) >= 2:
+    if state.arm is not None:
+        arm = state.arm
+        tilt_axis = TiltAxis(arm.origin.copy(), arm.unit_direction(), arm.reference_tilt_index)
+        quality["tilt_axis"]["joint"] = True
+        quality["tilt_axis"]["tilt_error_deg"] = {int(t): float(v[0])
+                                                  for t, v in sorted(arm.tilt_errors.items())}
+    elif len(tilt_indices) >= 2:
         fitted = fit_tilt_axis(poses, tilts_deg, ref_tilt)
         if fitted is not None:
-            tilt_axis, quality["tilt_axis"] = fitted
+            tilt_axis, info = fitted
+            quality["tilt_axis"] = {**quality.get("tilt_axis", {}), **info, "joint": False}
     quality["seconds"] = time.perf_counter() - t0
     if opt.refine:
         if stats["rms_px"] > opt.max_rms_px:
@@ -1005,6 +1349,7 @@ def _cross_validate(state: RigState, detections: list[Detection], boards: dict[i
     problem, _ = _build_problem(sub, train, boards, {j: masks[i] for j, i in enumerate(even)},
                                 replace(opt, cross_validate=False), robust=False)
     _solve(problem, opt)
+    sub.sync_arm()
     held = np.concatenate([np.linalg.norm(sub.residuals(detections[i], boards), axis=1)[masks[i]]
                            for i in odd])
     fit = np.concatenate([np.linalg.norm(sub.residuals(detections[i], boards), axis=1)[masks[i]]

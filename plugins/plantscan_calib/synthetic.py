@@ -37,16 +37,24 @@ class SyntheticRig:
     spec: BoardSpec
 
 
+# Where boards stand on the plate: (azimuth of the board's outward normal from -Y, deg;
+# lean back from vertical, deg; height of the board centre, mm), at radius 60 mm.
+# Two boards back to back (the recommended target, docs/calibration.md): each camera sees
+# one or the other over most of a revolution.
+BACK_TO_BACK = ((0.0, 20.0, 110.0), (180.0, 20.0, 130.0))
+
+
 def make_rig(image_size: tuple[int, int] = (5184, 3456), tilts_deg=(0.0, 20.0, 40.0),
              cameras: int = 2, boards: int = 1, cols: int = 9, rows: int = 6,
              square_mm: float = 25.0, distortion: bool = True, kind: str = "chessboard",
-             marker_mm: float = 0.0) -> SyntheticRig:
+             marker_mm: float = 0.0, placements=BACK_TO_BACK) -> SyntheticRig:
     """A two-camera tilting-arm rig, tilt axis horizontal through the plant volume.
 
     Camera ``cam0`` looks at the plant from 700 mm at 150 mm height, ``cam1``
     from above it (tilted down 35 deg); the arm tilts both about the world X
-    axis through (0, 0, 200) mm.  Boards stand on the plate at radius 60 mm,
-    tipped back 20 deg, facing outward.
+    axis through (0, 0, 200) mm.  Board ``b`` stands on the plate at radius
+    60 mm, facing outward, placed by ``placements[b]`` = (azimuth deg, lean
+    back deg, centre height mm).
     """
     w, h = image_size
     f = 1.05 * w  # ~ a 24 mm lens on an APS-C body
@@ -69,10 +77,13 @@ def make_rig(image_size: tuple[int, int] = (5184, 3456), tilts_deg=(0.0, 20.0, 4
     pts = spec.object_points()
     centre = pts.mean(axis=0)
     bp, bd = {}, {}
+    if boards > len(placements):
+        raise ValueError(f"{boards} boards but only {len(placements)} placements")
     for b in range(boards):
-        # Board plane faces -Y at angle 0 (toward cam0), tipped back, on the plate.
-        r = rotation_z(180.0 * b) @ rotation_x(-90.0 - 20.0)
-        t = rotation_z(180.0 * b) @ np.array([0.0, -60.0, 110.0 + 20 * b]) - r @ centre
+        azimuth, lean, height = placements[b]
+        # Board plane faces -Y at azimuth 0 (toward cam0), leaning back, on the plate.
+        r = rotation_z(azimuth) @ rotation_x(-90.0 - lean)
+        t = rotation_z(azimuth) @ np.array([0.0, -60.0, height]) - r @ centre
         bp[b] = Pose(r, t)
         bd[b] = pts
     return SyntheticRig(truth, bd, bp, spec)
