@@ -49,6 +49,7 @@ from scipy import sparse
 from scipy.sparse.csgraph import (
     breadth_first_order,
     connected_components,
+    depth_first_order,
     dijkstra,
     minimum_spanning_tree,
 )
@@ -82,6 +83,10 @@ class LeafGeometryParams(StageParams):
     width_stations: int = Field(3, ge=1, description="widest stations whose width is traced")
     graph_spacing_mm: float = Field(
         1.0, gt=0, description="spacing of the points geodesic paths run through, mm")
+    graph_points_per_size: float = Field(
+        200.0, gt=0,
+        description="the spacing of path points is at least the leaf's bounding-box diagonal "
+                    "over this (big leaves: fewer points, same relative accuracy)")
     rim_correction: bool = Field(
         False, description="remove the rounded-rim excess of over-the-side paths (see docs)")
     min_leaf_faces: int = Field(20, ge=1, description="leaves with fewer faces are skipped")
@@ -146,24 +151,29 @@ def _axes_at(points: np.ndarray, keys: np.ndarray, axes: np.ndarray, grid: np.nd
              cell: float) -> np.ndarray:
     """Trilinear interpolation of the oriented cell axes at ``points`` (unit vectors)."""
     lo, dims = grid[:3], grid[3:].astype(np.int64)
+    # a dense key -> cell table (the grid is a leaf's box in cells of several mm: small)
+    lut = np.full(int(np.prod(dims)), -1, np.int64)
+    lut[keys] = np.arange(len(keys))
+
+    def cell_at(ijk: np.ndarray) -> np.ndarray:
+        inside = np.all((ijk >= 0) & (ijk < dims), axis=1)
+        qk = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
+        return np.where(inside, lut[np.where(inside, qk, 0)], -1)
+
     u = (points - lo) / cell - 0.5
     base = np.floor(u).astype(np.int64)
     frac = u - base
     out = np.zeros_like(points)
     for corner in np.array(np.meshgrid([0, 1], [0, 1], [0, 1])).reshape(3, -1).T:
-        q = base + corner
+        pos = cell_at(base + corner)
         w = np.prod(np.where(corner == 1, frac, 1.0 - frac), axis=1)
-        qk = (q[:, 0] * dims[1] + q[:, 1]) * dims[2] + q[:, 2]
-        pos = np.clip(np.searchsorted(keys, qk), 0, len(keys) - 1)
-        hit = keys[pos] == qk
+        hit = pos >= 0
         out[hit] += w[hit, None] * axes[pos[hit]]
     norm = np.linalg.norm(out, axis=1)
     missing = norm < 1e-9
-    if missing.any():  # fall back to the nearest cell's own axis
-        ijk = np.floor((points[missing] - lo) / cell).astype(np.int64)
-        qk = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
-        pos = np.clip(np.searchsorted(keys, qk), 0, len(keys) - 1)
-        out[missing] = axes[pos]
+    if missing.any():  # fall back to the own cell's axis (every point's cell is occupied)
+        pos = cell_at(np.floor((points[missing] - lo) / cell).astype(np.int64))
+        out[missing] = axes[np.maximum(pos, 0)]
         norm[missing] = 1.0
     return out / norm[:, None]
 
@@ -260,7 +270,10 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
         np.minimum.at(fmin, f[:n_leaf_faces, c], face_side[:n_leaf_faces])
     on_a = fmax > -0.35
     on_b = fmin < 0.35
-    spacing = max(p.graph_spacing_mm, edge_mm)
+    # paths through points a 200th of the leaf's size apart are as exact as through denser
+    # ones (their error scales with spacing / length), and far cheaper on a big leaf
+    spacing = max(p.graph_spacing_mm, edge_mm,
+                  float(np.linalg.norm(np.ptp(v, axis=0))) / p.graph_points_per_size)
     # crest points are shared by both sides' graphs, so paths of both sides end on them
     pts_c = _downsample(np.flatnonzero(on_a & on_b), v, spacing)
     pts_a = _downsample(np.flatnonzero(on_a & ~on_b), v, spacing)
@@ -410,9 +423,10 @@ def _iso_line_lengths(v: np.ndarray, f: np.ndarray, topo: geo.MeshTopology, valu
     """Lengths (mm) of the pieces of the zero iso-line of the vertex field ``value``.
 
     Crossing points sit on mesh edges; each face with a sign change links two
-    of them.  Chains are walked into polylines (closed when they close) and
-    smoothed by ``sigma`` mm of arclength before measuring; an open chain with
-    both ends on the mesh border (a leaf cut from the stem) is closed by its chord.
+    of them.  Chains are walked into polylines (closed when they close; specks
+    left out, see ``_chains``) and smoothed by ``sigma`` mm of arclength before
+    measuring; an open chain with both ends on the mesh border (a leaf cut from
+    the stem) is closed by its chord.
     """
     pos = value > 0
     e = topo.edges
@@ -429,7 +443,8 @@ def _iso_line_lengths(v: np.ndarray, f: np.ndarray, topo: geo.MeshTopology, valu
     two = (fe >= 0).sum(axis=1) == 2
     links = np.sort(fe[two], axis=1)[:, 1:]  # the two crossing points of each such face
     chains: list[float] = []
-    for chain, closed in _chains(links, len(pts)):
+    raw_links = np.linalg.norm(pts[links[:, 0]] - pts[links[:, 1]], axis=1)
+    for chain, closed in _chains(links, len(pts), raw_links):
         if closed:
             chains.append(geo.polyline_length(_closed_smooth(pts[chain], sigma)))
             continue
@@ -444,29 +459,42 @@ def _iso_line_lengths(v: np.ndarray, f: np.ndarray, topo: geo.MeshTopology, valu
 
 
 
-def _chains(links: np.ndarray, n: int) -> list[tuple[list[int], bool]]:
-    """Walk the graph of ``links`` (L, 2) over ``n`` nodes into chains ``(nodes, closed)``."""
-    nbr: list[list[int]] = [[] for _ in range(n)]
-    for a, b in links.tolist():
-        nbr[a].append(b)
-        nbr[b].append(a)
-    seen = np.zeros(n, bool)
+def _chains(links: np.ndarray, n: int, link_length: np.ndarray, walk_share: float = 0.05
+            ) -> list[tuple[np.ndarray, bool]]:
+    """Walk the graph of ``links`` (L, 2) over ``n`` nodes into chains ``(nodes, closed)``.
+
+    Iso-lines and outlines are unions of paths and cycles (every node has one
+    or two links): a depth-first order from an end (or any node of a cycle)
+    walks each piece in sequence.  Pieces shorter than ``walk_share`` of the
+    longest (sum of ``link_length``) are left out: specks where a rough surface
+    turns edge-on, which smoothing by a few mm would shrink to nothing anyway.
+    """
+    if len(links) == 0:
+        return []
+    g = sparse.csr_matrix((np.ones(len(links)), (links[:, 0], links[:, 1])), shape=(n, n))
+    g = ((g + g.T) > 0).astype(np.int8)
+    degree = np.diff(g.indptr)
+    ncomp, comp = connected_components(g, directed=False)
+    raw = np.bincount(comp[links[:, 0]], link_length, ncomp)
+    small = raw < walk_share * raw.max()
     out = []
-    # open chains from their ends first, then the closed loops
-    for start in [i for i in range(n) if len(nbr[i]) == 1] + list(range(n)):
-        if seen[start] or not nbr[start]:
-            continue
-        chain = [start]
-        seen[start] = True
-        prev, cur = -1, start
-        while True:
-            nxt = [x for x in nbr[cur] if x != prev and not seen[x]]
-            if not nxt:
-                break
-            prev, cur = cur, nxt[0]
-            seen[cur] = True
-            chain.append(cur)
-        out.append((chain, len(chain) > 2 and start in nbr[chain[-1]]))
+    # start each piece at an end if it has one (an open chain), else anywhere (a loop)
+    ends = np.flatnonzero(degree == 1)
+    start = np.full(ncomp, -1)
+    start[comp[ends[::-1]]] = ends[::-1]
+    anywhere = np.flatnonzero(degree > 0)
+    first = np.full(ncomp, -1)
+    first[comp[anywhere[::-1]]] = anywhere[::-1]
+    for c in np.flatnonzero(~small):
+        s0 = start[c] if start[c] >= 0 else first[c]
+        if s0 < 0:
+            continue  # an unlinked node
+        order, pred = depth_first_order(g, int(s0), directed=False)
+        # where a node has three links (a non-manifold edge) the search backtracks: cut there
+        jump = np.flatnonzero(pred[order[1:]] != order[:-1]) + 1
+        for piece in np.split(order, jump):
+            closed = len(piece) > 2 and g[piece[-1], piece[0]] > 0
+            out.append((piece, bool(closed)))
     return out
 
 
