@@ -49,7 +49,7 @@ def topology(faces: np.ndarray) -> MeshTopology:
     nv = int(f.max()) + 1 if nf else 0
     key = half[:, 0] * nv + half[:, 1]
     # one sort does it all: edge ids, each half-edge's edge, and faces grouped by edge
-    order = np.argsort(key, kind="stable")
+    order = np.argsort(key)  # faces of one edge may come in any order
     k_sorted = key[order]
     first = np.empty(len(k_sorted), bool)
     first[:1] = True
@@ -67,17 +67,6 @@ def topology(faces: np.ndarray) -> MeshTopology:
     same = e_sorted[1:] == e_sorted[:-1]
     pairs = np.stack([f_sorted[:-1][same], f_sorted[1:][same]], axis=1)
     return MeshTopology(edges, face_edges, counts, pairs, e_sorted[1:][same])
-
-
-def count_non_manifold_edges(faces: np.ndarray) -> int:
-    """Number of edges used by more than two faces (one sort of the half-edges)."""
-    f = np.asarray(faces, dtype=np.int64)
-    if len(f) == 0:
-        return 0
-    half = np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], axis=1).reshape(-1, 2)
-    key = np.sort(half.min(axis=1) * (int(f.max()) + 1) + half.max(axis=1))
-    third = key[2:] == key[:-2]  # an edge with 3+ half-edges has a run of 3 equal keys
-    return int(np.count_nonzero(third & np.concatenate([[True], key[1:-2] != key[:-3]])))
 
 
 def face_normals_areas(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -229,76 +218,3 @@ def cell_normal_tensors(points: np.ndarray, normals: np.ndarray, weights: np.nda
         m[:, a, b] = m[:, b, a] = acc[:, c]
     return keys, m, inv, np.concatenate([lo, dims.astype(float)])
 
-
-@dataclass
-class ClusteredMesh:
-    """A mesh simplified by vertex clustering, with the map back to the original.
-
-    Attributes
-    ----------
-    vertices : (C, 3) float64, mm, the mean of each cluster's vertices
-    faces : (G, 3) int64, the original faces whose corners fall in three different
-        clusters, each cluster triple once
-    cluster_of_vertex : (V,) int64, cluster (coarse vertex) of each original vertex
-    coarse_face_of_face : (F,) int64, coarse face of each original face (duplicates of
-        one cluster triple share it), -1 for faces that collapsed (two corners in one
-        cluster)
-    """
-
-    vertices: np.ndarray
-    faces: np.ndarray
-    cluster_of_vertex: np.ndarray
-    coarse_face_of_face: np.ndarray
-
-    def face_labels_to_original(self, labels: np.ndarray, faces: np.ndarray) -> np.ndarray:
-        """Carry ``(G,)`` non-negative coarse-face labels to every original face ``(F, 3)``.
-
-        Each cluster takes the label covering most of the area around it, each
-        original face the label of at least two of its corners (else its first
-        corner's): borders between labels follow the clusters, with no stray faces.
-        """
-        labels = np.asarray(labels, np.int64)
-        nc, nl = len(self.vertices), int(labels.max()) + 1 if len(labels) else 1
-        p = self.vertices[self.faces]
-        area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
-        votes = np.zeros(nc * nl)
-        for k in range(3):
-            np.add.at(votes, self.faces[:, k] * nl + labels, area)
-        per_cluster = votes.reshape(nc, nl).argmax(axis=1)
-        corner = per_cluster[self.cluster_of_vertex[faces]]  # (F, 3)
-        a, b, c = corner[:, 0], corner[:, 1], corner[:, 2]
-        return np.where((a == b) | (a == c), a, np.where(b == c, b, a))
-
-
-def cluster_vertices(vertices: np.ndarray, faces: np.ndarray, cell_mm: float) -> ClusteredMesh:
-    """Vertex clustering on a grid of ``cell_mm`` cubes (Rossignac-Borrel).
-
-    Open3D's ``simplify_vertex_clustering`` does the same but does not return
-    which original vertex went where, which is needed to carry face labels
-    back; the grid hash here is a sort of the vertex keys.
-    """
-    v = np.asarray(vertices, float)
-    f = np.asarray(faces, np.int64)
-    ijk = np.floor((v - v.min(axis=0)) / cell_mm).astype(np.int64)
-    dims = ijk.max(axis=0) + 1
-    key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
-    _, cl = np.unique(key, return_inverse=True)
-    cl = cl.reshape(-1)
-    nc = int(cl.max()) + 1 if len(cl) else 0
-    count = np.bincount(cl, minlength=nc).astype(float)
-    cv = np.stack([np.bincount(cl, v[:, k], nc) for k in range(3)], axis=1) / count[:, None]
-    cf = cl[f]
-    ok = (cf[:, 0] != cf[:, 1]) & (cf[:, 1] != cf[:, 2]) & (cf[:, 0] != cf[:, 2])
-    ok_idx = np.flatnonzero(ok)
-    # the same triangle arises from several original faces (and reversed where both sides
-    # of a thin slab fall in one layer of cells): keep one of each cluster triple
-    s = np.sort(cf[ok_idx], axis=1)
-    if nc < 2_000_000:  # nc**3 fits in int64
-        tri_key = (s[:, 0] * nc + s[:, 1]) * nc + s[:, 2]
-        _, first, inv = np.unique(tri_key, return_index=True, return_inverse=True)
-    else:
-        _, first, inv = np.unique(s, axis=0, return_index=True, return_inverse=True)
-    coarse_faces = cf[ok_idx[first]]
-    face_map = np.full(len(f), -1, np.int64)
-    face_map[ok_idx] = inv.reshape(-1)
-    return ClusteredMesh(cv, coarse_faces, cl, face_map)

@@ -104,10 +104,14 @@ def _grow(labels: np.ndarray, pairs: np.ndarray) -> np.ndarray:
 
 
 def _relabel(labels: np.ndarray) -> np.ndarray:
-    out = np.full_like(labels, -1)
+    """Labels renumbered 0..n-1 in order (-1 stays -1); a lookup table, not a sort."""
     ok = labels >= 0
-    _, out[ok] = np.unique(labels[ok], return_inverse=True)
-    return out
+    if not ok.any():
+        return np.full_like(labels, -1)
+    present = np.zeros(int(labels.max()) + 1, bool)
+    present[labels[ok]] = True
+    new_id = np.cumsum(present) - 1
+    return np.where(ok, new_id[np.maximum(labels, 0)], -1)
 
 
 def face_curvature(mesh: Mesh, topo: geo.MeshTopology, smoothing_mm: float) -> np.ndarray:
@@ -219,8 +223,8 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
     # small non-tube pieces join the region they share most edges with
     if crumbs.any():
         labels = _merge_crumbs(labels, crumbs, topo.face_pairs, nlab)
-    leaf_face = np.isin(labels, np.flatnonzero(leafy))
-    stem_face = np.isin(labels, np.flatnonzero(tube))
+    leaf_face = leafy[labels]
+    stem_face = tube[labels]
     moved = np.zeros(nf, bool)
     if p.petiole_tube_ratio < 1:
         moved = _petioles_to_stem(v, f, normals, areas, topo.face_pairs, leaf_face, stem_face,
