@@ -303,9 +303,13 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
     rim_excess = (math.pi / 2 - 1) * thickness if p.rim_correction else 0.0
     # a path over one side is never twice the shortest path over both (limit: speed)
     length = _two_side_length([g_a, g_b], q, base, tip, sigma, 2.0 * dist_b[tip]) - rim_excess
+    mid_pts = geo.smooth_polyline(q[midrib_idx], sigma) if len(midrib_idx) > 2 else q[midrib_idx]
+    if not np.isfinite(length):
+        # neither side joins base and tip on its own (a side broken by phantom volume or
+        # the segmentation): the shortest path over the whole surface
+        length = geo.polyline_length(mid_pts)
 
     # width: crest points binned in stations along the smoothed midrib
-    mid_pts = geo.smooth_polyline(q[midrib_idx], sigma) if len(midrib_idx) > 2 else q[midrib_idx]
     mid_axis = _axes_at(mid_pts, keys, axes, grid, cell)
     tangent = np.gradient(mid_pts, axis=0) if len(mid_pts) > 1 else np.zeros((1, 3))
     across = np.cross(tangent, mid_axis)
