@@ -617,6 +617,70 @@ if HAVE_NUMBA:
         return out, tests.sum()
 
 
+    # ------------------------------------------------------------------ mesh topology
+    @njit(cache=True)
+    def _nonmanifold_vertices(faces, n_vertices):
+        # A vertex is manifold when its incident faces form one fan: the link edges
+        # (b, c) of its faces (a, b, c) make one connected chain.  Per vertex, a tiny
+        # union-find over its link vertices counts the chains.
+        counts = np.zeros(n_vertices + 1, dtype=np.int64)
+        for f in range(faces.shape[0]):
+            for q in range(3):
+                counts[faces[f, q] + 1] += 1
+        for v in range(n_vertices):
+            counts[v + 1] += counts[v]
+        fill = counts[:-1].copy()
+        inc = np.empty(counts[-1], dtype=np.int64)
+        for f in range(faces.shape[0]):
+            for q in range(3):
+                a = faces[f, q]
+                inc[fill[a]] = f * 3 + q
+                fill[a] += 1
+        bad = 0
+        nodes = np.empty(64, dtype=np.int64)
+        root = np.empty(64, dtype=np.int64)
+        for v in range(n_vertices):
+            n = counts[v + 1] - counts[v]
+            if n == 0:
+                continue
+            if 2 * n > nodes.shape[0]:
+                nodes = np.empty(4 * n, dtype=np.int64)
+                root = np.empty(4 * n, dtype=np.int64)
+            m = 0
+            comps = 0
+            for t in range(counts[v], counts[v + 1]):
+                f = inc[t] // 3
+                q = inc[t] % 3
+                ends = (faces[f, (q + 1) % 3], faces[f, (q + 2) % 3])
+                ids = np.empty(2, dtype=np.int64)
+                for e in range(2):
+                    x = ends[e]
+                    pos = -1
+                    for r in range(m):
+                        if nodes[r] == x:
+                            pos = r
+                            break
+                    if pos < 0:
+                        nodes[m] = x
+                        root[m] = m
+                        pos = m
+                        m += 1
+                        comps += 1
+                    ids[e] = pos
+                ra = ids[0]
+                while root[ra] != ra:
+                    ra = root[ra]
+                rb = ids[1]
+                while root[rb] != rb:
+                    rb = root[rb]
+                if ra != rb:
+                    root[rb] = ra
+                    comps -= 1
+            if comps > 1:
+                bad += 1
+        return bad
+
+
 def voxel_field(packed, points: np.ndarray, voxel_size: float, k: int, stats=None,
                 min_seen: int = 0) -> np.ndarray:
     """Compiled ``carve.voxel_field`` (``packed`` from ``pack``)."""
@@ -727,3 +791,9 @@ def voxel_group(packed, tree: Tree, centres: np.ndarray, valid: np.ndarray, voxe
     if stats is not None:
         stats.voxel_view_tests += int(tests)
     return out
+
+
+def nonmanifold_vertices(faces: np.ndarray, n_vertices: int) -> int:
+    """Vertices whose incident faces do not form a single fan (compiled)."""
+    return int(_nonmanifold_vertices(np.ascontiguousarray(faces, dtype=np.int64),
+                                     int(n_vertices)))

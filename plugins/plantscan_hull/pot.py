@@ -71,18 +71,20 @@ class SliceProfile:
 
 
 def slice_profile(occupied: np.ndarray, origin: np.ndarray, s: float) -> SliceProfile:
-    """Per z-slice area, centroid and disc-likeness of an occupancy grid."""
-    nx, ny, nz = occupied.shape
-    xs = origin[0] + np.arange(nx) * s
-    ys = origin[1] + np.arange(ny) * s
-    area = occupied.sum(axis=(0, 1)).astype(float)
-    cx = np.einsum("ijk,i->k", occupied, xs, dtype=float) / np.maximum(area, 1)
-    cy = np.einsum("ijk,j->k", occupied, ys, dtype=float) / np.maximum(area, 1)
-    fill = np.zeros(nz)
-    for kz in np.flatnonzero(area):
-        ii, jj = np.nonzero(occupied[:, :, kz])
-        rmax = np.max(np.hypot(xs[ii] - cx[kz], ys[jj] - cy[kz])) + s / 2
-        fill[kz] = area[kz] * s * s / (np.pi * rmax * rmax)
+    """Per z-slice area, centroid and disc-likeness of an occupancy grid.
+
+    Computed from the occupied voxels' indices (the cost follows the hull).
+    """
+    nz = occupied.shape[2]
+    i, j, kz = np.nonzero(occupied)
+    x = origin[0] + i * s
+    y = origin[1] + j * s
+    area = np.bincount(kz, minlength=nz).astype(float)
+    cx = np.bincount(kz, x, minlength=nz) / np.maximum(area, 1)
+    cy = np.bincount(kz, y, minlength=nz) / np.maximum(area, 1)
+    rmax = np.zeros(nz)
+    np.maximum.at(rmax, kz, np.hypot(x - cx[kz], y - cy[kz]))
+    fill = np.where(area > 0, area * s * s / (np.pi * (rmax + s / 2) ** 2), 0.0)
     return SliceProfile(origin[2] + np.arange(nz) * s, area, np.stack([cx, cy], axis=1),
                         np.sqrt(area * s * s / np.pi), fill)
 
