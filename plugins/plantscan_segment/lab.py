@@ -13,6 +13,11 @@ A cast shadow darkens the backdrop (large Δ) but keeps its hue (small Θ) and
 its texture ratios (Ψ ≈ 0, a shadow scales neighbours alike), so the seed's
 weights α = 0.1, β = 0.5, γ = 0.4 keep shadows out while coloured leaves,
 even thin and partly covered pixels, score high.
+
+:func:`lab_shadow_mask` is the fast path the segmenter runs (plate terms
+cached, integer Δ/Θ, bands of rows); :mod:`plantscan_segment.lab_reference`
+keeps the plain implementation it is tested against (same masks; see
+docs/segmentation.md).
 """
 
 from __future__ import annotations
@@ -181,7 +186,7 @@ def lab_shadow_mask(image: np.ndarray, background: np.ndarray, p,
     """``lab-shadow``'s mask: (H, W) bool, True = plant or pot.
 
     The same decisions as :func:`lab_shadow_mask_reference` (tested equal on
-    the virtual scanner's images), ~5x faster: the plate's LAB planes and
+    the virtual scanner's images), 4-9x faster: the plate's LAB planes and
     ratios converted once (``plate``), Δ and Θ in integers, the shadow ratio
     test as a per-pixel luminance interval, the chromaticity only on the
     bounding box of shadow candidates, tiny blobs removed without labelling,
