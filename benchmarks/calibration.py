@@ -2,6 +2,7 @@
 speed of pyramid vs plain full-resolution chessboard detection on 18 MP images.
 
     python benchmarks/calibration.py [--images 72] [--plain-images 8] [--out DIR] [--quick]
+                                     [--accuracy-only] [--speed-only]
 
 Everything is measured in one run, side by side; the markdown table printed at
 the end is what docs/benchmarks/calibration.md holds.
@@ -177,6 +178,7 @@ def main() -> int:
     ap.add_argument("--out", type=Path, default=None, help="keep rendered images here")
     ap.add_argument("--quick", action="store_true", help="accuracy only, one seed")
     ap.add_argument("--speed-only", action="store_true", help="detection speed only")
+    ap.add_argument("--accuracy-only", action="store_true", help="accuracy only, all seeds")
     args = ap.parse_args()
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
           f"load {os.getloadavg()[0]:.1f}", flush=True)
@@ -199,7 +201,7 @@ def main() -> int:
             lines.append(f"| {r['method']} | {r['mean_px']:.4f} | {r['median_px']:.4f} | "
                          f"{r['kept']:.3f} | {r['seconds']:.1f} |")
             print(lines[-1], flush=True)
-    if not args.quick:
+    if not (args.quick or args.accuracy_only):
         out = args.out or Path(tempfile.mkdtemp(prefix="calib-bench-"))
         s = detection_speed(out, args.images, args.plain_images)
         lines += ["", f"### Detection at 18 MP (5184x3456, {s['images']} images, board in "
