@@ -302,6 +302,7 @@ def voxelise_mesh(vertices: np.ndarray, faces: np.ndarray, voxel_mm: float, offs
     perimeter ``+ 2 pi offset``, area ``+ perimeter x offset + pi offset^2``).
     """
     import open3d as o3d
+    from scipy import ndimage
     from skimage.measure import marching_cubes
 
     v = np.asarray(vertices, float)
@@ -312,7 +313,7 @@ def voxelise_mesh(vertices: np.ndarray, faces: np.ndarray, voxel_mm: float, offs
     tri = v[f]
     edge = np.max(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2), axis=1)
     k = np.maximum(np.ceil(edge / (0.5 * voxel_mm)).astype(int), 1)
-    band = []
+    near = np.zeros(tuple(n), bool)
     for kk in np.unique(k):
         sel = tri[k == kk]
         u, w = np.meshgrid(np.arange(kk + 1), np.arange(kk + 1), indexing="ij")
@@ -320,12 +321,12 @@ def voxelise_mesh(vertices: np.ndarray, faces: np.ndarray, voxel_mm: float, offs
         bary = np.stack([u[keep], w[keep]], axis=1) / kk
         pts = (sel[:, None, 0] + bary[None, :, 0, None] * (sel[:, None, 1] - sel[:, None, 0])
                + bary[None, :, 1, None] * (sel[:, None, 2] - sel[:, None, 0])).reshape(-1, 3)
-        band.append(np.unique(np.round((pts - lo) / voxel_mm).astype(np.int64), axis=0))
-    centre = np.unique(np.concatenate(band), axis=0)
+        ijk = np.clip(np.round((pts - lo) / voxel_mm).astype(np.int64), 0, n - 1)
+        near[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
+    # every voxel within the offset (+1 voxel) of a sampled point: a dilation of the grid
     reach = int(np.ceil(offset_mm / voxel_mm)) + 1
-    offs = np.array(np.meshgrid(*[np.arange(-reach, reach + 1)] * 3)).reshape(3, -1).T
-    cand = np.unique((centre[:, None, :] + offs[None]).reshape(-1, 3), axis=0)
-    cand = cand[np.all((cand >= 0) & (cand < n), axis=1)]
+    near = ndimage.binary_dilation(near, np.ones((2 * reach + 1,) * 3, bool))
+    cand = np.argwhere(near)
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)),
                         o3d.core.Tensor(f.astype(np.uint32)))
