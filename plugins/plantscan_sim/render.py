@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from plantscan_core.data import Camera, CameraModel, rotation_z
-from plantscan_sim.geometry import BoxTree, TriMesh, box_tree
+from plantscan_sim.geometry import TriMesh
 
 CLASS_BACKGROUND, CLASS_PLANT, CLASS_POT, CLASS_BOARD = 0, 1, 2, 3
 MAX_RAYS_PER_BAND = 2_000_000  # bounds memory (~0.4 GB peak) at 18 MP
@@ -96,15 +96,6 @@ class _Layer:
     mesh: TriMesh
     scene: object
     face_material: np.ndarray
-    tree: BoxTree | None = None
-
-    @property
-    def corners(self) -> np.ndarray:
-        """(K, 8, 3) corners of the leaf boxes (world frame; rest frame if moving)."""
-        if not hasattr(self, "_corners"):
-            self._corners = _leaf_corners(self.tree) if self.tree is not None \
-                else np.zeros((0, 8, 3))
-        return self._corners
 
 
 def _room(mesh: TriMesh) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
@@ -145,8 +136,6 @@ def _room(mesh: TriMesh) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
 
 
 SHADOW_MAP = 2048  # texels per side of the light's culling map
-_BOX_EDGES = [(0, 1), (2, 3), (4, 5), (6, 7), (0, 2), (1, 3), (4, 6), (5, 7),
-              (0, 4), (1, 5), (2, 6), (3, 7)]  # corner index = 4 x + 2 y + z
 
 
 @dataclass
@@ -157,7 +146,7 @@ class _Cull:
     foot: np.ndarray             # (H, W) bool: pixels whose ray may meet the turntable scene
     basis: np.ndarray | None     # (3, 3) light camera axes (rows), world frame
     window: np.ndarray | None    # (3,) x0, y0, texels per unit of x/z
-    shadow_map: np.ndarray | None  # (M, M) bool: texels an occluder box may cover
+    shadow_map: np.ndarray | None  # (M, M) bool: texels an occluder may cover
 
 
 @dataclass
@@ -166,28 +155,6 @@ class _Room:
     planes: np.ndarray      # (P, 4): unit normal towards the room, offset
     plane_tris: np.ndarray  # (P, k) triangle indices per plane, -1 padded
     attr: np.ndarray        # (T,) material
-
-
-def _leaf_corners(tree: BoxTree) -> np.ndarray:
-    """(K, 8, 3) corners of the tree's leaf boxes."""
-    leaf = tree.left < 0
-    lo, hi = tree.lo[leaf], tree.hi[leaf]
-    sel = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=bool)
-    return np.where(sel[None], hi[:, None, :], lo[:, None, :])
-
-
-def _fill_hulls(points: np.ndarray, shape: tuple[int, int], grow: int) -> np.ndarray:
-    """(H, W) bool: union of the convex hulls of each (8, 2) point set, grown by ``grow`` px."""
-    import cv2
-
-    out = np.zeros(shape, dtype=np.uint8)
-    shift = 4  # sub-pixel vertices for cv2
-    for pts in points:
-        hull = cv2.convexHull(np.round(pts * (1 << shift)).astype(np.int32))
-        cv2.fillConvexPoly(out, hull, 1, lineType=cv2.LINE_8, shift=shift)
-    if grow > 0:
-        out = cv2.dilate(out, np.ones((2 * grow + 1, 2 * grow + 1), np.uint8))
-    return out.astype(bool)
 
 
 @dataclass
@@ -226,12 +193,10 @@ class Renderer:
         self._albedo = np.array([m.albedo for m in self.materials], dtype=np.float32)
         self._klass = np.array([m.klass for m in self.materials], dtype=np.int8)
         for role, mesh in self.world.items():
-            self._layers[role] = _Layer(mesh, _raycasting_scene(mesh), mesh.face_attr,
-                                        box_tree(mesh.vertices, mesh.faces))
+            self._layers[role] = _Layer(mesh, _raycasting_scene(mesh), mesh.face_attr)
         self._lab = _Layer(self.lab, _raycasting_scene(self.lab), self.lab.face_attr)
         for role, mesh in self.moving.items():
-            self._moving[role] = _Layer(mesh, _raycasting_scene(mesh), mesh.face_attr,
-                                        box_tree(mesh.vertices, mesh.faces))
+            self._moving[role] = _Layer(mesh, _raycasting_scene(mesh), mesh.face_attr)
         self._room = _room(self.lab) if HAVE_NUMBA else None
 
     # ------------------------------------------------------------------ rays
@@ -306,12 +271,13 @@ class Renderer:
         key = np.empty((h, w), dtype=np.int32)
         if adaptive or ss == 1:
             for r0, r1, dirs_cam in self._centre_bands(model):
-                d_w = _mul3(dirs_cam, rot)
                 if fast:
-                    rad, cls, k = self._trace(layer, centre, d_w, rz, light_w, moving, cull,
-                                              cull.foot[r0:r1].ravel())
-                else:
-                    rad, cls, k = self._shade(layer, centre, d_w, rz, light_w, moving)
+                    self._primary_band(layer, centre, dirs_cam, rot, rz, light_w, moving, cull,
+                                       radiance[r0:r1].reshape(-1, 3), fg[r0:r1].reshape(-1),
+                                       key[r0:r1].reshape(-1), cull.foot[r0:r1].reshape(-1))
+                    continue
+                rad, cls, k = self._shade(layer, centre, _mul3(dirs_cam, rot), rz, light_w,
+                                          moving)
                 radiance[r0:r1] = rad.reshape(r1 - r0, w, 3)
                 fg[r0:r1] = ((cls == CLASS_PLANT) | (cls == CLASS_POT)).reshape(r1 - r0, w)
                 key[r0:r1] = k.reshape(r1 - r0, w)
@@ -335,7 +301,7 @@ class Renderer:
             for i in range(0, len(rows), chunk):
                 r, c = rows[i:i + chunk], cols[i:i + chunk]
                 uv = np.stack([(c[:, None] + du).ravel(), (r[:, None] + dv).ravel()], 1)
-                d_w = _mul3(model.unproject(uv).astype(np.float32), rot)
+                d_w = _mul3(self._unproject(model, uv), rot)
                 if fast:  # a sample is within half a pixel of its centre: the grown foot holds
                     rad, cls, _ = self._trace(layer, centre, d_w, rz, light_w, moving, cull,
                                               np.repeat(cull.foot[r, c], n_ss))
@@ -353,10 +319,11 @@ class Renderer:
                 rng = rng if rng is not None else np.random.default_rng(0)
             for r0 in range(0, h, rows_per_band):
                 r1 = min(h, r0 + rows_per_band)
-                # Band by band from the same generator: the very draws of one full-size call.
-                noise = rng.normal(0.0, noise_sigma, (r1 - r0, w, 3)).astype(np.float32) \
+                # float32 draws, band by band (a third of the cost of float64 normals)
+                noise = rng.standard_normal((r1 - r0, w, 3), dtype=np.float32) \
                     if noise_sigma > 0 else none
-                _tone(radiance[r0:r1], np.float32(1.0 / self.lighting.gamma), noise, img[r0:r1])
+                _tone(radiance[r0:r1], np.float32(1.0 / self.lighting.gamma), noise,
+                      np.float32(noise_sigma), img[r0:r1])
             return img, (fg if want_coverage else None)
         img = 255.0 * np.power(np.clip(radiance, 0.0, 1.0), 1.0 / self.lighting.gamma)
         if noise_sigma > 0:
@@ -365,42 +332,84 @@ class Renderer:
         img = np.clip(np.rint(img), 0, 255).astype(np.uint8)
         return img[:, :, ::-1].copy(), (fg if want_coverage else None)
 
+    def _unproject(self, model: CameraModel, uv: np.ndarray) -> np.ndarray:
+        """(N, 3) float32 unit camera rays through pixel positions ``uv`` (N, 2)."""
+        if not (HAVE_NUMBA and type(model) is CameraModel):
+            return model.unproject(uv).astype(np.float32)
+        out = np.empty((len(uv), 3), dtype=np.float32)
+        _unproject_uv(np.ascontiguousarray(uv, dtype=float), float(model.f), float(model.fy),
+                      float(model.cu), float(model.cv), float(model.d1), float(model.d2), 20,
+                      out)
+        return out
+
+    def _primary_band(self, layer, centre, dirs_cam, rot, rz, light_w, moving, cull, rad, fg,
+                      key, foot) -> None:
+        """Pixel-centre rays of one band into ``rad`` (N, 3), ``fg`` (N,), ``key`` (N,).
+
+        ``_primary`` finishes the pixels that see only the backdrop with a free shadow
+        ray; the rest (turntable footprint, possible shadow) go through ``_trace``.
+        """
+        room = cull.room
+        if room is not None:
+            todo = np.empty(len(foot), dtype=bool)
+            _primary(dirs_cam, rot.astype(float), centre.astype(float), rz.astype(float),
+                     room.planes, room.plane_tris, room.tri, room.attr, foot,
+                     light_w.astype(float), cull.basis, cull.window, cull.shadow_map,
+                     self._albedo, self._klass, np.float32(self.lighting.ambient),
+                     np.float32(self.lighting.key),
+                     np.asarray(self.lighting.miss_colour, dtype=np.float32), rad, fg, key, todo)
+            self.rays_analytic += len(foot)
+            ti = np.flatnonzero(todo)
+        else:
+            ti = np.arange(len(foot))
+        if not len(ti):
+            return
+        r, cls, k = self._trace(layer, centre, _mul3(dirs_cam[ti], rot), rz, light_w, moving,
+                                cull, foot[ti])
+        rad[ti] = r
+        fg[ti] = (cls == CLASS_PLANT) | (cls == CLASS_POT)
+        key[ti] = k
+
     def _culling(self, layer: _Layer, moving, camera: Camera, light_w, rz) -> _Cull:
         """What the fast path may skip in this view (see ``_trace``)."""
         model = camera.model
-        corners = [layer.corners]
+        shape = (model.height, model.width)
+        verts, faces = [layer.mesh.vertices], [layer.mesh.faces]
         if moving is not None:
             lay, m, piv = moving
             # rest frame -> world: x = pivot + (X - pivot) @ S.T
-            corners.append(piv + (lay.corners - piv) @ m.T.astype(float))
-        corners = np.concatenate(corners).astype(float)
+            verts.append(piv + (lay.mesh.vertices - piv) @ m.T.astype(float))
+            faces.append(lay.mesh.faces + len(verts[0]))
+        verts = np.concatenate(verts).astype(float)
+        faces = np.concatenate(faces).astype(np.int64)
         room = self._room
         if room is not None:
             ol = rz.astype(float) @ camera.pose.centre
             if not np.all(room.planes[:, :3] @ ol + room.planes[:, 3] > 0):
                 room = None  # the camera is outside the room: cast the backdrop
-        everything = np.ones((model.height, model.width), dtype=bool)
-        if not len(corners):
-            return _Cull(room, np.zeros_like(everything), None, None, None)
-        # Camera footprint: pixels whose centre ray may meet a leaf box.  Box edges bend
-        # under the lens distortion by at most their midpoint's offset from the chord.
-        foot = everything
-        flat = corners.reshape(-1, 3)
-        if np.all(camera.depth(flat) > 1.0):
-            uv = camera.project(flat).reshape(-1, 8, 2)
-            a_i, b_i = np.array(_BOX_EDGES).T
-            mid = camera.project(0.5 * (corners[:, a_i] + corners[:, b_i]).reshape(-1, 3))
-            bend = np.abs(mid.reshape(len(corners), -1, 2)
-                          - 0.5 * (uv[:, a_i] + uv[:, b_i])).max()
-            if np.all(np.isfinite(uv)) and np.isfinite(bend):
-                foot = _fill_hulls(uv, (model.height, model.width), int(np.ceil(bend)) + 2)
-        # Shadow map: a pinhole at the light looking at the occluders' boxes.
-        fwd = flat.mean(0) - light_w
+        if not len(faces):
+            return _Cull(room, np.zeros(shape, dtype=bool), np.eye(3),
+                         np.array([0.0, 0.0, 0.0]), np.zeros((1, 1), dtype=bool))
+        # Camera footprint: pixels within a margin of a projected triangle.  Edges bend
+        # under the lens distortion by about their midpoint's offset from the chord.
+        foot = np.ones(shape, dtype=bool)
+        if np.all(camera.depth(verts) > 1.0):
+            uv = camera.project(verts)
+            a_i, b_i = faces.T[[0, 1, 2]], faces.T[[1, 2, 0]]
+            mid = camera.project(0.5 * (verts[a_i.ravel()] + verts[b_i.ravel()]))
+            bend = np.abs(mid - 0.5 * (uv[a_i.ravel()] + uv[b_i.ravel()])).max(1)
+            bend = bend.reshape(3, -1).max(0)  # per triangle, px
+            if np.all(np.isfinite(uv)) and np.all(np.isfinite(bend)):
+                raster = np.zeros(shape, dtype=np.uint8)
+                _raster_triangles(uv[faces], 2.0 + 2.0 * bend, raster)
+                foot = raster.view(bool)
+        # Shadow map: a pinhole at the light looking at the occluders.
+        fwd = verts.mean(0) - light_w
         fwd /= np.linalg.norm(fwd)
         right = np.cross(fwd, [0.0, 0.0, 1.0] if abs(fwd[2]) < 0.9 else [1.0, 0.0, 0.0])
         right /= np.linalg.norm(right)
         basis = np.stack([right, np.cross(fwd, right), fwd])
-        v = (flat - light_w) @ basis.T
+        v = (verts - light_w) @ basis.T
         if np.any(v[:, 2] <= 1.0):  # the light is among the occluders: test every ray
             return _Cull(room, foot, basis, np.array([-1e9, -1e9, 0.0]),
                          np.ones((1, 1), dtype=bool))
@@ -408,9 +417,13 @@ class Renderer:
         lo = xy.min(0)
         scale = (SHADOW_MAP - 8) / float(max((xy.max(0) - lo).max(), 1e-9))
         origin = lo - 4.0 / scale
-        pts = ((xy - origin) * scale).reshape(-1, 8, 2)
-        shadow_map = _fill_hulls(pts, (SHADOW_MAP, SHADOW_MAP), 2)
-        return _Cull(room, foot, basis, np.array([origin[0], origin[1], scale]), shadow_map)
+        shadow_map = np.zeros((SHADOW_MAP, SHADOW_MAP), dtype=np.uint8)
+        # texel (cx, cy) covers [cx, cx + 1) x [cy, cy + 1): shift by half a texel so the
+        # rasteriser's integer sample points are texel centres
+        _raster_triangles(((xy - origin) * scale - 0.5)[faces], np.full(len(faces), 2.0),
+                          shadow_map)
+        return _Cull(room, foot, basis, np.array([origin[0], origin[1], scale]),
+                     shadow_map.view(bool))
 
     def _trace(self, layer: _Layer, centre, d_w, rz, light_w, moving, cull: _Cull,
                foot: np.ndarray):
@@ -418,9 +431,9 @@ class Renderer:
 
         The backdrop is hit analytically when it bounds a convex room around the
         camera (else cast as in ``_shade``); a camera ray enters Open3D's turntable
-        scene only inside the view's footprint of that scene's boxes (``foot`` (N,)),
-        and a shadow ray is cast only where the occluders' boxes cover its texel in
-        the light's shadow map.  Culled rays are rays that would miss, so the hits
+        scene only inside the view's footprint of that scene's triangles (``foot``
+        (N,)), and a shadow ray is cast only where the occluders' triangles cover its
+        texel in the light's shadow map.  Culled rays are rays that would miss, so the hits
         and the image are those of ``_shade``.
         """
         n_rays = len(d_w)
@@ -590,13 +603,13 @@ def _mul3(a: np.ndarray, m: np.ndarray) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- fast path kernels
-# The fast path (``Renderer(fast=True)``, the default) gives the same hits and shading as
-# ``_shade`` but skips work that cannot change a pixel: the lab backdrop is intersected
-# analytically (a convex room seen from inside: one front-facing plane is the exit),
-# camera rays enter Open3D's turntable scene only where they cross its box tree before the
-# backdrop, and shadow rays are cast only where the segment to the light crosses that
-# tree.  Serial kernels that release the GIL: the acquisition renders its cameras in
-# parallel threads, so each kernel runs on one core.
+# The fast path (``Renderer.fast``, the default) gives the hits and shading of ``_shade``
+# but skips work that cannot change a pixel: the lab backdrop is intersected analytically
+# (a convex room seen from inside: the ray leaves through one plane), camera rays enter
+# Open3D's turntable scene only inside the view's footprint of its triangles (grown by a
+# margin), and shadow rays are cast only where the occluders' triangles cover the texel of
+# a shadow map seen from the light.  Serial kernels that release the GIL: the acquisition
+# renders its cameras in parallel threads, so each kernel runs on one core.
 try:
     from numba import njit
 
@@ -608,118 +621,170 @@ if HAVE_NUMBA:
     _jit = njit(cache=True, nogil=True, error_model="numpy")
 
     @_jit
-    def _camera_rays(d_w, centre, rz, planes, plane_tris, tri, tri_attr, t_out, mat_out, n_out):
-        """Backdrop hit of each world ray ``(centre, d_w[i])`` in the lab frame.
+    def _room_hit(o0, o1, o2, l0, l1, l2, planes, dist, plane_tris, tri):
+        """Backdrop hit ``(t, triangle, plane)`` of the lab ray ``o + t l`` (-1: miss).
 
         The backdrop bounds a convex room around the camera: the ray leaves it
         through the nearest plane it faces (``planes`` (P, 4): unit normal towards
         the room, offset ``n . x + offset = 0``), and hits the backdrop iff that point
-        lies in one of the plane's triangles (``plane_tris`` (P, 2) indices, -1 = none).
-        Writes t (inf: miss), material (-1: miss), world normal.
+        lies in one of the plane's triangles (``plane_tris`` (P, k), -1 padded);
+        otherwise it left through an open side and nothing else can be hit.
+        ``dist`` (P,): distance of ``o`` from each plane (> 0 in the room).
         """
+        # t_k = dist_k / -den_k; compared by cross-multiplication (no division per plane)
+        best_num, best_den = 1.0, 0.0
+        best_k = -1
+        for k in range(planes.shape[0]):
+            den = -(planes[k, 0] * l0 + planes[k, 1] * l1 + planes[k, 2] * l2)
+            if den > 0.0 and (best_k < 0 or dist[k] * best_den < best_num * den):
+                best_num, best_den = dist[k], den
+                best_k = k
+        if best_k < 0:
+            return np.inf, -1, -1
+        best = best_num / best_den
+        p0, p1, p2 = o0 + best * l0, o1 + best * l1, o2 + best * l2
+        # At a seam between two planes the point is on both: a hair's tolerance.
+        for s in range(plane_tris.shape[1]):
+            j = plane_tris[best_k, s]
+            if j < 0:
+                continue
+            e10 = tri[j, 1, 0] - tri[j, 0, 0]
+            e11 = tri[j, 1, 1] - tri[j, 0, 1]
+            e12 = tri[j, 1, 2] - tri[j, 0, 2]
+            e20 = tri[j, 2, 0] - tri[j, 0, 0]
+            e21 = tri[j, 2, 1] - tri[j, 0, 1]
+            e22 = tri[j, 2, 2] - tri[j, 0, 2]
+            q0, q1, q2 = p0 - tri[j, 0, 0], p1 - tri[j, 0, 1], p2 - tri[j, 0, 2]
+            a11 = e10 * e10 + e11 * e11 + e12 * e12
+            a12 = e10 * e20 + e11 * e21 + e12 * e22
+            a22 = e20 * e20 + e21 * e21 + e22 * e22
+            b1 = q0 * e10 + q1 * e11 + q2 * e12
+            b2 = q0 * e20 + q1 * e21 + q2 * e22
+            det = a11 * a22 - a12 * a12
+            u = (a22 * b1 - a12 * b2) / det
+            v = (a11 * b2 - a12 * b1) / det
+            if u >= -1e-7 and v >= -1e-7 and u + v <= 1.0 + 1e-7:
+                return best, j, best_k
+        return np.inf, -1, -1
+
+    @_jit
+    def _lambert(centre, t, d0, d1, d2, n0, n1, n2, light, basis, window, shadow_map):
+        """Lambert term at ``centre + t d`` with the normal turned towards the camera,
+        the turned normal, and whether the shadow ray may be blocked.
+
+        ``shadow_map`` is a pinhole view from the light (``basis`` (3, 3) rows: right,
+        down, forward) where every occluder triangle is filled (grown by 2 texels);
+        ``window = (x0, y0, scale)`` maps ``(x/z, y/z)`` to its texels.  All points of
+        the segment from a surface point to the light fall in one texel, so an empty
+        texel proves the shadow ray free.
+        """
+        if n0 * d0 + n1 * d1 + n2 * d2 > 0:
+            n0, n1, n2 = -n0, -n1, -n2
+        p0 = np.float32(centre[0] + t * d0)
+        p1 = np.float32(centre[1] + t * d1)
+        p2 = np.float32(centre[2] + t * d2)
+        v0, v1, v2 = light[0] - p0, light[1] - p1, light[2] - p2
+        dist = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+        lam = (n0 * v0 + n1 * v1 + n2 * v2) / max(dist, 1e-6)
+        cand = False
+        if lam > 0:
+            z = -(basis[2, 0] * v0 + basis[2, 1] * v1 + basis[2, 2] * v2)
+            if z > 0.0:  # else behind the light's image plane: no occluder there
+                x = -(basis[0, 0] * v0 + basis[0, 1] * v1 + basis[0, 2] * v2) / z
+                y = -(basis[1, 0] * v0 + basis[1, 1] * v1 + basis[1, 2] * v2) / z
+                cx = int(np.floor((x - window[0]) * window[2]))
+                cy = int(np.floor((y - window[1]) * window[2]))
+                cand = (0 <= cx < shadow_map.shape[1] and 0 <= cy < shadow_map.shape[0]
+                        and shadow_map[cy, cx])
+        return lam, n0, n1, n2, cand
+
+    @_jit
+    def _camera_rays(d_w, centre, rz, planes, plane_tris, tri, tri_attr, t_out, mat_out, n_out):
+        """Backdrop hit of each world ray ``(centre, d_w[i])`` (lab frame ``rz``):
+        t (inf: miss), material (-1: miss), world normal."""
         o0 = rz[0, 0] * centre[0] + rz[0, 1] * centre[1] + rz[0, 2] * centre[2]
         o1 = rz[1, 0] * centre[0] + rz[1, 1] * centre[1] + rz[1, 2] * centre[2]
         o2 = rz[2, 0] * centre[0] + rz[2, 1] * centre[1] + rz[2, 2] * centre[2]
-        n_pl = planes.shape[0]
+        dist = planes[:, 0] * o0 + planes[:, 1] * o1 + planes[:, 2] * o2 + planes[:, 3]
         for i in range(d_w.shape[0]):
-            t_out[i] = np.inf
-            mat_out[i] = -1
-            n_out[i, 0] = 0.0
-            n_out[i, 1] = 0.0
-            n_out[i, 2] = 0.0
             d0, d1, d2 = d_w[i, 0], d_w[i, 1], d_w[i, 2]
-            l0 = rz[0, 0] * d0 + rz[0, 1] * d1 + rz[0, 2] * d2
-            l1 = rz[1, 0] * d0 + rz[1, 1] * d1 + rz[1, 2] * d2
-            l2 = rz[2, 0] * d0 + rz[2, 1] * d1 + rz[2, 2] * d2
-            best = np.inf
-            best_k = -1
-            for k in range(n_pl):
-                den = planes[k, 0] * l0 + planes[k, 1] * l1 + planes[k, 2] * l2
-                if den < 0.0:
-                    tk = -(planes[k, 0] * o0 + planes[k, 1] * o1 + planes[k, 2] * o2
-                           + planes[k, 3]) / den
-                    if tk < best:
-                        best = tk
-                        best_k = k
-            if best_k < 0:
-                continue
-            p0, p1, p2 = o0 + best * l0, o1 + best * l1, o2 + best * l2
-            hit_j = -1
-            # The exit point lies on the nearest plane; at a seam between two planes
-            # it is on both, so the barycentric test allows a hair's tolerance.
-            for s in range(plane_tris.shape[1]):
-                j = plane_tris[best_k, s]
-                if j < 0:
-                    continue
-                e10 = tri[j, 1, 0] - tri[j, 0, 0]
-                e11 = tri[j, 1, 1] - tri[j, 0, 1]
-                e12 = tri[j, 1, 2] - tri[j, 0, 2]
-                e20 = tri[j, 2, 0] - tri[j, 0, 0]
-                e21 = tri[j, 2, 1] - tri[j, 0, 1]
-                e22 = tri[j, 2, 2] - tri[j, 0, 2]
-                q0 = p0 - tri[j, 0, 0]
-                q1 = p1 - tri[j, 0, 1]
-                q2 = p2 - tri[j, 0, 2]
-                a11 = e10 * e10 + e11 * e11 + e12 * e12
-                a12 = e10 * e20 + e11 * e21 + e12 * e22
-                a22 = e20 * e20 + e21 * e21 + e22 * e22
-                b1 = q0 * e10 + q1 * e11 + q2 * e12
-                b2 = q0 * e20 + q1 * e21 + q2 * e22
-                det = a11 * a22 - a12 * a12
-                u = (a22 * b1 - a12 * b2) / det
-                v = (a11 * b2 - a12 * b1) / det
-                if u >= -1e-7 and v >= -1e-7 and u + v <= 1.0 + 1e-7:
-                    hit_j = j
-                    break
-            if hit_j < 0:
-                continue  # left the room through an open side: nothing else can be hit
-            t_out[i] = best
-            mat_out[i] = tri_attr[hit_j]
-            # lab normal back to the world frame: n_w = n_lab @ rz
-            for ax in range(3):
-                n_out[i, ax] = (planes[best_k, 0] * rz[0, ax] + planes[best_k, 1] * rz[1, ax]
-                                + planes[best_k, 2] * rz[2, ax])
+            t, j, k = _room_hit(o0, o1, o2, rz[0, 0] * d0 + rz[0, 1] * d1 + rz[0, 2] * d2,
+                                rz[1, 0] * d0 + rz[1, 1] * d1 + rz[1, 2] * d2,
+                                rz[2, 0] * d0 + rz[2, 1] * d1 + rz[2, 2] * d2,
+                                planes, dist, plane_tris, tri)
+            t_out[i] = t
+            mat_out[i] = tri_attr[j] if j >= 0 else -1
+            for ax in range(3):  # lab normal back to the world frame: n_w = n_lab @ rz
+                n_out[i, ax] = 0.0 if j < 0 else (planes[k, 0] * rz[0, ax] + planes[k, 1]
+                                                  * rz[1, ax] + planes[k, 2] * rz[2, ax])
 
     @_jit
     def _light_terms(d_w, centre, t, normal, light, basis, window, shadow_map, lam_out,
                      shadow_cand):
         """Lambert term of each hit (normal turned towards the camera, in place) and
-        whether its shadow ray may be blocked.
-
-        ``shadow_map`` is a pinhole view from the light (axes ``basis`` (3, 3) rows:
-        right, down, forward) where every box of the occluders' trees is filled;
-        ``window = (x0, y0, scale)`` maps ``(x/z, y/z)`` to its texels.  All points of
-        the segment from a surface point to the light fall in one texel, so an empty
-        texel proves the shadow ray free.
-        """
-        mh, mw = shadow_map.shape
+        whether its shadow ray may be blocked (``_lambert``)."""
         for i in range(d_w.shape[0]):
             lam_out[i] = 0.0
             shadow_cand[i] = False
             if not np.isfinite(t[i]):
                 continue
-            if normal[i, 0] * d_w[i, 0] + normal[i, 1] * d_w[i, 1] + normal[i, 2] * d_w[i, 2] > 0:
-                normal[i, 0] = -normal[i, 0]
-                normal[i, 1] = -normal[i, 1]
-                normal[i, 2] = -normal[i, 2]
-            p0 = np.float32(centre[0] + t[i] * d_w[i, 0])
-            p1 = np.float32(centre[1] + t[i] * d_w[i, 1])
-            p2 = np.float32(centre[2] + t[i] * d_w[i, 2])
-            v0, v1, v2 = light[0] - p0, light[1] - p1, light[2] - p2
-            dist = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
-            lam = (normal[i, 0] * v0 + normal[i, 1] * v1 + normal[i, 2] * v2) / max(dist, 1e-6)
+            lam, n0, n1, n2, cand = _lambert(centre, t[i], d_w[i, 0], d_w[i, 1], d_w[i, 2],
+                                             normal[i, 0], normal[i, 1], normal[i, 2], light,
+                                             basis, window, shadow_map)
+            normal[i, 0], normal[i, 1], normal[i, 2] = n0, n1, n2
             lam_out[i] = lam
-            if lam <= 0:
+            shadow_cand[i] = cand
+
+    @_jit
+    def _primary(dirs_cam, rot, centre, rz, planes, plane_tris, tri, tri_attr, foot, light,
+                 basis, window, shadow_map, albedo, klass, ambient, key_light, miss, rad, fg,
+                 key, todo):
+        """One band of pixel-centre rays, finished where only the backdrop is involved.
+
+        A pixel outside the turntable scene's footprint whose shadow ray is provably
+        free sees the backdrop (or nothing) and is shaded here exactly as in
+        ``_radiance``; every other pixel is flagged in ``todo`` for ``_trace``.
+        Writes ``rad`` (N, 3), ``fg`` (N,) and ``key`` (N,) of the finished pixels.
+        """
+        o0 = rz[0, 0] * centre[0] + rz[0, 1] * centre[1] + rz[0, 2] * centre[2]
+        o1 = rz[1, 0] * centre[0] + rz[1, 1] * centre[1] + rz[1, 2] * centre[2]
+        o2 = rz[2, 0] * centre[0] + rz[2, 1] * centre[1] + rz[2, 2] * centre[2]
+        dist = planes[:, 0] * o0 + planes[:, 1] * o1 + planes[:, 2] * o2 + planes[:, 3]
+        for i in range(dirs_cam.shape[0]):
+            todo[i] = foot[i]
+            if foot[i]:
                 continue
-            z = -(basis[2, 0] * v0 + basis[2, 1] * v1 + basis[2, 2] * v2)
-            if z <= 0.0:
-                continue  # behind the light's image plane: no occluder there
-            x = -(basis[0, 0] * v0 + basis[0, 1] * v1 + basis[0, 2] * v2) / z
-            y = -(basis[1, 0] * v0 + basis[1, 1] * v1 + basis[1, 2] * v2) / z
-            cx = int(np.floor((x - window[0]) * window[2]))
-            cy = int(np.floor((y - window[1]) * window[2]))
-            if 0 <= cx < mw and 0 <= cy < mh and shadow_map[cy, cx]:
-                shadow_cand[i] = True
+            c0, c1, c2 = dirs_cam[i, 0], dirs_cam[i, 1], dirs_cam[i, 2]
+            d0 = np.float32(c0 * rot[0, 0] + c1 * rot[1, 0] + c2 * rot[2, 0])
+            d1 = np.float32(c0 * rot[0, 1] + c1 * rot[1, 1] + c2 * rot[2, 1])
+            d2 = np.float32(c0 * rot[0, 2] + c1 * rot[1, 2] + c2 * rot[2, 2])
+            t, j, k = _room_hit(o0, o1, o2, rz[0, 0] * d0 + rz[0, 1] * d1 + rz[0, 2] * d2,
+                                rz[1, 0] * d0 + rz[1, 1] * d1 + rz[1, 2] * d2,
+                                rz[2, 0] * d0 + rz[2, 1] * d1 + rz[2, 2] * d2,
+                                planes, dist, plane_tris, tri)
+            fg[i] = 0.0
+            if j < 0:
+                rad[i, 0], rad[i, 1], rad[i, 2] = miss[0], miss[1], miss[2]
+                key[i] = -8
+                continue
+            n0 = planes[k, 0] * rz[0, 0] + planes[k, 1] * rz[1, 0] + planes[k, 2] * rz[2, 0]
+            n1 = planes[k, 0] * rz[0, 1] + planes[k, 1] * rz[1, 1] + planes[k, 2] * rz[2, 1]
+            n2 = planes[k, 0] * rz[0, 2] + planes[k, 1] * rz[1, 2] + planes[k, 2] * rz[2, 2]
+            lam, n0, n1, n2, cand = _lambert(centre, np.float32(t), d0, d1, d2, np.float32(n0),
+                                             np.float32(n1), np.float32(n2), light, basis,
+                                             window, shadow_map)
+            if cand:
+                todo[i] = True
+                continue
+            m = tri_attr[j]
+            vis = np.float32(1.0) if lam > 0 else np.float32(0.0)
+            lit = np.float32(ambient + key_light * max(np.float32(lam), np.float32(0.0)) * vis)
+            rad[i, 0] = albedo[m, 0] * lit
+            rad[i, 1] = albedo[m, 1] * lit
+            rad[i, 2] = albedo[m, 2] * lit
+            key[i] = 8 * m + (2 if vis > 0 else 0)
+            fg[i] = np.float32(1.0) if klass[m] == CLASS_PLANT or klass[m] == CLASS_POT \
+                else np.float32(0.0)
 
     @_jit
     def _radiance(mat, lam, vis, board_albedo, albedo, klass, ambient, key_light, miss,
@@ -785,8 +850,55 @@ if HAVE_NUMBA:
                 out[i, 2] = 1.0 / nrm
 
     @_jit
-    def _tone(rad, inv_gamma, noise, out):
-        """8-bit BGR of linear radiance: gamma, additive noise (or none), rounding."""
+    def _raster_triangles(tri, margins, out):
+        """Set every sample ``(x, y)`` (integer coordinates, ``out[y, x]``) within
+        ``margins[i]`` of a triangle ``tri[i]`` (T, 3, 2) (a conservative superset: per
+        row, the triangle's x-range over ``y +- margin``, widened by ``margin``)."""
+        h, w = out.shape
+        for i in range(tri.shape[0]):
+            margin = margins[i]
+            ys = (tri[i, 0, 1], tri[i, 1, 1], tri[i, 2, 1])
+            r0 = max(0, int(np.floor(min(ys) - margin)))
+            r1 = min(h - 1, int(np.ceil(max(ys) + margin)))
+            for r in range(r0, r1 + 1):
+                y0, y1 = r - margin, r + margin
+                lo, hi = np.inf, -np.inf
+                for e in range(3):
+                    xa, ya = tri[i, e, 0], tri[i, e, 1]
+                    xb, yb = tri[i, (e + 1) % 3, 0], tri[i, (e + 1) % 3, 1]
+                    if y0 <= ya <= y1:
+                        lo, hi = min(lo, xa), max(hi, xa)
+                    if ya != yb:
+                        for yy in (y0, y1):
+                            if min(ya, yb) <= yy <= max(ya, yb):
+                                x = xa + (yy - ya) * (xb - xa) / (yb - ya)
+                                lo, hi = min(lo, x), max(hi, x)
+                if lo > hi:
+                    continue
+                c0 = max(0, int(np.ceil(lo - margin)))
+                c1 = min(w - 1, int(np.floor(hi + margin)))
+                for c in range(c0, c1 + 1):
+                    out[r, c] = 1
+
+    @_jit
+    def _unproject_uv(uv, f, fy, cu, cv, d1, d2, iterations, out):
+        """Unit camera rays through arbitrary pixel positions ``uv`` (N, 2)."""
+        for i in range(uv.shape[0]):
+            xd = (uv[i, 0] - cu) / f
+            yd = (uv[i, 1] - cv) / fy
+            x, y = xd, yd
+            for _ in range(iterations):
+                r2 = x * x + y * y
+                s = 1.0 + d1 * r2 + d2 * r2 * r2
+                x, y = xd / s, yd / s
+            nrm = np.sqrt(x * x + y * y + 1.0)
+            out[i, 0] = x / nrm
+            out[i, 1] = y / nrm
+            out[i, 2] = 1.0 / nrm
+
+    @_jit
+    def _tone(rad, inv_gamma, noise, sigma, out):
+        """8-bit BGR of linear radiance: gamma, additive noise ``sigma x noise``, rounding."""
         h, w, _ = rad.shape
         has_noise = noise.shape[0] > 0
         for r in range(h):
@@ -795,6 +907,6 @@ if HAVE_NUMBA:
                     x = min(max(rad[r, c, ch], np.float32(0.0)), np.float32(1.0))
                     y = np.float32(255.0) * np.float32(x ** inv_gamma)
                     if has_noise:
-                        y += noise[r, c, ch]
+                        y += sigma * noise[r, c, ch]
                     y = np.rint(y)
                     out[r, c, 2 - ch] = min(max(y, 0.0), 255.0)
