@@ -11,7 +11,13 @@ import numpy as np
 from pydantic import Field
 
 from plantscan_calib.detect import BoardSpec, detect_charuco, detect_chessboard
-from plantscan_calib.solver import CalibrationError, Detection, SolveOptions, calibrate_turntable
+from plantscan_calib.solver import (
+    CalibrationError,
+    Detection,
+    SolveOptions,
+    calibrate_turntable,
+    label_identical_boards,
+)
 from plantscan_core.data import Calibration, ViewRecord
 from plantscan_core.errors import DataError
 from plantscan_core.hookspecs import hookimpl
@@ -58,8 +64,9 @@ class TurntableCalibrator(Calibrator):
         max_rejected_fraction: float = Field(0.05, ge=0, le=1)
         lowest_corner_height_mm: float = 0.0
         cross_validate: bool = True
-        boards: int = Field(1, ge=1, description="ChArUco boards on the turntable (board k "
-                            "uses the k-th block of marker ids); a chessboard must be alone")
+        boards: int = Field(1, ge=1, description="boards on the turntable: ChArUco board k "
+                            "uses the k-th block of marker ids; identical chessboards are told "
+                            "apart by the turntable angles at which each faces the cameras")
         workers: int = Field(2, ge=1)
 
     def board_spec(self) -> BoardSpec:
@@ -88,11 +95,12 @@ class TurntableCalibrator(Calibrator):
             raise DataError(f"{scan.root}: the scan has no calibration views (role "
                             "'calibration' in views.jsonl)")
         spec = self.board_spec()
-        if self.params.boards > 1 and spec.kind != "charuco":
-            raise CalibrationError("calibrate.params.boards: identical chessboards cannot be "
-                                   "told apart; use ChArUco boards (board: charuco) for several")
         dets, sizes, found = detect_views(scan, views, spec, self.params.detect_max_side_px,
                                           self.params.workers, self.params.boards)
+        if spec.kind == "chessboard" and self.params.boards > 1:
+            # Identical chessboards: told apart by the turntable angles at which each faces
+            # the cameras (ChArUco boards carry their own ids).
+            dets = label_identical_boards(dets, self.params.boards)
         _check_detections(views, found, spec, self.params.min_views, scan.root)
         boards = {k: spec.object_points() for k in range(self.params.boards)}
         tilts = {v.tilt_index: v.tilt_deg for v in views}

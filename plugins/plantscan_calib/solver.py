@@ -524,6 +524,86 @@ def _pose_vec(r: np.ndarray, c: np.ndarray) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- initialisation
+def label_identical_boards(detections: list[Detection], n_boards: int) -> list[Detection]:
+    """Tell apart identical boards standing at different azimuths on the plate.
+
+    A camera sees each board over one arc of turntable angles (while it faces
+    the camera); boards back to back give arcs half a turn apart.  The arcs of
+    each (camera, tilt) are split at its ``n_boards`` largest gaps (of at least
+    one missed stop; another gap of more than three stops means more arcs than
+    boards);
+    the (camera, tilt) with the most detections defines board 0, 1, ... by its
+    arcs, and every other arc takes the board whose arc centre is nearest.
+    This assumes all cameras sit within about 90 deg of azimuth of each other
+    (one arm), as on a turntable scanner.
+
+    Raises
+    ------
+    CalibrationError
+        A (camera, tilt) whose detections form more arcs than there are boards,
+        or two of whose arcs would be the same board.
+    """
+    if n_boards < 2:
+        return list(detections)
+    by_ct: dict[tuple[str, int], list[int]] = defaultdict(list)
+    for i, d in enumerate(detections):
+        by_ct[(d.camera, d.tilt_index)].append(i)
+    angles = np.unique(np.round([d.angle_deg % 360.0 for d in detections], 6))
+    step = float(np.min(np.diff(angles))) if len(angles) > 1 else 360.0
+
+    def arcs(idx):
+        a = np.array([detections[i].angle_deg % 360.0 for i in idx])
+        order = np.argsort(a)
+        gaps = np.diff(np.concatenate([a[order], [a[order][0] + 360.0]]))
+        # Cut at the n largest gaps of at least one missing stop; any other gap of more
+        # than three stops means more arcs than boards.
+        big = [int(k) for k in np.argsort(-gaps)[:n_boards] if gaps[k] > 1.5 * step]
+        rest = np.delete(gaps, big)
+        if np.any(rest > 3.0 * step + 1e-6):
+            return None
+        cuts = np.array(sorted(big), dtype=int)
+        if len(cuts) == 0:
+            return [list(idx)]
+        out = []
+        for k, c in enumerate(cuts):  # arc from after cut c to the next cut (circular)
+            nxt = cuts[(k + 1) % len(cuts)]
+            span = [(c + 1 + j) % len(a) for j in range((nxt - c) % len(a) or len(a))]
+            out.append([idx[order[j]] for j in span])
+        return out
+
+    def centre(arc):
+        a = np.radians([detections[i].angle_deg for i in arc])
+        return math.degrees(math.atan2(np.sin(a).sum(), np.cos(a).sum()))
+
+    def dist(x, y):
+        return abs((x - y + 180.0) % 360.0 - 180.0)
+
+    ref = max(sorted(by_ct), key=lambda k: len(by_ct[k]))
+    def refuse(key, what):
+        raise CalibrationError(
+            f"camera {key[0]} tilt {key[1]}: the views with a board form {what} of turntable "
+            f"angles that cannot be matched to {n_boards} boards (identical chessboards are "
+            "told apart by the angles at which each faces the cameras; use ChArUco boards "
+            "for other layouts)")
+
+    ref_arcs = arcs(by_ct[ref])
+    if ref_arcs is None:
+        refuse(ref, f"more than {n_boards} arcs")
+    centres = [centre(a) for a in sorted(ref_arcs, key=len, reverse=True)]
+    label = {}
+    for key, idx in sorted(by_ct.items()):
+        ct_arcs = arcs(idx)
+        if ct_arcs is None:
+            refuse(key, f"more than {n_boards} arcs")
+        names = [int(np.argmin([dist(centre(a), c) for c in centres])) for a in ct_arcs]
+        if len(set(names)) < len(names):
+            refuse(key, f"{len(ct_arcs)} arcs")
+        for a, b in zip(ct_arcs, names, strict=True):
+            for i in a:
+                label[i] = b
+    return [replace(d, board=label[i]) for i, d in enumerate(detections)]
+
+
 def harmonise_symmetric_order(detections: list[Detection]) -> list[Detection]:
     """Undo 180-degree flips of a symmetric board's corner order along each orbit.
 

@@ -110,8 +110,21 @@ def test_two_charuco_boards(tmp_path):
     # Same image size and board as the chessboard scan above; partial views add corners.
     assert err["camera_centre_error_mm"]["mean"] < 1.0
     assert err["volume_reprojection_px_rms"] < 0.5
-    with pytest.raises(CalibrationError, match="identical chessboards"):
-        TurntableCalibrator(_params(boards=2)).calibrate(ScanFolder.open(tmp_path / "charuco"))
+
+
+@pytest.mark.slow
+def test_two_identical_chessboards_back_to_back(tmp_path):
+    """Two identical chessboards back to back: told apart by the angles each faces a camera."""
+    rig = make_rig(image_size=(960, 640), tilts_deg=(0.0, 20.0), distortion=False, boards=2)
+    write_board_scan(tmp_path / "two", rig, np.arange(0.0, 360.0, 20.0), px_per_mm=6.0)
+    scan = ScanFolder.open(tmp_path / "two")
+    cal = TurntableCalibrator(_params(boards=2)).calibrate(scan)
+    assert set(cal.quality["boards"]) == {"0", "1"}
+    assert cal.quality["rejected_fraction"] < 0.01  # a mislabelled view would be all outliers
+    err = compare_calibrations(cal, rig.truth, volume_points())
+    # As the ChArUco pair above (same image size and boards), two tilts.
+    assert err["camera_centre_error_mm"]["mean"] < 1.0
+    assert err["volume_reprojection_px_rms"] < 0.5
 
 
 def test_fixed_calibrator(board_scan, tmp_path):

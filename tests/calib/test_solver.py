@@ -7,7 +7,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from plantscan_calib.evaluate import compare_calibrations
-from plantscan_calib.solver import CalibrationError, SolveOptions, calibrate_turntable
+from plantscan_calib.solver import (
+    CalibrationError,
+    SolveOptions,
+    calibrate_turntable,
+    label_identical_boards,
+)
 from plantscan_calib.synthetic import make_rig, synthetic_detections, volume_points
 
 from plantscan_core.data import Calibration, Pose
@@ -185,6 +190,26 @@ def test_two_boards_fixed_principal_point_and_no_distortion():
     # Measured 0.1-0.3 mm and 0.31 px (one tilt, board covering a small part of the view).
     assert err["camera_centre_error_mm"]["max"] < 0.4
     assert err["volume_reprojection_px_rms"] < 0.5
+
+
+def test_identical_boards_are_told_apart_by_their_arcs():
+    # Two identical boards back to back: every detection arrives as board 0.
+    rig = make_rig(tilts_deg=(0.0, 20.0, 40.0), boards=2)
+    dets = synthetic_detections(rig, ANGLES_36, noise_px=0.2, seed=7)
+    labelled = label_identical_boards([replace(d, board=0) for d in dets], 2)
+    mapping = {(d.board, e.board) for d, e in zip(dets, labelled, strict=True)}
+    assert len(mapping) == 2 and len({b for _, b in mapping}) == 2  # one consistent naming
+    cal = calibrate_turntable(labelled, rig.boards, _sizes(rig), rig.truth.tilts_deg,
+                              SolveOptions(cross_validate=False, covariance=False))
+    assert cal.quality["rejected_corners"] < 10
+    err = compare_calibrations(cal, rig.truth, volume_points())
+    assert err["camera_centre_error_mm"]["mean"] < 0.2
+    # A board seen by cam0 at 90 deg, between the two boards' arcs (50 and 130 deg): a third
+    # arc for two boards is refused, naming camera and tilt.
+    extra = replace(dets[0], board=0, angle_deg=90.0)
+    assert (extra.camera, extra.tilt_index) == ("cam0", 0)
+    with pytest.raises(CalibrationError, match=r"camera cam0 tilt 0: .* more than 2 arcs"):
+        label_identical_boards([replace(d, board=0) for d in dets] + [extra], 2)
 
 
 def test_symmetric_board_flips_are_undone():
