@@ -208,17 +208,10 @@ class Renderer:
         w, h = model.width, model.height
         rows = max(1, MAX_RAYS_PER_BAND // w)
         bands = []
-        exact = type(model) is CameraModel  # a subclass may have another lens model
         for r0 in range(0, h, rows):
             r1 = min(h, r0 + rows)
-            if HAVE_NUMBA and exact:
-                dirs = np.empty(((r1 - r0) * w, 3), dtype=np.float32)
-                _unproject(0, w, r0, r1, float(model.f), float(model.fy), float(model.cu),
-                           float(model.cv), float(model.d1), float(model.d2), 20, dirs)
-            else:
-                uu, vv = np.meshgrid(np.arange(w, dtype=float), np.arange(r0, r1, dtype=float))
-                dirs = model.unproject(np.stack([uu.ravel(), vv.ravel()], 1)).astype(np.float32)
-            bands.append((r0, r1, dirs))
+            uu, vv = np.meshgrid(np.arange(w, dtype=float), np.arange(r0, r1, dtype=float))
+            bands.append((r0, r1, self._unproject(model, np.stack([uu.ravel(), vv.ravel()], 1))))
         if w * h <= MAX_CACHED_RAYS:
             with self._lock:
                 if len(self._cache) > 8:
@@ -332,8 +325,10 @@ class Renderer:
         img = np.clip(np.rint(img), 0, 255).astype(np.uint8)
         return img[:, :, ::-1].copy(), (fg if want_coverage else None)
 
-    def _unproject(self, model: CameraModel, uv: np.ndarray) -> np.ndarray:
-        """(N, 3) float32 unit camera rays through pixel positions ``uv`` (N, 2)."""
+    @staticmethod
+    def _unproject(model: CameraModel, uv: np.ndarray) -> np.ndarray:
+        """(N, 3) float32 unit camera rays through pixel positions ``uv`` (N, 2)
+        (``model.unproject`` compiled; a subclass may have another lens model)."""
         if not (HAVE_NUMBA and type(model) is CameraModel):
             return model.unproject(uv).astype(np.float32)
         out = np.empty((len(uv), 3), dtype=np.float32)
@@ -830,26 +825,6 @@ if HAVE_NUMBA:
                 out[r, c] = e
 
     @_jit
-    def _unproject(u0, u1, v0, v1, f, fy, cu, cv, d1, d2, iterations, out):
-        """Unit camera rays through the pixel centres of rows v0..v1, columns u0..u1
-        (the fixed-point inversion of ``CameraModel.undistort_points``)."""
-        w = u1 - u0
-        for r in range(v0, v1):
-            for c in range(u0, u1):
-                xd = (c - cu) / f
-                yd = (r - cv) / fy
-                x, y = xd, yd
-                for _ in range(iterations):
-                    r2 = x * x + y * y
-                    s = 1.0 + d1 * r2 + d2 * r2 * r2
-                    x, y = xd / s, yd / s
-                nrm = np.sqrt(x * x + y * y + 1.0)
-                i = (r - v0) * w + (c - u0)
-                out[i, 0] = x / nrm
-                out[i, 1] = y / nrm
-                out[i, 2] = 1.0 / nrm
-
-    @_jit
     def _raster_triangles(tri, margins, out):
         """Set every sample ``(x, y)`` (integer coordinates, ``out[y, x]``) within
         ``margins[i]`` of a triangle ``tri[i]`` (T, 3, 2) (a conservative superset: per
@@ -882,7 +857,8 @@ if HAVE_NUMBA:
 
     @_jit
     def _unproject_uv(uv, f, fy, cu, cv, d1, d2, iterations, out):
-        """Unit camera rays through arbitrary pixel positions ``uv`` (N, 2)."""
+        """Unit camera rays through pixel positions ``uv`` (N, 2) (the fixed-point
+        inversion of ``CameraModel.undistort_points``)."""
         for i in range(uv.shape[0]):
             xd = (uv[i, 0] - cu) / f
             yd = (uv[i, 1] - cv) / fy
