@@ -598,6 +598,10 @@ def label_identical_boards(detections: list[Detection], n_boards: int) -> list[D
         names = [int(np.argmin([dist(centre(a), c) for c in centres])) for a in ct_arcs]
         if len(set(names)) < len(names):
             refuse(key, f"{len(ct_arcs)} arcs")
+        seen = [(round(detections[i].angle_deg, 6), b) for a, b in zip(ct_arcs, names,
+                                                                        strict=True) for i in a]
+        if len(set(seen)) < len(seen):  # two boards in one image: not separable by angle
+            refuse(key, "arcs that overlap (two boards in one image)")
         for a, b in zip(ct_arcs, names, strict=True):
             for i in a:
                 label[i] = b

@@ -2,12 +2,18 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 from plantscan_calib.phenoarch import load_corners, load_original_calibration, project_original
-from plantscan_calib.solver import SolveOptions, calibrate_turntable
+from plantscan_calib.solver import (
+    CalibrationError,
+    SolveOptions,
+    calibrate_turntable,
+    label_identical_boards,
+)
 
 DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "phenoarch_maize_plant1"
 
@@ -65,3 +71,16 @@ def test_real_corners_calibrate_better_than_the_original(corners):
     assert 0.05 < q["rejected_fraction"] < 0.12
     assert 0.05 < q["corner_noise_px"] < 0.2
     assert abs(cal.angle_scale - 1.0) < 5e-4
+
+
+def test_identical_boards_labelled_on_real_corners(corners):
+    """The side camera sees the two PhenoArch boards over two arcs of angles: stripped of
+    their ids, they are named back consistently; the top camera sees both boards in one
+    image, which angles cannot separate: refused, naming it."""
+    dets, _, _ = corners
+    side = [d for d in dets if d.camera == "side"]
+    labelled = label_identical_boards([replace(d, board=0) for d in side], 2)
+    mapping = {(d.board, e.board) for d, e in zip(side, labelled, strict=True)}
+    assert len(mapping) == 2 and len({b for _, b in mapping}) == 2
+    with pytest.raises(CalibrationError, match=r"camera top tilt 0: .*two boards in one image"):
+        label_identical_boards([replace(d, board=0) for d in dets], 2)
