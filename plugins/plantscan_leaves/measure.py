@@ -62,6 +62,8 @@ log = logging.getLogger(__name__)
 
 # the crest line of n . N is the outline when one piece holds this share of it (a clean rim)
 CLEAN_OUTLINE_SHARE = 0.95
+# a leaf whose open border is at most this share of its outline was only cut at its base
+CUT_BORDER_SHARE = 0.25
 
 
 class LeafGeometryParams(StageParams):
@@ -229,6 +231,7 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
     border = topo.edges[topo.edge_face_count == 1]
     border_length = float(np.linalg.norm(v[border[:, 0]] - v[border[:, 1]], axis=1).sum())
     n_leaf_faces = len(f)
+    leaf_topo = topo
     if topo.border_edges:
         # a leaf cut from the stem, or holed where the segmentation gave a patch to a
         # neighbour: cap every hole so the slab is closed again; its outline then crosses
@@ -249,9 +252,11 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
     face_side = np.einsum("ij,ij->i", fn, face_axis)
     outline_sigma = (p.outline_smoothing_mm if p.outline_smoothing_mm is not None
                      else float(np.clip(8.0 * edge_mm, 1.5, 5.0)))
-    vertex_side = np.einsum("ij,ij->i", geo.vertex_normals(v, f), vert_axis)
-    rim_length, outline_kind = _outline_length(v, f, topo, vertex_side, face_side, fa,
-                                               outline_sigma)
+    # the crest on the leaf as it is (an outline open at the stem cut is closed by its chord),
+    # the two sides' border on the capped slab
+    vertex_side = np.einsum("ij,ij->i", geo.vertex_normals(v, f[leaf]), vert_axis)
+    rim_length, outline_kind = _outline_length(v, f, topo, f[leaf], leaf_topo, vertex_side,
+                                               face_side, fa, outline_sigma)
     perimeter = rim_length
 
     # mean slab thickness: enclosed volume over planform area (exact for a flat slab; an
@@ -391,12 +396,17 @@ def _largest_piece(nf: int, pairs: np.ndarray, member: np.ndarray, area: np.ndar
     return member & (comp == np.argmax(piece_area))
 
 
-def _outline_length(v: np.ndarray, f: np.ndarray, topo: geo.MeshTopology, vertex_side: np.ndarray,
-                    face_side: np.ndarray, area: np.ndarray, sigma: float) -> tuple[float, str]:
+def _outline_length(v: np.ndarray, f: np.ndarray, topo: geo.MeshTopology, leaf_faces: np.ndarray,
+                    leaf_topo: geo.MeshTopology, vertex_side: np.ndarray, face_side: np.ndarray,
+                    area: np.ndarray, sigma: float) -> tuple[float, str]:
     """Length (mm) of the rim crest of a slab, smoothed by ``sigma`` mm, and how it was traced.
 
-    ``"crest"``: the zero line of ``vertex_side`` (n . N at the vertices), exact
-    where the rim is clean, used when it is one outline (one piece holding
+    ``v, f, topo`` is the capped slab, ``leaf_faces, leaf_topo`` the leaf's own
+    faces (the first ones of ``f``).  ``"crest"``: the zero line of
+    ``vertex_side`` (n . N at the vertices), exact where the rim is clean, over
+    the leaf's own faces when its open border is short (a cut at the base,
+    closed by its chord) and over the capped slab otherwise; used when it is
+    one outline (one piece holding
     ``CLEAN_OUTLINE_SHARE`` of its length).  Otherwise (islands where a rough
     surface turns edge-on, phantom hull volume, a leaf holed by the segmentation)
     ``"sides"``: side A is the largest piece of the faces with ``face_side > 0``,
@@ -406,10 +416,16 @@ def _outline_length(v: np.ndarray, f: np.ndarray, topo: geo.MeshTopology, vertex
     a little short: -1 % to -4 % on the truth meshes' 4 mm triangles).
     """
     nf = len(f)
-    crest = _iso_line_lengths(v, f, topo, vertex_side, sigma)
-    total = sum(crest)
-    if total > 0 and max(crest) >= CLEAN_OUTLINE_SHARE * total:
-        return max(crest), "crest"
+    e = leaf_topo.edges[leaf_topo.edge_face_count == 1]
+    border = float(np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1).sum())
+    for faces, t in ((leaf_faces, leaf_topo), (f, topo)):
+        # a cut at the base is closed well by its chord (the leaf as it is); a leaf with a
+        # long open border (holed by the segmentation) is traced on its capped slab
+        crest = _iso_line_lengths(v, faces, t, vertex_side, sigma)
+        total = sum(crest)
+        if total > 0 and max(crest) >= CLEAN_OUTLINE_SHARE * total:
+            if faces is f or border <= CUT_BORDER_SHARE * max(crest):
+                return max(crest), "crest"
     side_a = face_side > 0
     if nf == 0 or not side_a.any() or side_a.all():
         return max(crest, default=0.0), "crest"

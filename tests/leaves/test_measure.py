@@ -91,3 +91,39 @@ def test_no_leaf_label_gives_empty_traits(caplog):
         traits, _, _ = measure_plant(LabelledMesh(mesh, np.zeros(len(mesh.faces)), {0: "stem"}))
     assert traits.leaves == [] and "no leaf" in caplog.text
     assert traits.plant["height_mm"] == pytest.approx(61.0, abs=1.5)  # the stem still counts
+
+
+def test_holed_leaf_keeps_its_outline():
+    # the segmentation may give a patch of one side to a neighbour (a hole in the slab) and
+    # leave crumbs of the leaf elsewhere: the outline must still be the leaf's, not the
+    # hole's rim, and the crumb must not count
+    leaf = ph.EllipseLeaf(60.0, 30.0)
+    mesh = ph.ellipse_slab_mesh(leaf.a, leaf.b, 1.5, voxel_mm=0.4)
+    c = mesh.vertices[mesh.faces].mean(axis=1)
+    hole = (np.hypot(c[:, 0] - 20.0, c[:, 1]) < 6.0) & (c[:, 2] > 0)  # top side only
+    holed = Mesh(mesh.vertices, mesh.faces[~hole])
+    crumb = ph.ellipse_slab_mesh(4.0, 3.0, 1.5, voxel_mm=0.4)
+    with_crumb = Mesh(np.vstack([holed.vertices, crumb.vertices + [0.0, 0.0, 40.0]]),
+                      np.vstack([holed.faces, crumb.faces + len(holed.vertices)]))
+    m = measure_leaf(with_crumb, 1, LeafGeometryParams())
+    # same tolerances as the whole slab (test_flat_ellipse_slab) for the outline traits
+    assert _rel(m.traits.perimeter_mm, leaf.perimeter_mm) < 0.015, m.traits
+    assert _rel(m.traits.length_mm, leaf.length_mm) < 0.02, m.traits
+    assert _rel(m.traits.width_mm, leaf.width_mm) < 0.02, m.traits
+    # area: the hole took half of pi 6^2 of one side's cover (one side of two)
+    missing = 0.5 * np.pi * 6.0**2
+    assert m.traits.area_mm2 == pytest.approx(leaf.area_mm2 - missing, rel=0.015)
+
+
+def test_close_holes_caps_every_real_hole():
+    from plantscan_leaves.geometry import topology
+    from plantscan_leaves.measure import close_holes
+
+    mesh = ph.ellipse_slab_mesh(30.0, 15.0, 2.0, voxel_mm=0.5)
+    c = mesh.vertices[mesh.faces].mean(axis=1)
+    cut = (c[:, 0] > 25.0) | ((np.hypot(c[:, 0], c[:, 1]) < 4.0) & (c[:, 2] > 0))  # 2 holes
+    f = mesh.faces[~cut]
+    v, capped = close_holes(mesh.vertices, f, topology(f), min_loop_mm=1.0)
+    assert len(v) == len(mesh.vertices) + 2  # one centre per hole
+    t = topology(capped)
+    assert t.border_edges == 0 and t.non_manifold_edges == 0
