@@ -116,9 +116,9 @@ def run_case(folder: Path, case: str, res: int, k: int) -> dict:
     from plantscan_hull.views import prepare_views
 
     sils, cal = load_scene(folder)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     views = prepare_views(list(sils), cal)
-    prep = time.perf_counter() - t0
+    prep, prep_cpu = time.perf_counter() - t0, time.process_time() - c0
     del sils
     min_seen = max(k + 1, len(views) // 2)
     t0 = time.perf_counter()
@@ -127,7 +127,8 @@ def run_case(folder: Path, case: str, res: int, k: int) -> dict:
     box = time.perf_counter() - t0
     grid = Grid.from_box(lo, hi, res)
     out = {"case": case, "res": res, "views": len(views), "prep_s": prep,
-           "prep_ms_per_view": 1000 * prep / len(views), "bbox_s": box,
+           "prep_ms_per_view": 1000 * prep / len(views),
+           "prep_cpu_ms_per_view": 1000 * prep_cpu / len(views), "bbox_s": box,
            "grid": list(grid.shape)}
     if case == "octree":
         _ = carve_octree(views, Grid.from_box(lo, hi, 16), k, 16, backend="numba")  # JIT warm-up
@@ -150,9 +151,10 @@ def run_case(folder: Path, case: str, res: int, k: int) -> dict:
         backend = "numba" if case == "dense" else "numpy"
         if backend == "numba":
             _ = carve_dense(views, Grid.from_box(lo, hi, 8), k, backend="numba")
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         phi, st = carve_dense(views, grid, k, backend=backend, min_seen=min_seen)
-        out.update(carve_s=time.perf_counter() - t0, voxel_view_tests=st.voxel_view_tests,
+        out.update(carve_s=time.perf_counter() - t0, carve_cpu_s=time.process_time() - c0,
+                   voxel_view_tests=st.voxel_view_tests,
                    cell_view_tests=0, inside=int((phi > 0).sum()))
     elif case == "open3d":
         out.update(open3d_carve(views, grid))
@@ -168,7 +170,7 @@ def open3d_carve(views, grid) -> dict:
     nx, ny, nz = grid.shape
     vg = o3d.geometry.VoxelGrid.create_dense(grid.lo, np.array([1.0, 1.0, 1.0]), s,
                                              nx * s, ny * s, nz * s)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     for v in views:
         cam = v.camera
         mask = np.zeros((v.height, v.width), np.float32)
@@ -182,21 +184,24 @@ def open3d_carve(views, grid) -> dict:
         ext[:3, :3], ext[:3, 3] = cam.pose.R, cam.pose.t
         params.extrinsic = ext
         vg.carve_silhouette(o3d.geometry.Image(mask), params, keep_voxels_outside_image=True)
-    return {"carve_s": time.perf_counter() - t0, "voxel_view_tests": nx * ny * nz * len(views),
+    return {"carve_s": time.perf_counter() - t0, "carve_cpu_s": time.process_time() - c0,
+            "voxel_view_tests": nx * ny * nz * len(views),
             "cell_view_tests": 0, "inside": len(vg.get_voxels())}
 
 
-def prep_full_size(n: int = 10) -> dict:
+def prep_full_size(n: int = 24) -> dict:
     """Per-view preparation (signed distance) at 3000 x 2000 px on ``n`` views."""
     from plantscan_hull.views import prepare_views
 
     folder = make_scene(n, (3000, 2000))
     sils, cal = load_scene(folder)
-    t0 = time.perf_counter()
+    prepare_views(list(sils)[:2], cal)  # thread pool and caches warm
+    t0, c0 = time.perf_counter(), time.process_time()
     views = prepare_views(list(sils), cal)
-    dt = time.perf_counter() - t0
+    dt, cpu = time.perf_counter() - t0, time.process_time() - c0
     roi = np.mean([v.sd.size for v in views]) / (3000 * 2000)
-    return {"ms_per_view": 1000 * dt / len(views), "roi_fraction": float(roi),
+    return {"ms_per_view": 1000 * dt / len(views), "cpu_ms_per_view": 1000 * cpu / len(views),
+            "roi_fraction": float(roi),
             "table_mb_per_view": float(np.mean([v.sd.nbytes for v in views]) / 2**20)}
 
 
@@ -210,11 +215,17 @@ def main() -> int:
     ap.add_argument("--open3d-res", default="128")
     ap.add_argument("--k", type=int, default=3)
     ap.add_argument("--case", help=argparse.SUPPRESS)
+    ap.add_argument("--plugins", help=argparse.SUPPRESS)
+    ap.add_argument("--baseline", default="",
+                    help="git revision whose plantscan_hull is also run (octree at the "
+                         "largest --res), e.g. 2459b3ff: before/after in the same run")
     ap.add_argument("--write", action="store_true", help="write docs/benchmarks/hull.md")
     args = ap.parse_args()
     size = tuple(int(x) for x in args.size.split("x"))
     folder = make_scene(args.views, size)
     if args.case:  # child process: one case
+        if args.plugins:  # an older revision of the plugin (the "before" column)
+            sys.path.insert(0, args.plugins)
         case, res = args.case.split(":")
         print(json.dumps(run_case(folder, case, int(res), args.k)))
         return 0
@@ -222,15 +233,26 @@ def main() -> int:
     cases = [("octree", r) for r in args.res.split(",") if r] + \
             [("dense", r) for r in args.dense_res.split(",") if r] + \
             [("open3d", r) for r in args.open3d_res.split(",") if r]
+    base_dir = None
+    if args.baseline:
+        base_dir = Path(tempfile.mkdtemp(prefix="hull_baseline_"))
+        archive = subprocess.run(["git", "-C", str(ROOT), "archive", args.baseline,
+                                  "plugins/plantscan_hull"], capture_output=True, check=True)
+        subprocess.run(["tar", "-x", "-C", str(base_dir)], input=archive.stdout, check=True)
+        cases.insert(0, ("baseline", max(args.res.split(","), key=int)))
     for case, res in cases:
         cmd = [sys.executable, __file__, "--views", str(args.views), "--size", args.size,
-               "--k", str(args.k), "--case", f"{case}:{res}"]
+               "--k", str(args.k), "--case", f"{'octree' if case == 'baseline' else case}:{res}"]
+        if case == "baseline":
+            cmd += ["--plugins", str(base_dir / "plugins")]
         proc = subprocess.run(cmd, capture_output=True, text=True)
         if proc.returncode != 0:
             print(f"{case} {res}: failed\n{proc.stderr[-2000:]}", file=sys.stderr)
             rows.append({"case": case, "res": int(res), "error": proc.stderr.strip()[-200:]})
             continue
         row = json.loads(proc.stdout.strip().splitlines()[-1])
+        if case == "baseline":
+            row["case"] = f"octree @ {args.baseline}"
         rows.append(row)
         print(json.dumps(row), flush=True)
     prep = prep_full_size()
@@ -246,36 +268,45 @@ def main() -> int:
 def render_markdown(rows, prep, args, size) -> str:
     import numba
 
+    load = os.getloadavg()
     lines = [
         "# Visual hull benchmark (`benchmarks/hull.py`)",
         "",
         f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores "
-        f"(shared with other jobs while measured), numba {numba.__version__} on "
+        f"(load average at the end of the run {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f}: "
+        f"shared with other jobs), numba {numba.__version__} on "
         f"{numba.get_num_threads()} threads, Python {platform.python_version()}.",
         f"Silhouettes: virtual scanner truth plant (plastic dicot) + pot, {args.views} views "
         f"({size[0]}x{size[1]} px, 2 cameras at 8 and 48 deg elevation), k = {args.k}, "
         "views must see a voxel in half the views.  Each case in its own process; peak RSS "
-        "includes the silhouette tables.",
+        "includes the silhouette tables.  CPU = process CPU time (all threads).",
         "",
-        "| method | grid (effective) | carve s | voxel-view tests | cell-view tests | "
-        "peak RSS MB | mesh + pot s |",
-        "|---|---|---|---|---|---|---|",
+        "| method | grid (effective) | carve s wall | carve s CPU | voxel-view tests | "
+        "cell-view tests | inside voxels | peak RSS MB | mesh + pot s wall | mesh + pot s CPU |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         if "error" in r:
-            lines.append(f"| {r['case']} | {r['res']} | failed: {r['error']} | | | | |")
+            lines.append(f"| {r['case']} | {r['res']} | failed: {r['error']} | | | | | | | |")
             continue
         mesh = f"{r['mesh_s']:.2f}" if "mesh_s" in r else ""
+        mesh_cpu = f"{r['mesh_cpu_s']:.2f}" if "mesh_cpu_s" in r else ""
+        cpu = f"{r['carve_cpu_s']:.2f}" if "carve_cpu_s" in r else ""
         lines.append(f"| {r['case']} | {r['res']} ({'x'.join(map(str, r['grid']))}) | "
-                     f"{r['carve_s']:.2f} | {r['voxel_view_tests']:.3g} | "
-                     f"{r['cell_view_tests']:.3g} | {r['peak_rss_mb']:.0f} | {mesh} |")
+                     f"{r['carve_s']:.2f} | {cpu} | {r['voxel_view_tests']:.3g} | "
+                     f"{r['cell_view_tests']:.3g} | {r.get('inside', '')} | "
+                     f"{r['peak_rss_mb']:.0f} | {mesh} | {mesh_cpu} |")
     ok = [r for r in rows if "prep_ms_per_view" in r]
     if ok:
         lines += ["", f"Per-view preparation (signed distance tables) at {size[0]}x{size[1]}: "
-                  f"{np.median([r['prep_ms_per_view'] for r in ok]):.1f} ms/view; bounding box "
-                  f"(frustum LP + 128^3 carve): {np.median([r['bbox_s'] for r in ok]):.2f} s."]
-    lines += [f"Per-view preparation at 3000x2000: {prep['ms_per_view']:.1f} ms/view "
-              f"(ROI {100 * prep['roi_fraction']:.0f} % of the image, "
+                  + ", ".join(f"{r['case']} {r['prep_ms_per_view']:.1f} ms/view wall, "
+                              f"{r.get('prep_cpu_ms_per_view', float('nan')):.1f} CPU"
+                              for r in ok)
+                  + "; bounding box (frustum LP + 128^3 carve on 48 views): "
+                  + ", ".join(f"{r['case']} {r['bbox_s']:.2f} s" for r in ok) + "."]
+    lines += [f"Per-view preparation at 3000x2000 (24 views): {prep['ms_per_view']:.1f} ms/view "
+              f"wall, {prep['cpu_ms_per_view']:.1f} ms CPU (ROI "
+              f"{100 * prep['roi_fraction']:.0f} % of the image, "
               f"{prep['table_mb_per_view']:.1f} MB table per view).", ""]
     return "\n".join(lines)
 

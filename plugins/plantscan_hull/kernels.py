@@ -283,10 +283,8 @@ if HAVE_NUMBA:
                 n_in = p_in[q]
                 n_off = p_offc[q]
                 n_on_amb = 0
-                na = 0  # views likely out (sd < 0) first, from the front of the scratch
-                nb = 0  # the other ambiguous views, from its back
+                na = 0  # ambiguous views, in the global view order
                 w = scratch_off[i]
-                e = scratch_off[i + 1] - 1
                 x = centres[i, 0]
                 y = centres[i, 1]
                 z = centres[i, 2]
@@ -301,8 +299,8 @@ if HAVE_NUMBA:
                         continue
                     near = zc - rho
                     if near <= 0:
-                        amb[e - nb] = j
-                        nb += 1
+                        amb[w + na] = j
+                        na += 1
                         continue
                     inv = params[j, 19] / near
                     r = rho * inv
@@ -313,8 +311,8 @@ if HAVE_NUMBA:
                         continue
                     if not (u - r >= -0.5 and u + r <= hi_u and v - r >= -0.5
                             and v + r <= hi_v):
-                        amb[e - nb] = j
-                        nb += 1
+                        amb[w + na] = j
+                        na += 1
                         continue
                     margin = lip * r + voxel_size * inv + slack
                     sd = _nearest(params, j, tables, u, v)
@@ -322,22 +320,18 @@ if HAVE_NUMBA:
                         n_out += 1
                     elif sd > margin:
                         n_in += 1
-                    elif sd < 0:
+                    else:
                         amb[w + na] = j
                         na += 1
-                        n_on_amb += 1
-                    else:
-                        amb[e - nb] = j
-                        nb += 1
                         n_on_amb += 1
                 c_out[i] = n_out
                 c_in[i] = n_in
                 c_off[i] = n_off
-                c_amb[i] = na + nb
+                c_amb[i] = na
                 c_neg[i] = na
                 if n_out > k or n_off > max_off:
                     decision[i] = 0
-                elif n_out + na + nb <= k and n_out + n_in + n_on_amb >= min_seen:
+                elif n_out + na <= k and n_out + n_in + n_on_amb >= min_seen:
                     decision[i] = 1
                 else:
                     decision[i] = 2
@@ -346,8 +340,8 @@ if HAVE_NUMBA:
 
     @njit(cache=True, parallel=True)
     def _gather_lists(sel, scratch_off, c_amb, c_neg, amb, out_start):
-        # Each child list: the views where the parent read sd < 0 first (an outside
-        # point then meets its k+1 outside views early and stops), then the others.
+        # Each child list: the front ``c_neg`` entries of its scratch, then the back
+        # ones reversed (the kernels write front-only, in the global view order).
         views = np.empty(out_start[-1], dtype=np.int16)
         for t in prange(sel.shape[0]):
             a = scratch_off[sel[t]]
@@ -403,47 +397,57 @@ if HAVE_NUMBA:
 
     # ------------------------------------------------------------------ groups of 8 siblings
     # The 8 children of a split cell share their parent's list of ambiguous views:
-    # they are tested together, view by view, from the projection of the parent's
-    # centre plus the rotated half-offsets (3 additions per child instead of a
-    # matrix product), and their table reads fall on the same cache lines.
+    # they are tested together, from the projection of the parent's centre plus
+    # the rotated half-offsets (3 additions per child instead of a matrix product).
+    # A chunk of parents is processed view-major (lists are in the global view
+    # order), so one view's table is read for neighbouring cells in a row.
 
     @njit(cache=True)
     def _classify_range(lo, hi, centres, valid, p_start, p_views, p_out, p_in, p_offc,
                         scratch_off, half_size, voxel_size, params, tables, k, slack, min_seen,
                         lip, decision, c_out, c_in, c_off, c_amb, c_neg, amb):
-        # Serial body of ``_classify_group`` (parents lo..hi); a separate function keeps
-        # numba's parallel analysis simple.
+        # Serial body of ``_classify_group`` for parents lo..hi, view-major: for each
+        # view (lists are in the global view order) the parents of the chunk whose list
+        # holds it, so one view's table is read for neighbouring cells in a row (the
+        # reads stay in cache; cell-major order reads a different table every test).
         nv = params.shape[0]
         rho = half_size * np.sqrt(3.0)
         max_off = nv - min_seen
+        n = (hi - lo) * 8
         count = 0
-        n_out = np.empty(8, np.int32)
-        n_in = np.empty(8, np.int32)
-        n_off = np.empty(8, np.int32)
-        n_on_amb = np.empty(8, np.int32)
-        na = np.empty(8, np.int32)
-        nb = np.empty(8, np.int32)
-        live = np.empty(8, np.bool_)
+        n_out = np.empty(n, np.int32)
+        n_in = np.empty(n, np.int32)
+        n_off = np.empty(n, np.int32)
+        n_on_amb = np.empty(n, np.int32)
+        na = np.zeros(n, np.int32)
+        live = np.empty(n, np.bool_)
+        alive = np.zeros(hi - lo, np.int32)
+        cursor = np.empty(hi - lo, np.int64)
         for i in range(lo, hi):
-            alive = 0
+            cursor[i - lo] = p_start[i]
             for ch in range(8):
-                n_out[ch] = p_out[i]
-                n_in[ch] = p_in[i]
-                n_off[ch] = p_offc[i]
-                n_on_amb[ch] = 0
-                na[ch] = 0
-                nb[ch] = 0
-                live[ch] = valid[i * 8 + ch]
-                alive += live[ch]
-            for t in range(p_start[i], p_start[i + 1]):
-                if alive == 0:
-                    break
-                j = p_views[t]
-                xc0, yc0, zc0 = _to_camera(params, j, centres[i, 0], centres[i, 1], centres[i, 2])
-                hi_u = params[j, 17] - 0.5
-                hi_v = params[j, 18] - 0.5
+                f = (i - lo) * 8 + ch
+                n_out[f] = p_out[i]
+                n_in[f] = p_in[i]
+                n_off[f] = p_offc[i]
+                n_on_amb[f] = 0
+                live[f] = valid[i * 8 + ch]
+                alive[i - lo] += live[f]
+        for j in range(nv):
+            hi_u = params[j, 17] - 0.5
+            hi_v = params[j, 18] - 0.5
+            for i in range(lo, hi):
+                t = cursor[i - lo]
+                if t >= p_start[i + 1] or p_views[t] != j:
+                    continue
+                cursor[i - lo] = t + 1
+                if alive[i - lo] == 0:
+                    continue
+                xc0, yc0, zc0 = _to_camera(params, j, centres[i, 0], centres[i, 1],
+                                           centres[i, 2])
                 for ch in range(8):
-                    if not live[ch]:
+                    f = (i - lo) * 8 + ch
+                    if not live[f]:
                         continue
                     sx = half_size if ch & 4 else -half_size
                     sy = half_size if ch & 2 else -half_size
@@ -451,12 +455,11 @@ if HAVE_NUMBA:
                     zc = zc0 + params[j, 6] * sx + params[j, 7] * sy + params[j, 8] * sz
                     count += 1
                     w = scratch_off[i * 8 + ch]
-                    e = scratch_off[i * 8 + ch + 1] - 1
                     if zc + rho <= 0:
-                        n_off[ch] += 1
+                        n_off[f] += 1
                     elif zc - rho <= 0:
-                        amb[e - nb[ch]] = j
-                        nb[ch] += 1
+                        amb[w + na[f]] = j
+                        na[f] += 1
                     else:
                         u, v, _zc = _project_cam(
                             params, j,
@@ -465,45 +468,42 @@ if HAVE_NUMBA:
                         inv = params[j, 19] / (zc - rho)
                         r = rho * inv
                         if u + r < -0.5 or u - r > hi_u or v + r < -0.5 or v - r > hi_v:
-                            n_off[ch] += 1
+                            n_off[f] += 1
                         elif not (u - r >= -0.5 and u + r <= hi_u and v - r >= -0.5
                                   and v + r <= hi_v):
-                            amb[e - nb[ch]] = j
-                            nb[ch] += 1
+                            amb[w + na[f]] = j
+                            na[f] += 1
                         else:
                             margin = lip * r + voxel_size * inv + slack
                             sd = _nearest(params, j, tables, u, v)
                             if sd < -margin:
-                                n_out[ch] += 1
+                                n_out[f] += 1
                             elif sd > margin:
-                                n_in[ch] += 1
-                            elif sd < 0:
-                                amb[w + na[ch]] = j
-                                na[ch] += 1
-                                n_on_amb[ch] += 1
+                                n_in[f] += 1
                             else:
-                                amb[e - nb[ch]] = j
-                                nb[ch] += 1
-                                n_on_amb[ch] += 1
-                    if n_out[ch] > k or n_off[ch] > max_off:
-                        live[ch] = False  # removed already
-                        alive -= 1
+                                amb[w + na[f]] = j
+                                na[f] += 1
+                                n_on_amb[f] += 1
+                    if n_out[f] > k or n_off[f] > max_off:
+                        live[f] = False  # removed already
+                        alive[i - lo] -= 1
+        for i in range(lo, hi):
             for ch in range(8):
-                f = i * 8 + ch
-                if not valid[f]:
+                f = (i - lo) * 8 + ch
+                g = i * 8 + ch
+                if not valid[g]:
                     continue  # beyond the grid: decision 0
-                c_out[f] = n_out[ch]
-                c_in[f] = n_in[ch]
-                c_off[f] = n_off[ch]
-                c_amb[f] = na[ch] + nb[ch]
-                c_neg[f] = na[ch]
-                if n_out[ch] > k or n_off[ch] > max_off:
-                    decision[f] = 0
-                elif (n_out[ch] + na[ch] + nb[ch] <= k
-                      and n_out[ch] + n_in[ch] + n_on_amb[ch] >= min_seen):
-                    decision[f] = 1
+                c_out[g] = n_out[f]
+                c_in[g] = n_in[f]
+                c_off[g] = n_off[f]
+                c_amb[g] = na[f]
+                c_neg[g] = na[f]
+                if n_out[f] > k or n_off[f] > max_off:
+                    decision[g] = 0
+                elif n_out[f] + na[f] <= k and n_out[f] + n_in[f] + n_on_amb[f] >= min_seen:
+                    decision[g] = 1
                 else:
-                    decision[f] = 2
+                    decision[g] = 2
         return count
 
     @njit(cache=True, parallel=True)
@@ -530,41 +530,57 @@ if HAVE_NUMBA:
     @njit(cache=True)
     def _voxel_range(lo, hi, centres, valid, p_start, p_views, p_out, p_in, voxel_size, params,
                      tables, k, min_seen, out):
-        # Serial body of ``_voxel_group`` (parents lo..hi).
+        # Serial body of ``_voxel_group`` for parents lo..hi, view-major as
+        # ``_classify_range``.
         h = 0.5 * voxel_size
+        nv = params.shape[0]
+        n = (hi - lo) * 8
         count = 0
-        kept = np.empty((8, k + 1), dtype=np.float32)
-        mx = np.empty(8, dtype=np.float32)
-        seen = np.empty(8, dtype=np.int32)
-        live = np.empty(8, np.bool_)
+        kept = np.empty((n, k + 1), dtype=np.float32)
+        mx = np.empty(n, dtype=np.float32)
+        seen = np.empty(n, dtype=np.int32)
+        live = np.empty(n, np.bool_)
+        alive = np.zeros(hi - lo, np.int32)
+        cursor = np.empty(hi - lo, np.int64)
+        total = 0
         for i in range(lo, hi):
-            alive = 0
+            cursor[i - lo] = p_start[i]
             for ch in range(8):
+                f = (i - lo) * 8 + ch
                 for q in range(k + 1):
-                    kept[ch, q] = np.inf
+                    kept[f, q] = np.inf
                 # Decided views of the parent: out -> -1, in -> +1 after clamping.
                 filled = 0
                 for _ in range(min(p_out[i], k + 1)):
-                    kept[ch, filled] = -1.0
+                    kept[f, filled] = -1.0
                     filled += 1
                 for _ in range(min(p_in[i], k + 1 - filled)):
-                    kept[ch, filled] = 1.0
+                    kept[f, filled] = 1.0
                     filled += 1
-                m = kept[ch, 0]
+                m = kept[f, 0]
                 for q in range(1, k + 1):
-                    m = max(m, kept[ch, q])
-                mx[ch] = m
-                seen[ch] = p_out[i] + p_in[i]
-                live[ch] = valid[i * 8 + ch] and m > -1.0
-                alive += live[ch]
-            for t in range(p_start[i], p_start[i + 1]):
-                if alive == 0:
-                    break
-                j = p_views[t]
-                xc0, yc0, zc0 = _to_camera(params, j, centres[i, 0], centres[i, 1], centres[i, 2])
-                fs = params[j, 12] * voxel_size
+                    m = max(m, kept[f, q])
+                mx[f] = m
+                seen[f] = p_out[i] + p_in[i]
+                live[f] = valid[i * 8 + ch] and m > -1.0
+                alive[i - lo] += live[f]
+            total += alive[i - lo]
+        for j in range(nv):
+            if total == 0:
+                break
+            fs = params[j, 12] * voxel_size
+            for i in range(lo, hi):
+                t = cursor[i - lo]
+                if t >= p_start[i + 1] or p_views[t] != j:
+                    continue
+                cursor[i - lo] = t + 1
+                if alive[i - lo] == 0:
+                    continue
+                xc0, yc0, zc0 = _to_camera(params, j, centres[i, 0], centres[i, 1],
+                                           centres[i, 2])
                 for ch in range(8):
-                    if not live[ch]:
+                    f = (i - lo) * 8 + ch
+                    if not live[f]:
                         continue
                     sx = h if ch & 4 else -h
                     sy = h if ch & 2 else -h
@@ -577,27 +593,30 @@ if HAVE_NUMBA:
                     if not (zc > 0 and u >= -0.5 and u <= params[j, 17] - 0.5 and v >= -0.5
                             and v <= params[j, 18] - 0.5):
                         continue
-                    seen[ch] += 1
+                    seen[f] += 1
                     d = np.float32(_bilinear(params, j, tables, u, v) * (zc / fs))
-                    if d < mx[ch]:
+                    if d < mx[f]:
                         worst = 0
                         for q in range(1, k + 1):
-                            if kept[ch, q] > kept[ch, worst]:
+                            if kept[f, q] > kept[f, worst]:
                                 worst = q
-                        kept[ch, worst] = d
-                        m = kept[ch, 0]
+                        kept[f, worst] = d
+                        m = kept[f, 0]
                         for q in range(1, k + 1):
-                            m = max(m, kept[ch, q])
-                        mx[ch] = m
+                            m = max(m, kept[f, q])
+                        mx[f] = m
                         if m <= -1.0:
-                            live[ch] = False  # k+1 views at <= -1: final after clamping
-                            alive -= 1
+                            live[f] = False  # k+1 views at <= -1: final after clamping
+                            alive[i - lo] -= 1
+                            total -= 1
+        for i in range(lo, hi):
             for ch in range(8):
+                f = (i - lo) * 8 + ch
                 if not valid[i * 8 + ch]:
                     continue
-                m = mx[ch]
+                m = mx[f]
                 val = min(max(m, np.float32(-1.0)), np.float32(1.0))
-                if seen[ch] < min_seen and m > -1.0:
+                if seen[f] < min_seen and m > -1.0:
                     val = np.float32(-1.0)
                 out[i * 8 + ch] = val
         return count
