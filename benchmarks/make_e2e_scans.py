@@ -53,14 +53,14 @@ def make(out: Path, protocol: str, size: tuple[int, int] = SIZE) -> Path:
         return folder
     resume = (folder / "views.jsonl").exists()
     print(f"{name}: rendering into {folder}{' (resuming)' if resume else ''}", flush=True)
+    commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True,
+                            text=True).stdout.strip()  # the renderer this run imported
     t0, c0 = time.perf_counter(), time.process_time()
     scan = make_scan(folder, preset="plastic-dicot", image_size=size,
                      images_per_revolution=None, image_format="jpg",
                      overrides=PROTOCOLS[protocol], resume=resume)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     n = len(scan.views)
-    commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True,
-                            text=True).stdout.strip()
     info = {"scan": str(folder), "protocol": protocol, "image_size": list(size),
             "images": n, "roles": {r: len(scan.views_by_role(r))
                                        for r in ("calibration", "background", "plant")},
