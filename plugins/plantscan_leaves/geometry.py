@@ -40,6 +40,33 @@ class MeshTopology:
         return int(np.count_nonzero(self.edge_face_count == 1))
 
 
+def sort_keys(key: np.ndarray, key_bound: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(order, key[order])`` for non-negative int64 keys below ``key_bound``.
+
+    Sorts the keys with each one's index packed into the low bits when they fit
+    in 62 bits: a plain sort of one int64 array, about twice as fast as
+    ``argsort``.  Equal keys come in any order.
+    """
+    n = len(key)
+    shift = max(n, 1).bit_length()
+    if key_bound >= 2 ** (62 - shift):
+        order = np.argsort(key)
+        return order, key[order]
+    packed = np.sort((key << shift) | np.arange(n, dtype=np.int64))
+    return packed & ((1 << shift) - 1), packed >> shift
+
+
+def unique_inverse(key: np.ndarray, key_bound: int) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(key, return_inverse=True)`` for int64 keys below ``key_bound``."""
+    order, k = sort_keys(key, key_bound)
+    first = np.empty(len(k), bool)
+    first[:1] = True
+    first[1:] = k[1:] != k[:-1]
+    inverse = np.empty(len(k), np.int64)
+    inverse[order] = np.cumsum(first) - 1
+    return k[first], inverse
+
+
 def topology(faces: np.ndarray) -> MeshTopology:
     """Edge list and face adjacency of ``faces`` (F, 3)."""
     f = np.asarray(faces, dtype=np.int64)
@@ -49,8 +76,7 @@ def topology(faces: np.ndarray) -> MeshTopology:
     nv = int(f.max()) + 1 if nf else 0
     key = half[:, 0] * nv + half[:, 1]
     # one sort does it all: edge ids, each half-edge's edge, and faces grouped by edge
-    order = np.argsort(key)  # faces of one edge may come in any order
-    k_sorted = key[order]
+    order, k_sorted = sort_keys(key, nv * nv)  # faces of one edge may come in any order
     first = np.empty(len(k_sorted), bool)
     first[:1] = True
     first[1:] = k_sorted[1:] != k_sorted[:-1]
@@ -200,7 +226,7 @@ def cell_normal_tensors(points: np.ndarray, normals: np.ndarray, weights: np.nda
     ijk = np.floor((points - lo) / cell).astype(np.int64)
     dims = ijk.max(axis=0) + 3
     key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
-    keys, inv = np.unique(key, return_inverse=True)
+    keys, inv = unique_inverse(key, int(np.prod(dims)))
     nc = len(keys)
     comps = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
     t = np.stack([np.bincount(inv, weights * normals[:, a] * normals[:, b], nc)

@@ -237,7 +237,7 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
         # neighbour: cap every hole so the slab is closed again; its outline then crosses
         # each cap instead of ending there (caps are not leaf surface: no area, no side)
         v, f = close_holes(v, f, topo, 2.0 * edge_mm)
-        topo = geo.topology(f)
+        topo = None  # the capped slab's topology, built only if the outline needs it
     fn, fa = geo.face_normals_areas(v, f)
     fc = v[f].mean(axis=1)
     cell = p.sheet_scale_mm
@@ -396,13 +396,15 @@ def _largest_piece(nf: int, pairs: np.ndarray, member: np.ndarray, area: np.ndar
     return member & (comp == np.argmax(piece_area))
 
 
-def _outline_length(v: np.ndarray, f: np.ndarray, topo: geo.MeshTopology, leaf_faces: np.ndarray,
+def _outline_length(v: np.ndarray, f: np.ndarray, topo: geo.MeshTopology | None,
+                    leaf_faces: np.ndarray,
                     leaf_topo: geo.MeshTopology, vertex_side: np.ndarray, face_side: np.ndarray,
                     area: np.ndarray, sigma: float) -> tuple[float, str]:
     """Length (mm) of the rim crest of a slab, smoothed by ``sigma`` mm, and how it was traced.
 
-    ``v, f, topo`` is the capped slab, ``leaf_faces, leaf_topo`` the leaf's own
-    faces (the first ones of ``f``).  ``"crest"``: the zero line of
+    ``v, f, topo`` is the capped slab (``topo`` None: not built yet),
+    ``leaf_faces, leaf_topo`` the leaf's own faces (the first ones of
+    ``f``).  ``"crest"``: the zero line of
     ``vertex_side`` (n . N at the vertices), exact where the rim is clean, over
     the leaf's own faces when its open border is short (a cut at the base,
     closed by its chord) and over the capped slab otherwise; used when it is
@@ -418,14 +420,22 @@ def _outline_length(v: np.ndarray, f: np.ndarray, topo: geo.MeshTopology, leaf_f
     nf = len(f)
     e = leaf_topo.edges[leaf_topo.edge_face_count == 1]
     border = float(np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1).sum())
-    for faces, t in ((leaf_faces, leaf_topo), (f, topo)):
-        # a cut at the base is closed well by its chord (the leaf as it is); a leaf with a
-        # long open border (holed by the segmentation) is traced on its capped slab
-        crest = _iso_line_lengths(v, faces, t, vertex_side, sigma)
+    # a cut at the base is closed well by its chord (the leaf as it is); a leaf with a long
+    # open border (holed by the segmentation) is traced on its capped slab
+    crest = _iso_line_lengths(v, leaf_faces, leaf_topo, vertex_side, sigma)
+    total = sum(crest)
+    clean = total > 0 and max(crest) >= CLEAN_OUTLINE_SHARE * total
+    if clean and border <= CUT_BORDER_SHARE * max(crest):
+        return max(crest), "crest"
+    if len(f) > len(leaf_faces):
+        topo = topo if topo is not None else geo.topology(f)
+        crest = _iso_line_lengths(v, f, topo, vertex_side, sigma)
         total = sum(crest)
         if total > 0 and max(crest) >= CLEAN_OUTLINE_SHARE * total:
-            if faces is f or border <= CUT_BORDER_SHARE * max(crest):
-                return max(crest), "crest"
+            return max(crest), "crest"
+    elif clean:
+        return max(crest), "crest"
+    topo = topo if topo is not None else leaf_topo
     side_a = face_side > 0
     if nf == 0 or not side_a.any() or side_a.all():
         return max(crest, default=0.0), "crest"
@@ -548,15 +558,17 @@ def _radius_graphs(q: np.ndarray, kind: np.ndarray, radius: float
     pairs = cKDTree(q).query_pairs(radius, output_type="ndarray")
     w = np.maximum(np.linalg.norm(q[pairs[:, 0]] - q[pairs[:, 1]], axis=1), 1e-9)
     n = len(q)
-
-    def graph(sel: np.ndarray) -> sparse.csr_matrix:
-        # one direction per pair: every dijkstra call here is undirected
-        return sparse.csr_matrix((w[sel], (pairs[sel, 0], pairs[sel, 1])), shape=(n, n))
-
-    ka, kb = kind[pairs[:, 0]], kind[pairs[:, 1]]
-    side_a = (ka != 2) & (kb != 2)
-    side_b = (ka != 1) & (kb != 1)
-    return graph(np.ones(len(pairs), bool)), graph(side_a), graph(side_b)
+    # one direction per pair (every dijkstra call here is undirected), built once: the side
+    # graphs share its structure, with the other side's edges made impassable (infinite)
+    g_all = sparse.csr_matrix((np.arange(1.0, len(pairs) + 1), (pairs[:, 0], pairs[:, 1])),
+                              shape=(n, n))
+    pair_of = g_all.data.astype(np.int64) - 1
+    g_all.data = w[pair_of]
+    ka, kb = kind[pairs[pair_of, 0]], kind[pairs[pair_of, 1]]
+    g_a, g_b = g_all.copy(), g_all.copy()
+    g_a.data = np.where((ka != 2) & (kb != 2), g_all.data, np.inf)
+    g_b.data = np.where((ka != 1) & (kb != 1), g_all.data, np.inf)
+    return g_all, g_a, g_b
 
 
 def _enclosed_volume(v: np.ndarray, f: np.ndarray) -> float:

@@ -99,8 +99,10 @@ def _grow(labels: np.ndarray, pairs: np.ndarray) -> np.ndarray:
         to_b = (lb < 0) & (la >= 0)
         if not (to_a.any() or to_b.any()):
             return labels
-        labels[a[to_a]] = lb[to_a]
-        labels[b[to_b]] = la[to_b]
+        # a face reached by several labels in one step takes the largest: the result does
+        # not depend on the order of the pairs
+        np.maximum.at(labels, a[to_a], lb[to_a])
+        np.maximum.at(labels, b[to_b], la[to_b])
 
 
 def _relabel(labels: np.ndarray) -> np.ndarray:
