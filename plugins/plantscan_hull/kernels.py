@@ -708,6 +708,54 @@ if HAVE_NUMBA:
         return bad
 
 
+    # ------------------------------------------------------------------ components
+    @njit(cache=True)
+    def _find(parent, a):
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    @njit(cache=True)
+    def _component_sizes(idx, nx, ny, nz):
+        # 26-connected components of the voxels with sorted linear indices ``idx``
+        # (C order): for each of the 13 "forward" offsets a second pointer sweeps
+        # ``idx`` in step (both increase), then a union-find.  Returns each voxel's
+        # component size.
+        n = idx.shape[0]
+        parent = np.arange(n)
+        for di in range(0, 2):
+            for dj in range(-1, 2):
+                for dk in range(-1, 2):
+                    if di == 0 and (dj < 0 or (dj == 0 and dk <= 0)):
+                        continue  # the mirrored offsets: each pair once
+                    d = (di * ny + dj) * nz + dk
+                    q = 0
+                    for p in range(n):
+                        lin = idx[p]
+                        k = lin % nz
+                        j = (lin // nz) % ny
+                        i = lin // (ny * nz)
+                        if (i + di >= nx or j + dj < 0 or j + dj >= ny or k + dk < 0
+                                or k + dk >= nz):
+                            continue
+                        target = lin + d
+                        while q < n and idx[q] < target:
+                            q += 1
+                        if q < n and idx[q] == target:
+                            ra = _find(parent, p)
+                            rb = _find(parent, q)
+                            if ra != rb:
+                                parent[max(ra, rb)] = min(ra, rb)
+        size = np.zeros(n, dtype=np.int64)
+        for p in range(n):
+            size[_find(parent, p)] += 1
+        out = np.empty(n, dtype=np.int64)
+        for p in range(n):
+            out[p] = size[parent[p]]
+        return out
+
+
 def voxel_field(packed, points: np.ndarray, voxel_size: float, k: int, stats=None,
                 min_seen: int = 0) -> np.ndarray:
     """Compiled ``carve.voxel_field`` (``packed`` from ``pack``)."""
@@ -824,3 +872,8 @@ def nonmanifold_vertices(faces: np.ndarray, n_vertices: int) -> int:
     """Vertices whose incident faces do not form a single fan (compiled)."""
     return int(_nonmanifold_vertices(np.ascontiguousarray(faces, dtype=np.int64),
                                      int(n_vertices)))
+
+
+def component_sizes(idx: np.ndarray, shape: tuple[int, int, int]) -> np.ndarray:
+    """Size of the 26-connected component of each voxel (``idx``: sorted linear indices)."""
+    return _component_sizes(np.ascontiguousarray(idx, dtype=np.int64), *map(int, shape))

@@ -165,9 +165,12 @@ def remove_cylinders(volume: Volume, cylinders: list[TaperedCylinder],
 
     Returns
     -------
-    field : (NX, NY, NZ) float32 array, voxels (a new array)
+    field : (NX, NY, NZ) float32 array, voxels (a new array; the volume's own
+        when ``cylinders`` is empty)
     removed : int, voxels that were inside and are now outside
     """
+    if not cylinders:
+        return volume.field, 0  # nothing to subtract: no copy of a possibly large grid
     field = np.array(volume.field, dtype=np.float32, copy=True)
     s = float(volume.voxel_size)
     origin = np.asarray(volume.origin, dtype=float)

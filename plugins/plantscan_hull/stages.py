@@ -178,7 +178,8 @@ class MarchingCubesMesher(Mesher):
             cylinders = list(p.pot)
         margin = p.pot_margin_mm + float(volume.voxel_size)
         field, removed = remove_cylinders(volume, cylinders, margin)
-        field, dropped = drop_small_components(field, p.min_component_voxels)
+        field, dropped = drop_small_components(field, p.min_component_voxels,
+                                               in_place=field is not volume.field)
         mesh = marching_cubes(field, volume.origin, volume.voxel_size)
         mesh = postprocess(mesh, p.smooth_iterations, p.target_faces)
         report = {"pot": [c.model_dump() for c in cylinders], "pot_mode": p.pot

@@ -102,6 +102,19 @@ def test_small_components_are_dropped():
 
 
 @pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba not installed")
+def test_compiled_component_sizes_match_scipy():
+    from plantscan_hull.meshing import _component_sizes_scipy
+    from scipy import ndimage
+
+    occ = np.random.default_rng(3).random((23, 17, 19)) < 0.3
+    idx = np.flatnonzero(occ)
+    labels, _ = ndimage.label(occ, structure=np.ones((3, 3, 3), dtype=bool))
+    truth = np.bincount(labels.ravel())[labels.ravel()[idx]]
+    assert np.array_equal(kernels.component_sizes(idx, occ.shape), truth)
+    assert np.array_equal(_component_sizes_scipy(idx, occ.shape), truth)
+
+
+@pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba not installed")
 def test_nonmanifold_vertex_check_matches_open3d():
     # Two cubes touching at one corner: a vertex whose faces form two fans.
     field = -np.ones((8, 8, 8), np.float32)
