@@ -85,7 +85,10 @@ def split_by_face_colour(mesh: Mesh, colours: np.ndarray) -> tuple[Mesh, np.ndar
         raise ValueError(f"{len(colours)} face colours for {len(mesh.faces)} faces")
     if mesh.is_empty:
         return Mesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64)), np.zeros((0, 3))
-    _, colour_id = np.unique(colours, axis=0, return_inverse=True)
+    # Colours to one integer key each (16 bits per channel: palette colours differ far
+    # more than 1/65535); a 1-D unique is ~10x faster than np.unique(axis=0) on 1 M rows.
+    q = np.round(np.clip(colours, 0.0, 1.0) * 65535).astype(np.int64)
+    _, colour_id = np.unique((q[:, 0] << 32) | (q[:, 1] << 16) | q[:, 2], return_inverse=True)
     colour_id = colour_id.reshape(-1)
     keys = mesh.faces.astype(np.int64) * (int(colour_id.max()) + 1) + colour_id[:, None]
     unique_keys, inverse = np.unique(keys.reshape(-1), return_inverse=True)
