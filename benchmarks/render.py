@@ -79,7 +79,7 @@ def run(label: str, size: tuple[int, int], n_images: int, modes: list[str]) -> l
                 (a, ca), (b, cb) = images[mode], images["open3d"]
                 d = np.abs(a.astype(np.int16) - b.astype(np.int16)).mean()
                 m = 100.0 * float(np.mean((ca >= 0.5) != (cb >= 0.5)))
-                diff = f"{d:.4f} / {m:.4f} %"
+                diff = f"{d:.2g} / {m:.4f} %"
             rows.append(f"| {label} ({size[0]}x{size[1]}) | {role} ({ss}x{ss}) | {mode} | {n} "
                         f"| {cpu:.2f} | {wall:.2f} | {r.rays_cast / n / 1e6:.1f} "
                         f"| {r.rays_analytic / n / 1e6:.1f} | {diff} |")
