@@ -368,12 +368,12 @@ if HAVE_NUMBA:
             tests[c] = count
         return decision, c_out, c_in, c_off, c_amb, c_neg, amb, tests.sum()
 
-    @njit(cache=True, parallel=True)
+    @njit(cache=True)  # serial: cheap, and parallel compiles slowly
     def _gather_lists(sel, scratch_off, c_amb, c_neg, amb, out_start):
         # Each child list: the front ``c_neg`` entries of its scratch, then the back
         # ones reversed (the kernels write front-only, in the global view order).
         views = np.empty(out_start[-1], dtype=np.int16)
-        for t in prange(sel.shape[0]):
+        for t in range(sel.shape[0]):
             a = scratch_off[sel[t]]
             e = scratch_off[sel[t] + 1] - 1
             o = out_start[t]
@@ -384,19 +384,19 @@ if HAVE_NUMBA:
                 views[o + neg + q] = amb[e - q]
         return views
 
-    @njit(cache=True, parallel=True)
+    @njit(cache=True)  # serial: cheap, and parallel compiles slowly
     def _fill_cells(phi, cells, size, value):
         nx, ny, nz = phi.shape
-        for c in prange(cells.shape[0]):
+        for c in range(cells.shape[0]):
             x0, y0, z0 = cells[c, 0], cells[c, 1], cells[c, 2]
             for a in range(x0, min(x0 + size, nx)):
                 for b in range(y0, min(y0 + size, ny)):
                     for e in range(z0, min(z0 + size, nz)):
                         phi[a, b, e] = value
 
-    @njit(cache=True, parallel=True)
+    @njit(cache=True)  # serial: cheap, and parallel compiles slowly
     def _scatter(phi, idx, values):
-        for i in prange(idx.shape[0]):
+        for i in range(idx.shape[0]):
             phi[idx[i, 0], idx[i, 1], idx[i, 2]] = values[i]
 
     @njit(cache=True)
