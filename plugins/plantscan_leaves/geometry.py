@@ -188,13 +188,16 @@ def smooth_polyline(points: np.ndarray, sigma_mm: float, closed: bool = False) -
     seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
     s = np.concatenate([[0.0], np.cumsum(seg)])
     total = s[-1]
-    if total <= 0:
+    if total <= 1e-9 * sigma_mm:  # a polyline of coincident points: nothing to smooth
         return points
     step = min(sigma_mm / 4.0, total / 8.0)
     n = max(int(np.ceil(total / step)) + 1, 4)
     t = np.linspace(0.0, total, n)
     res = np.stack([np.interp(t, s, points[:, k]) for k in range(3)], axis=1)
-    sig = sigma_mm / (total / (n - 1))
+    # Beyond a few times the curve's own length a wider kernel changes nothing (the curve
+    # is already flattened to its mean) but its size: cap it so a ~1e-7 mm curve cannot ask
+    # scipy for a 1e15-sample kernel (seen on a hull leaf).
+    sig = min(sigma_mm / (total / (n - 1)), 4.0 * n)
     if closed:
         return gaussian_filter1d(res[:-1], sig, axis=0, mode="wrap")
     # reflect about the end points ("odd" extension) so the ends stay where they are

@@ -31,3 +31,14 @@ def test_topology_of_a_closed_slab():
     assert len(t.face_pairs) == len(t.edges)
     assert np.all(np.any(t.face_edges[t.face_pairs[:, 0]] == t.pair_edge[:, None], axis=1))
     assert np.all(np.any(t.face_edges[t.face_pairs[:, 1]] == t.pair_edge[:, None], axis=1))
+
+
+def test_smoothing_a_vanishing_polyline_neither_explodes_nor_moves_it():
+    """A 1e-7 mm crest piece (seen on a 640x427 demo hull) once asked scipy for a
+    1e15-sample Gaussian kernel; it must come back as a curve no longer than itself."""
+    from plantscan_leaves.geometry import polyline_length, smooth_polyline
+
+    tiny = np.array([[0.0, 0.0, 0.0], [1e-7, 0.0, 0.0], [2e-7, 1e-7, 0.0]])
+    assert polyline_length(smooth_polyline(tiny, 1.0)) <= polyline_length(tiny)
+    coincident = np.zeros((4, 3))
+    assert np.array_equal(smooth_polyline(coincident, 1.0), coincident)
