@@ -12,12 +12,12 @@ seconds per stage (wall and CPU), the command's total wall time (imports
 included), peak resident memory, and the trait errors, so speed never hides
 an accuracy loss.
 
-The scans are rendered (not timed) by ``benchmarks/make_e2e_scans.py``; with
-``--render WxH`` a missing scan is rendered here with the paper-72 recipe.
+The scans are rendered (not timed) by ``benchmarks/make_e2e_scans.py``; without
+``--scan`` the paper-72 scan is taken from (or rendered into) its cache.
 
-Configurations default to the recipe as stored in the scan (what a user gets)
-and the simplest correct alternative: the same recipe decoding and segmenting
-every image at full resolution (``segment.reduce=1``).
+Configurations default to the recipe as stored in the scan (what a user gets:
+every image decoded and segmented at full resolution, the simplest correct
+way), the same with ``segment.reduce=2``, and that with a 512^3 hull.
 """
 
 from __future__ import annotations
@@ -103,43 +103,43 @@ def table(scan: Path, results: dict[str, dict]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--scan", type=Path, required=True, help="virtual scan folder")
+    ap.add_argument("--scan", type=Path, action="append",
+                    help="virtual scan folder (repeatable; default: the paper-72 18 MP scan of "
+                         "benchmarks/make_e2e_scans.py, rendered there if missing)")
     ap.add_argument("--config", action="append", default=[],
                     help="NAME:PATH=VALUE,PATH=VALUE (recipe overrides); repeatable")
     ap.add_argument("--runs", type=Path, default=Path("/tmp/plantscan-e2e-runs"))
-    ap.add_argument("--render", metavar="WxH", help="render a missing paper-72 scan at this size")
     ap.add_argument("--json", type=Path, help="append the results to this JSON file")
     args = ap.parse_args(argv)
 
-    if not (args.scan / "scan.yaml").exists():
-        if not args.render:
-            raise SystemExit(f"{args.scan}: no scan (render it with benchmarks/make_e2e_scans.py "
-                             "or pass --render 5184x3456)")
-        from plantscan_sim.api import make_scan
+    scans = args.scan
+    if not scans:
+        sys.path.insert(0, str(Path(__file__).parent))
+        import make_e2e_scans
 
-        w, h = (int(x) for x in args.render.split("x"))
-        make_scan(args.scan, "plastic-dicot", image_size=(w, h), images_per_revolution=36,
-                  calibration_images_per_revolution=18, image_format="jpg")
+        scans = [make_e2e_scans.make(make_e2e_scans.DEFAULT_OUT, "paper-72")]
     configs = dict(_parse_config(c) for c in args.config) or {
-        "default": [], "full resolution (reduce 1)": ["segment.reduce=1"]}
-    n_images = sum(1 for p in (args.scan / "images").rglob("*") if p.is_file())
-    print(f"scan {args.scan} ({n_images} images), {platform.machine()}, {os.cpu_count()} cores, "
-          f"load {os.getloadavg()[0]:.1f}")
-    results = {}
-    for i, (name, overrides) in enumerate(configs.items()):
-        r = run_one(args.scan, args.runs / f"run{i}", overrides)
-        results[name] = r
-        print(f"\n== {name} {overrides}\n{r['profile']}")
-        print(f"command wall {r['wall_s']:.1f} s, CPU {r['cpu_s']:.1f} s, "
-              f"peak RSS {r['peak_rss_mb']} MB, leaves {r['leaves']}, errors {r['errors']}")
-    print()
-    print(table(args.scan, results))
-    print(f"load after: {os.getloadavg()[0]:.1f}")
-    if args.json:
-        old = json.loads(args.json.read_text()) if args.json.exists() else {}
-        old[str(args.scan)] = {k: {kk: vv for kk, vv in v.items() if kk != "profile"}
-                               for k, v in results.items()}
-        args.json.write_text(json.dumps(old, indent=2))
+        "default recipe": [], "reduce 2": ["segment.reduce=2"],
+        "reduce 2, hull 512": ["segment.reduce=2", "reconstruct.params.resolution=512"]}
+    for scan in scans:
+        n_images = sum(1 for p in (scan / "images").rglob("*") if p.is_file())
+        print(f"scan {scan} ({n_images} images), {platform.machine()}, {os.cpu_count()} cores, "
+              f"load {os.getloadavg()[0]:.1f}")
+        results = {}
+        for i, (name, overrides) in enumerate(configs.items()):
+            r = run_one(scan, args.runs / f"run{i}", overrides)
+            results[name] = r
+            print(f"\n== {name} {overrides}\n{r['profile']}")
+            print(f"command wall {r['wall_s']:.1f} s, CPU {r['cpu_s']:.1f} s, "
+                  f"peak RSS {r['peak_rss_mb']} MB, leaves {r['leaves']}, errors {r['errors']}")
+        print()
+        print(table(scan, results))
+        print(f"load after: {os.getloadavg()[0]:.1f}")
+        if args.json:
+            old = json.loads(args.json.read_text()) if args.json.exists() else {}
+            old[str(scan)] = {k: {kk: vv for kk, vv in v.items() if kk != "profile"}
+                              for k, v in results.items()}
+            args.json.write_text(json.dumps(old, indent=2))
     return 0
 
 

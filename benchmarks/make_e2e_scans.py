@@ -32,6 +32,7 @@ from pathlib import Path
 import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_OUT = Path(os.environ.get("PLANTSCAN_E2E_SCANS", Path.home() / ".cache/plantscan/e2e"))
 SIZE = (5184, 3456)
 PROTOCOLS = {
     "paper-72": [],
@@ -94,7 +95,8 @@ def make(out: Path, protocol: str, size: tuple[int, int] = SIZE) -> Path:
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, default=Path("/work/e2e_scans"))
+    ap.add_argument("--out", type=Path, default=DEFAULT_OUT,
+                    help="scan cache (default $PLANTSCAN_E2E_SCANS or ~/.cache/plantscan/e2e)")
     ap.add_argument("--protocol", choices=[*PROTOCOLS, "both"], default="both")
     ap.add_argument("--size", default=f"{SIZE[0]}x{SIZE[1]}", help="WxH pixels")
     args = ap.parse_args(argv)
