@@ -200,4 +200,6 @@ def test_fast_renderer_gives_the_open3d_images(role, sway):
         assert np.mean(masks[0] != masks[1]) < 1e-3
         if role == "plant":
             assert 0.02 < masks[0].mean() < 0.6  # the plant is in the picture
-        assert rays[True] < 0.5 * rays[False], rays
+        # The board of the shipped recipe (13x10 x 40 mm) fills a third of a calibration
+        # view, where the fast path must cast as Open3D does: 0.6x measured there.
+        assert rays[True] < (0.5 if role != "calibration" else 0.7) * rays[False], rays
