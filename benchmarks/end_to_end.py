@@ -118,9 +118,12 @@ def main(argv: list[str] | None = None) -> int:
         import make_e2e_scans
 
         scans = [make_e2e_scans.make(make_e2e_scans.DEFAULT_OUT, "paper-72")]
+    # The scans store the recipe they were made with; the shipped recipe's leaf parameter
+    # (recipes/plastic-dicot.yaml) came later, so it is applied as an override.
+    leaf = "segment_mesh.params.concave_curvature_per_mm=0.06"
     configs = dict(_parse_config(c) for c in args.config) or {
-        "default recipe": [], "reduce 2": ["segment.reduce=2"],
-        "reduce 2, hull 512": ["segment.reduce=2", "reconstruct.params.resolution=512"]}
+        "recipe as scanned": [leaf], "reduce 2": ["segment.reduce=2", leaf],
+        "reduce 2, hull 512": ["segment.reduce=2", "reconstruct.params.resolution=512", leaf]}
     for scan in scans:
         n_images = sum(1 for p in (scan / "images").rglob("*") if p.is_file())
         print(f"scan {scan} ({n_images} images), {platform.machine()}, {os.cpu_count()} cores, "
