@@ -462,13 +462,7 @@ class Renderer:
         for lay, m, piv, sel_rays in cands:
             if not len(sel_rays):
                 continue
-            d_c = d_w[sel_rays]
-            if m is None:
-                o, d = centre, d_c
-            elif piv is None:
-                o, d = centre @ m, _mul3(d_c, m)
-            else:
-                o, d = piv + (centre - piv) @ m, _mul3(d_c, m)
+            o, d = _into_layer(centre, d_w[sel_rays], m, piv)
             hc = self._cast(lay.scene, o.astype(np.float32), d)
             closer = hc["t_hit"] < t[sel_rays]
             if not closer.any():
@@ -550,12 +544,7 @@ class Renderer:
         mat = np.full(n_rays, -1, dtype=np.int64)
         normal = np.zeros((n_rays, 3), dtype=np.float32)
         for lay, m, pivot in cands:
-            if m is None:
-                o, d = centre, d_w
-            elif pivot is None:
-                o, d = centre @ m, _mul3(d_w, m)
-            else:
-                o, d = pivot + (centre - pivot) @ m, _mul3(d_w, m)
+            o, d = _into_layer(centre, d_w, m, pivot)
             h = self._cast(lay.scene, o.astype(np.float32), d)
             closer = h["t_hit"] < t
             if not closer.any():
@@ -598,6 +587,15 @@ class Renderer:
         rad[:] = self.lighting.miss_colour
         rad[idx] = albedo * light[:, None]
         return rad, cls, key
+
+
+def _into_layer(centre, d, m, pivot):
+    """Ray origin and directions in a layer's frame (rotation ``m`` about ``pivot``, if any)."""
+    if m is None:
+        return centre, d
+    if pivot is None:
+        return centre @ m, _mul3(d, m)
+    return pivot + (centre - pivot) @ m, _mul3(d, m)
 
 
 def _mul3(a: np.ndarray, m: np.ndarray) -> np.ndarray:
