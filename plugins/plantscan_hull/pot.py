@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
+from scipy import ndimage
 
 from plantscan_core.data import Volume
 
@@ -30,6 +31,8 @@ RIM_FILL = 0.9
 RADIUS_JUMP_VOXELS = 1.5
 # Non-disc slices tolerated at the bottom of the hull (the cone under the pot).
 BOTTOM_SKIP_SLICES = 4
+# Slices copied out of the field at a time while walking up the pot.
+SLICE_CHUNK = 32
 # A pot narrower than this (voxels) is not told apart from a stem.
 MIN_POT_RADIUS_VOXELS = 3.0
 
@@ -62,92 +65,128 @@ class TaperedCylinder(BaseModel):
 
 
 @dataclass
-class SliceProfile:
-    z: np.ndarray        # (S,) mm, slice centres
-    area: np.ndarray     # (S,) voxels
-    centre: np.ndarray   # (S, 2) mm
-    r_eq: np.ndarray     # (S,) mm, radius of the disc of the same area
-    fill: np.ndarray     # (S,) area / disc through the farthest voxel
+class SliceStats:
+    area: float               # voxels, holes filled
+    centre: np.ndarray        # (2,) mm
+    r_eq: float               # mm, radius of the disc of the same area
+    fill: float               # area / disc through the farthest voxel
 
 
-def slice_profile(occupied: np.ndarray, origin: np.ndarray, s: float) -> SliceProfile:
-    """Per z-slice area, centroid and disc-likeness of an occupancy grid.
+def filled_slice(occupied_slice: np.ndarray) -> np.ndarray:
+    """A z-slice of the hull with its enclosed holes filled ((NX, NY) bool).
 
-    Computed from the occupied voxels' indices (the cost follows the hull).
+    Speckled silhouettes (a shaded pot read as shadow in a few views) carve
+    scattered holes inside the pot; the pot's cross-section is still the
+    outline.  Only the slice's occupied bounding box is labelled.
     """
-    nz = occupied.shape[2]
-    i, j, kz = np.nonzero(occupied)
+    rows = np.flatnonzero(occupied_slice.any(axis=1))
+    if rows.size == 0:
+        return occupied_slice
+    cols = np.flatnonzero(occupied_slice.any(axis=0))
+    box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+    out = occupied_slice.copy()
+    out[box] = ndimage.binary_fill_holes(occupied_slice[box])
+    return out
+
+
+def slice_stats(filled: np.ndarray, origin: np.ndarray, s: float) -> SliceStats:
+    """Area, centroid and disc-likeness of one (hole-filled) slice; ``origin`` (3,) mm."""
+    i, j = np.nonzero(filled)
+    if i.size == 0:
+        return SliceStats(0.0, np.zeros(2), 0.0, 0.0)
     x = origin[0] + i * s
     y = origin[1] + j * s
-    area = np.bincount(kz, minlength=nz).astype(float)
-    cx = np.bincount(kz, x, minlength=nz) / np.maximum(area, 1)
-    cy = np.bincount(kz, y, minlength=nz) / np.maximum(area, 1)
-    rmax = np.zeros(nz)
-    np.maximum.at(rmax, kz, np.hypot(x - cx[kz], y - cy[kz]))
-    fill = np.where(area > 0, area * s * s / (np.pi * (rmax + s / 2) ** 2), 0.0)
-    return SliceProfile(origin[2] + np.arange(nz) * s, area, np.stack([cx, cy], axis=1),
-                        np.sqrt(area * s * s / np.pi), fill)
+    centre = np.array([x.mean(), y.mean()])
+    rmax = float(np.max(np.hypot(x - centre[0], y - centre[1])))
+    area = float(i.size)
+    return SliceStats(area, centre, float(np.sqrt(area * s * s / np.pi)),
+                      area * s * s / (np.pi * (rmax + s / 2) ** 2))
 
 
-def _disc_fill(occupied_slice: np.ndarray, origin: np.ndarray, s: float,
+def _disc_fill(filled: np.ndarray, origin: np.ndarray, s: float,
                centre: np.ndarray, radius: float) -> float:
-    nx, ny = occupied_slice.shape
+    nx, ny = filled.shape
     xs = origin[0] + np.arange(nx) * s
     ys = origin[1] + np.arange(ny) * s
     disc = np.hypot(xs[:, None] - centre[0], ys[None, :] - centre[1]) <= radius
     n = disc.sum()
-    return float((occupied_slice & disc).sum() / n) if n else 0.0
+    return float((filled & disc).sum() / n) if n else 0.0
 
 
 def fit_pot(volume: Volume) -> list[TaperedCylinder]:
     """Tapered cylinders (carrier, pot) fitted from the bottom of the hull; [] if none.
+
+    Each slice is judged with its enclosed holes filled (:func:`filled_slice`),
+    and only the slices from the bottom up to the pot's rim are examined.
 
     Parameters
     ----------
     volume : Volume
         The hull (field > 0 inside), turntable frame.
     """
-    occ = volume.field > 0
+    field = volume.field
     s = float(volume.voxel_size)
     origin = np.asarray(volume.origin, dtype=float)
-    prof = slice_profile(occ, origin, s)
-    occupied_slices = np.flatnonzero(prof.area)
+    nz = field.shape[2]
+    occupied_slices = np.flatnonzero((field > 0).any(axis=(0, 1)))
     if occupied_slices.size == 0:
         return []
-    k0 = occupied_slices[0]
-    disc = (prof.area > 0) & (prof.fill >= DISC_FILL) & (prof.r_eq >= MIN_POT_RADIUS_VOXELS * s)
+    k0 = int(occupied_slices[0])
+    z = origin[2] + np.arange(nz) * s
+    filled: dict[int, np.ndarray] = {}
+    stats: dict[int, SliceStats] = {}
+    chunks: dict[int, np.ndarray] = {}
+
+    def slice_filled(k: int) -> np.ndarray:
+        # z is the fastest axis of the field: slices are copied out 32 at a time
+        # (a strided slice per z costs ~5 ms at 512^3).
+        if k not in filled:
+            c = (k - k0) // SLICE_CHUNK
+            if c not in chunks:
+                a = k0 + c * SLICE_CHUNK
+                chunks[c] = np.ascontiguousarray(np.moveaxis(field[:, :, a:a + SLICE_CHUNK] > 0,
+                                                             2, 0))
+            filled[k] = filled_slice(chunks[c][(k - k0) % SLICE_CHUNK])
+        return filled[k]
+
+    def disc(k: int) -> bool:
+        if k not in stats:
+            stats[k] = slice_stats(slice_filled(k), origin, s)
+        st = stats[k]
+        return st.area > 0 and st.fill >= DISC_FILL and st.r_eq >= MIN_POT_RADIUS_VOXELS * s
+
     # Under the pot the hull is a cone (no camera looks up): skip a few slices to the first disc.
-    starts = np.flatnonzero(disc[k0:k0 + BOTTOM_SKIP_SLICES + 1])
-    if starts.size == 0:
+    starts = [k for k in range(k0, min(k0 + BOTTOM_SKIP_SLICES + 1, nz)) if disc(k)]
+    if not starts:
         return []
-    k = ks = k0 + starts[0]
-    while k < len(prof.z) and disc[k]:
+    k = ks = starts[0]
+    while k < nz and disc(k):
         k += 1
     run = np.arange(ks, k)
     if len(run) < 3:
         return []
-    jumps = np.flatnonzero(np.abs(np.diff(prof.r_eq[run])) > RADIUS_JUMP_VOXELS * s) + 1
-    pieces = [p for p in np.split(run, jumps) if len(p) >= 3]
+    r_eq = np.array([stats[int(kk)].r_eq for kk in run])
+    jumps = np.flatnonzero(np.abs(np.diff(r_eq)) > RADIUS_JUMP_VOXELS * s) + 1
+    pieces = [p for p in np.split(np.arange(len(run)), jumps) if len(p) >= 3]
     if not pieces:
         return []
     cylinders = []
     for n, piece in enumerate(pieces):
-        z = prof.z[piece]
-        slope, intercept = np.polyfit(z, prof.r_eq[piece], 1)
-        centre = prof.centre[piece].mean(axis=0)
-        top = piece[-1]
+        slope, intercept = np.polyfit(z[run[piece]], r_eq[piece], 1)
+        centre = np.mean([stats[int(run[i])].centre for i in piece], axis=0)
+        top = int(run[piece[-1]])
         if n == len(pieces) - 1:
             # Rim search: the fitted disc stays full up to the rim even under leaves.
             kk = top + 1
-            while kk < occ.shape[2]:
-                r = slope * prof.z[kk] + intercept - s
-                if r <= 0 or _disc_fill(occ[:, :, kk], origin, s, centre, r) < RIM_FILL:
+            while kk < nz:
+                r = slope * z[kk] + intercept - s
+                if r <= 0 or _disc_fill(slice_filled(kk), origin, s, centre, r) < RIM_FILL:
                     break
                 kk += 1
             top = kk - 1
         # The lowest piece also takes the cone under the pot (down to the lowest slice).
-        z_bottom = prof.z[k0 if n == 0 else piece[0]] - s / 2
-        z_top = prof.z[top] + s / 2
+        z_bottom = z[k0 if n == 0 else int(run[piece[0]])] - s / 2
+        z_top = z[top] + s / 2
         cylinders.append(TaperedCylinder(
             z_bottom_mm=float(z_bottom), z_top_mm=float(z_top),
             r_bottom_mm=float(max(slope * z_bottom + intercept, s)),

@@ -161,6 +161,27 @@ def test_auto_pot_fit_and_removal(potted_volume):
     assert leaf.sum() > 20
 
 
+def test_auto_pot_fit_survives_speckled_silhouettes(potted_volume):
+    # A pot in the leaves' shade read as shadow in some views: scattered holes inside the pot's
+    # hull (measured on a 5-tilt 18 MP scan: 20-30 % of the voxels of a slice). The fit on the
+    # slices' outlines must still find the rim and radius (same tolerances as above).
+    field = potted_volume.field.copy()
+    s = potted_volume.voxel_size
+    idx = np.stack(np.nonzero(field > 0), axis=1)
+    p = potted_volume.origin + idx * s
+    rho = np.hypot(p[:, 0], p[:, 1])
+    interior = (p[:, 2] < POT.z1 - 2 * s) & (rho < POT.r0 - 2 * s)
+    rng = np.random.default_rng(5)
+    holes = idx[interior & (rng.random(len(idx)) < 0.3)]
+    field[tuple(holes.T)] = -1.0
+    speckled = Volume(field, potted_volume.origin, s)
+    cyl = fit_pot(speckled)
+    assert len(cyl) == 1, cyl
+    c = cyl[0]
+    assert c.z_top_mm == pytest.approx(POT.z1, abs=1.5 * s)
+    assert c.r_top_mm == pytest.approx(POT.r1, abs=1.5 * s + 0.04 * POT.r1)
+
+
 def test_given_pot_is_removed(potted_volume):
     pot = [TaperedCylinder(z_bottom_mm=POT.z0, z_top_mm=POT.z1, r_bottom_mm=POT.r0,
                            r_top_mm=POT.r1)]
