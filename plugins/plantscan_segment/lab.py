@@ -39,6 +39,8 @@ from plantscan_segment.lab_reference import (
     NEIGHBOURHOOD,
     chromaticity_distance,
     chromaticity_distance_planes,
+    fill_small_holes,
+    hole_px,
     lab_shadow_mask_reference,
     lab_shadow_score,
     normalised_rgb,
@@ -46,7 +48,7 @@ from plantscan_segment.lab_reference import (
 )
 
 __all__ = ["LabShadowSegmenter", "lab_shadow_mask", "lab_shadow_score", "chromaticity_distance",
-           "median_background", "remove_small_blobs"]
+           "median_background", "remove_small_blobs", "fill_small_holes"]
 
 # How many plates one segmenter keeps converted: a scan has one per camera and tilt.
 _PLATES_KEPT = 16
@@ -210,7 +212,8 @@ def lab_shadow_mask(image: np.ndarray, background: np.ndarray, p,
     for top in range(0, height, band_rows):
         bottom = min(top + band_rows, height)
         mask[top:bottom] = _band_mask(image, background, plate, p, alpha_delta, top, bottom)
-    return remove_tiny_blobs(mask, p.min_blob_px)
+    return fill_small_holes(remove_tiny_blobs(mask, p.min_blob_px),
+                            hole_px(mask.shape, p.max_hole_fraction))
 
 
 def _band_mask(image, background, plate: PlateTerms, p, alpha_delta, top: int,
@@ -300,6 +303,11 @@ class LabShadowSegmenter(Segmenter):
         min_blob_px: int = Field(
             default=3, ge=0, description="drop 8-connected foreground blobs smaller than this "
             "(0: off); 3 removes noise speckle in shadows at no measured thin-recall cost")
+        max_hole_fraction: float = Field(
+            default=1.5e-5, ge=0, lt=1, description="fill background holes inside the plant "
+            "smaller than this fraction of the image's area (0: off; 1.5e-5 is 67 px at "
+            "2592x1728, 2 px at 480x320): the shadow test speckles a shaded pot or leaf with "
+            "false holes, which carve the hull (docs/segmentation.md)")
         background: Literal["plate", "median"] = Field(
             default="plate",
             description="plate: the scan's background view of the same camera and tilt; "

@@ -6,13 +6,17 @@ import numpy as np
 import pytest
 from plantscan_segment import lab
 from plantscan_segment.lab import LabShadowSegmenter, lab_shadow_mask, remove_tiny_blobs
-from plantscan_segment.lab_reference import lab_shadow_mask_reference, remove_small_blobs
+from plantscan_segment.lab_reference import (
+    fill_small_holes,
+    lab_shadow_mask_reference,
+    remove_small_blobs,
+)
 
 # Parameter sets that switch each clean-up on and off and leave the weights unnormalised,
 # so every branch of the fast path is compared with the reference.
 PARAMS = [
     {},
-    {"edge_fraction": 0.0, "shadow_chroma_max": None, "min_blob_px": 0},
+    {"edge_fraction": 0.0, "shadow_chroma_max": None, "min_blob_px": 0, "max_hole_fraction": 0},
     {"suppress_shadows": False, "threshold": 5.0, "min_blob_px": 2},
     {"alpha": 0.3, "beta": 0.2, "gamma": 0.9, "shadow_ratio_min": 0.45, "min_blob_px": 5,
      "shadow_colour_max": 12.5},
@@ -66,6 +70,26 @@ def test_tiny_blob_removal_equals_connected_components():
         for min_px in (0, 1, 2, 3, 4):
             assert np.array_equal(remove_tiny_blobs(mask, min_px),
                                   remove_small_blobs(mask, min_px)), (i, min_px)
+
+
+def test_small_holes_are_filled_and_gaps_to_the_outside_kept():
+    mask = np.zeros((60, 80), bool)
+    mask[10:50, 10:70] = True
+    mask[20:23, 20:23] = False      # 9 px speck (a shaded pot read as shadow): filled
+    mask[30, 40] = False            # 1 px speck: filled
+    mask[25:35, 50:62] = False      # 120 px hole (a real gap between leaf and stem): kept
+    mask[40:50, 30:33] = False      # a notch open to the outside: not a hole, kept
+    mask[39, 33] = False            # a pixel touching the notch only diagonally: a hole
+    out = fill_small_holes(mask, 64)
+    assert out[20:23, 20:23].all() and out[30, 40] and out[39, 33]
+    assert not out[25:35, 50:62].any() and not out[40:50, 30:33].any()
+    assert np.array_equal(out & ~mask, out ^ mask)  # only ever adds pixels
+    assert fill_small_holes(mask, 0) is mask
+    assert not fill_small_holes(np.zeros((5, 5), bool), 64).any()
+    # A hole touching the mask's bounding box from inside is still enclosed (4-connected).
+    ring = np.ones((5, 5), bool)
+    ring[2, 2] = False
+    assert fill_small_holes(ring, 2).all()
 
 
 def test_each_plate_is_converted_once_and_again_when_changed(sim_scans, monkeypatch):
