@@ -16,7 +16,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from plantscan_core.data import CameraModel
-from plantscan_hull.views import ViewField
+from plantscan_hull.views import SD_DTYPE, SD_STEP, ViewField
 
 try:  # numba is optional: the numpy path is complete without it
     import numba
@@ -33,6 +33,8 @@ except ImportError:  # pragma: no cover - exercised only without numba
 _R, _T, _F, _CU, _CV, _D1, _D2 = 0, 9, 12, 13, 14, 15, 16
 _W, _H, _GAIN, _U0, _V0, _TW, _TH, _BOX, _OFF, _FY = 17, 18, 19, 20, 21, 22, 23, 24, 28, 29
 _NPARAM = 30
+# Fixed-point step of the distance tables (px), a compile-time constant of the kernels.
+_SD_STEP = np.float32(SD_STEP)
 # Points per chunk of the view-major loops (neighbours in the octree's order).
 CHUNK = 2048
 # Parent cells per chunk of the sibling-group kernels.
@@ -45,19 +47,19 @@ def supported(views: Sequence[ViewField]) -> bool:
 
 
 def pack(views: Sequence[ViewField]) -> tuple[np.ndarray, np.ndarray]:
-    """(V, 30) float64 parameter rows and one float32 buffer holding the distance tables.
+    """(V, 30) float64 parameter rows and one int16 buffer holding the distance tables.
 
-    When every view's ``sd`` already lives in one buffer (packed by an earlier
-    carve, in any order) that buffer is used as it is: the rows hold each
-    table's offset.  Otherwise the tables are copied into a new buffer and each
-    view's ``sd`` is re-pointed at its slice (same values), so the tables are
-    held once from then on, not twice (~9 MB per view at 3000x2000 px).
+    When every view's ``sd`` already lives in one buffer (``prepare_views``
+    writes them so; any subset, any order) that buffer is used as it is: the
+    rows hold each table's offset.  Otherwise (views prepared one by one) the
+    tables are copied into a new buffer and each view's ``sd`` is re-pointed at
+    its slice (same values), so the tables are held once from then on.
     """
     rows = np.zeros((len(views), _NPARAM))
     offsets = _offsets_in_shared_buffer(views)
     if offsets is None:
         sizes = [v.sd.size for v in views]
-        tables = np.empty(int(sum(sizes)), dtype=np.float32)
+        tables = np.empty(int(sum(sizes)), dtype=SD_DTYPE)
         offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
         for v, o, n in zip(views, offsets, sizes, strict=True):
             part = tables[o:o + n].reshape(v.sd.shape)
@@ -84,14 +86,14 @@ def _offsets_in_shared_buffer(views: Sequence[ViewField]) -> np.ndarray | None:
     if not views:
         return None
     buf = views[0].sd.base
-    if not (isinstance(buf, np.ndarray) and buf.ndim == 1 and buf.dtype == np.float32):
+    if not (isinstance(buf, np.ndarray) and buf.ndim == 1 and buf.dtype == SD_DTYPE):
         return None
     start = buf.__array_interface__["data"][0]
     out = np.empty(len(views), dtype=np.int64)
     for i, v in enumerate(views):
-        if v.sd.base is not buf or not v.sd.flags.c_contiguous or v.sd.dtype != np.float32:
+        if v.sd.base is not buf or not v.sd.flags.c_contiguous or v.sd.dtype != SD_DTYPE:
             return None
-        out[i] = (v.sd.__array_interface__["data"][0] - start) // 4
+        out[i] = (v.sd.__array_interface__["data"][0] - start) // buf.itemsize
     return out
 
 
@@ -150,13 +152,13 @@ if HAVE_NUMBA:
         fx = np.float32(lu - x0)
         fy = np.float32(lv - y0)
         off = int(params[j, 28])
-        a = tables[off + y0 * w + x0]
-        b = tables[off + y0 * w + x1]
-        c = tables[off + y1 * w + x0]
-        d = tables[off + y1 * w + x1]
+        a = np.float32(tables[off + y0 * w + x0])
+        b = np.float32(tables[off + y0 * w + x1])
+        c = np.float32(tables[off + y1 * w + x0])
+        d = np.float32(tables[off + y1 * w + x1])
         top = a * (1 - fx) + b * fx
         bot = c * (1 - fx) + d * fx
-        return top * (1 - fy) + bot * fy
+        return (top * (1 - fy) + bot * fy) * _SD_STEP
 
     @njit(cache=True, inline="always")
     def _nearest(params, j, tables, u, v):
@@ -168,7 +170,7 @@ if HAVE_NUMBA:
             return _box_bound(params, j, u, v)
         iu = min(max(int(np.rint(lu)), 0), w - 1)
         iv = min(max(int(np.rint(lv)), 0), h - 1)
-        return tables[int(params[j, 28]) + iv * w + iu]
+        return np.float32(tables[int(params[j, 28]) + iv * w + iu]) * _SD_STEP
 
     @njit(cache=True, parallel=True)
     def _voxel_field(points, params, tables, voxel_size, k, min_seen, chunk):

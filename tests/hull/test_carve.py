@@ -235,3 +235,50 @@ def test_views_that_miss_a_voxel_do_not_carve_it(rig):
 
 def test_silhouettes_container_roundtrip(sphere_sils):
     assert isinstance(sphere_sils, Silhouettes) and len(sphere_sils) == 24
+
+
+def test_distance_table_is_signed_distance_in_fixed_point():
+    # The int16 table is the float signed distance rounded to SD_STEP: within half a
+    # step (the cell tests' slack assumes it) and never of the other sign (the bounding
+    # box reads the mask back from it).
+    from plantscan_hull.views import SD_STEP, signed_distance, signed_distance_table
+
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        mask = rng.random((60, 80)) < 0.3
+        mask[20:40, 30:60] = True
+        exact = signed_distance(mask)
+        table = signed_distance_table(mask)
+        assert table.dtype == np.int16
+        assert np.abs(table * SD_STEP - exact).max() <= SD_STEP / 2 + 1e-4
+        assert np.array_equal(table > 0, mask)
+
+
+def test_distance_table_saturates_towards_zero():
+    # Beyond the int16 range (1024 px at 1/32 px) values saturate towards 0: a cell
+    # test then decides less, never wrongly (|stored| <= |true|, same sign).
+    from plantscan_hull.views import SD_STEP, signed_distance, signed_distance_table
+
+    mask = np.zeros((8, 2400), dtype=bool)
+    mask[2:6, :4] = True
+    exact = signed_distance(mask)
+    table = signed_distance_table(mask).astype(float) * SD_STEP
+    assert exact.min() < -2000  # the far end is beyond the range
+    assert np.all(np.abs(table) <= np.abs(exact) + SD_STEP / 2)
+    assert np.array_equal(table > 0, exact > 0)
+    assert table.min() == pytest.approx(-1024.0, abs=SD_STEP)
+
+
+def test_tables_in_one_buffer_never_copied(rig, sphere_sils):
+    # Memory: every view's table is a slice of one int16 buffer of exactly the regions
+    # of interest, and the compiled carve reads that buffer as it is (no second copy,
+    # whatever the subset or order of views).
+    cal, _ = rig
+    vf = prepare_views(list(sphere_sils), cal)
+    buf = vf[0].sd.base
+    assert buf is not None and buf.dtype == np.int16
+    assert all(v.sd.base is buf for v in vf)
+    assert buf.nbytes == sum(v.sd.nbytes for v in vf) == 2 * sum(v.sd.size for v in vf)
+    params, tables = kernels.pack(vf[::-3])
+    assert tables is buf
+    assert params.shape[0] == len(vf[::-3])
