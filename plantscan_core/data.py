@@ -491,23 +491,62 @@ plain = _plain
 
 
 # --------------------------------------------------------------------------- silhouettes
-@dataclass
 class Silhouette:
-    """A plant mask of one view.
+    """A plant mask of one view, held cropped to the plant's bounding box.
 
     Attributes
     ----------
     view : ViewRecord
     mask : (H, W) bool array, True = plant (or pot), in the *distorted* image
-        as the camera took it.
+        as the camera took it.  Built on each access from the crop (a new
+        array): read it once per use, or use :attr:`crop`.
+    crop : (h, w) bool array
+        The mask inside its bounding box ``[u0, u0 + w) x [v0, v0 + h)``
+        (``(0, 0)`` for an empty mask); everything outside is background.
+    u0, v0 : int, px
+        Top-left pixel of the crop.
+    shape : (H, W)
+        The image's size.
+
+    A plant is 10-20 % of a scan image: 360 masks of 2592x1728 take 1.6 GB as
+    full arrays and ~0.2-0.3 GB as crops (issue #10).
     """
 
-    view: ViewRecord
-    mask: np.ndarray
+    __slots__ = ("view", "crop", "u0", "v0", "shape")
+
+    def __init__(self, view: ViewRecord, mask: np.ndarray):
+        m = np.asarray(mask, dtype=bool)
+        self.view = view
+        self.shape = tuple(int(n) for n in m.shape[:2])
+        if m.ndim != 2:
+            # Kept as is so consumers can name the bad view (their checks see the shape).
+            self.crop, self.u0, self.v0 = m, 0, 0
+            return
+        rows = np.flatnonzero(m.any(axis=1))
+        if rows.size == 0:
+            self.crop, self.u0, self.v0 = np.zeros((0, 0), bool), 0, 0
+            return
+        cols = np.flatnonzero(m.any(axis=0))
+        self.u0, self.v0 = int(cols[0]), int(rows[0])
+        self.crop = m[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1].copy()
 
     @property
-    def shape(self) -> tuple[int, int]:
-        return self.mask.shape[:2]
+    def mask(self) -> np.ndarray:
+        if self.crop.ndim != 2:
+            return self.crop
+        out = np.zeros(self.shape, bool)
+        h, w = self.crop.shape
+        out[self.v0:self.v0 + h, self.u0:self.u0 + w] = self.crop
+        return out
+
+    @property
+    def area(self) -> int:
+        """Plant pixels."""
+        return int(np.count_nonzero(self.crop))
+
+    def __repr__(self) -> str:
+        return (f"Silhouette(view={self.view.index}, shape={self.shape}, "
+                f"crop={self.crop.shape} at ({self.u0}, {self.v0}))")
 
 
 @dataclass

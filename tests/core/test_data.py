@@ -11,8 +11,10 @@ from plantscan_core.data import (
     CameraModel,
     LeafTraits,
     Pose,
+    Silhouette,
     TiltAxis,
     Traits,
+    ViewRecord,
     rotation_about_axis,
     rotation_x,
     rotation_z,
@@ -113,3 +115,19 @@ def test_traits_csv_round_trip_and_bad_trait_name():
     assert t.to_csv().splitlines()[0] == "leaf_id,length_mm,width_mm,area_mm2,perimeter_mm"
     with pytest.raises(ValueError, match="valid: length, width, area, perimeter"):
         t.leaves[0].trait("volume")
+
+
+def test_silhouette_is_held_as_its_crop_and_gives_the_full_mask_back():
+    view = ViewRecord(3, "plant", "cam0", 0, 0.0, 3, 30.0, None, "images/3.jpg")
+    rng = np.random.default_rng(1)
+    mask = np.zeros((400, 600), bool)
+    mask[120:180, 250:330] = rng.random((60, 80)) < 0.5
+    mask[120, 250] = mask[179, 329] = True  # the box's corners are plant
+    sil = Silhouette(view, mask)
+    assert sil.crop.shape == (60, 80) and (sil.u0, sil.v0) == (250, 120)
+    assert sil.shape == (400, 600)
+    assert np.array_equal(sil.mask, mask) and sil.area == mask.sum()
+    mask[0, 0] = True  # the silhouette holds its own copy
+    assert not sil.mask[0, 0]
+    empty = Silhouette(view, np.zeros((4, 5), bool))
+    assert empty.shape == (4, 5) and not empty.mask.any() and empty.mask.shape == (4, 5)
