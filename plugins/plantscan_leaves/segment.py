@@ -69,6 +69,19 @@ class CurvatureRegionsParams(StageParams):
         description="faces whose neighbourhood's normals spread this much around one axis "
                     "(2nd/1st eigenvalue) are tube-like; tube-like parts of a leaf touching "
                     "the stem are stem (petioles); 1 disables")
+    crumb_merge_rounds: int = Field(
+        1, ge=1,
+        description="rounds of merging small regions into their neighbours: 1 joins only "
+                    "crumbs touching a leaf or stem region; more also joins chains of crumbs "
+                    "(narrow grass blade tips; on broad leaves the chains are mostly phantom "
+                    "hull volume, so 1)")
+    stem_sheet_ratio: float = Field(
+        0.0, ge=0, le=1,
+        description="faces of stem regions whose neighbourhood (petiole_scale_mm cells) is "
+                    "this flat (2nd/1st eigenvalue of the normal tensor below it) are blade, "
+                    "not stem: they go back to the leaf they touch (grass blades fused with "
+                    "their stem in the hull: 0.25); 0 disables (broad leaves: the flat parts of "
+                    "their stem regions are phantom hull volume)")
     ground_band_mm: float = Field(
         12.0, ge=0,
         description="leaf-like pieces lying entirely this close to the bottom of the mesh are "
@@ -224,13 +237,23 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
     crumbs = ~tube & ~leafy
     # small non-tube pieces join the region they share most edges with
     if crumbs.any():
-        labels = _merge_crumbs(labels, crumbs, topo.face_pairs, nlab)
+        labels = _merge_crumbs(labels, crumbs, topo.face_pairs, nlab, p.crumb_merge_rounds)
     leaf_face = leafy[labels]
     stem_face = tube[labels]
     moved = np.zeros(nf, bool)
+    spread = None
+    if p.petiole_tube_ratio < 1 or p.stem_sheet_ratio > 0:
+        spread = _neighbourhood_spread(v, f, normals, areas, p.petiole_scale_mm)
+    if p.stem_sheet_ratio > 0:
+        labels, recovered = _sheets_of_stem(labels, spread < p.stem_sheet_ratio, leaf_face,
+                                            stem_face, areas, topo.face_pairs,
+                                            p.min_leaf_area_mm2)
+        info["sheet_faces_from_stem"] = int(np.count_nonzero(recovered))
+        leaf_face |= recovered
+        stem_face &= ~recovered
     if p.petiole_tube_ratio < 1:
-        moved = _petioles_to_stem(v, f, normals, areas, topo.face_pairs, leaf_face, stem_face,
-                                  p.petiole_scale_mm, p.petiole_tube_ratio, p.min_leaf_area_mm2)
+        moved = _petioles_to_stem(spread, topo.face_pairs, leaf_face, stem_face, areas,
+                                  p.petiole_tube_ratio, p.min_leaf_area_mm2)
     info["petiole_faces"] = int(np.count_nonzero(moved))
     stem_face |= moved
     leaf_face &= ~moved
@@ -284,9 +307,9 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
     return LabelledMesh(mesh, out, kinds), info
 
 
-def _petioles_to_stem(v: np.ndarray, f: np.ndarray, normals: np.ndarray, areas: np.ndarray,
-                      pairs: np.ndarray, leaf_face: np.ndarray, stem_face: np.ndarray,
-                      scale: float, ratio: float, min_area: float) -> np.ndarray:
+def _petioles_to_stem(spread: np.ndarray, pairs: np.ndarray, leaf_face: np.ndarray,
+                      stem_face: np.ndarray, areas: np.ndarray, ratio: float, min_area: float
+                      ) -> np.ndarray:
     """Faces of leaf regions that belong to tubes touching the stem (petioles, stem tops).
 
     A petiole meets its blade without a concave crease (the blade narrows into
@@ -297,14 +320,10 @@ def _petioles_to_stem(v: np.ndarray, f: np.ndarray, normals: np.ndarray, areas: 
     big (``min_area`` of surface: a stem grown into a leaf), go to the stem;
     small ones elsewhere (narrow blade tips) stay.
     """
-    c = v[f].mean(axis=1)
-    _, tens, cell_of, _ = geo.cell_normal_tensors(c, normals, areas, scale)
-    ev = np.linalg.eigvalsh(tens)  # ascending
-    spread = ev[:, 1] / np.maximum(ev[:, 2], 1e-12)
-    tube_face = (spread[cell_of] > ratio) & leaf_face
+    tube_face = (spread > ratio) & leaf_face
     if not tube_face.any():
         return tube_face
-    comp = _regions_of(len(f), pairs, tube_face)
+    comp = _regions_of(len(leaf_face), pairs, tube_face)
     a, b = pairs[:, 0], pairs[:, 1]
     touch = np.zeros(int(comp.max()) + 1, bool)
     touch[comp[a[(comp[a] >= 0) & stem_face[b]]]] = True
@@ -313,22 +332,89 @@ def _petioles_to_stem(v: np.ndarray, f: np.ndarray, normals: np.ndarray, areas: 
     return (comp >= 0) & (touch | big)[np.maximum(comp, 0)]
 
 
-def _merge_crumbs(labels: np.ndarray, crumbs: np.ndarray, pairs: np.ndarray, nlab: int
-                  ) -> np.ndarray:
-    """Give each crumb region the label of the non-crumb region it shares most edges with."""
+def _neighbourhood_spread(v: np.ndarray, f: np.ndarray, normals: np.ndarray, areas: np.ndarray,
+                          scale: float) -> np.ndarray:
+    """(F,) how tube-like each face's neighbourhood is: 2nd/1st eigenvalue of the normal tensor.
+
+    Over the 3x3x3 block of ``scale`` mm cells around the face's cell: about 0.5-1 on a
+    tube of that diameter, near 0 on a slab (its two sides share one sign-free normal).
+    """
+    _, tens, cell_of, _ = geo.cell_normal_tensors(v[f].mean(axis=1), normals, areas, scale)
+    ev = np.linalg.eigvalsh(tens)  # ascending
+    return (ev[:, 1] / np.maximum(ev[:, 2], 1e-12))[cell_of]
+
+
+def _sheets_of_stem(labels: np.ndarray, sheet_face: np.ndarray, leaf_face: np.ndarray,
+                    stem_face: np.ndarray, areas: np.ndarray, pairs: np.ndarray,
+                    min_area: float) -> tuple[np.ndarray, np.ndarray]:
+    """Slab-like parts of stem regions given back to the leaves.
+
+    Region growing follows a blade that leaves its stem without a crease (grasses: a
+    steep blade base fused with its stem in the hull) into the stem region, and the
+    whole region is then judged a tube.  Its connected slab-like parts (``sheet_face``)
+    join the leaf region they share most edges with, or are a leaf of their own when
+    they hold ``min_area`` mm² on one side.  Returns the new labels (leaves of their
+    own get labels above the current ones) and the faces given back.
+    """
+    cand = sheet_face & stem_face
+    if not cand.any():
+        return labels, cand
+    comp = _regions_of(len(labels), pairs, cand)
+    ncomp = int(comp.max()) + 1
+    a, b = pairs[:, 0], pairs[:, 1]
+    # component -> leaf label edges, both directions
+    src = np.concatenate([comp[a], comp[b]])
+    dst = np.concatenate([np.where(leaf_face[b], labels[b], -1),
+                          np.where(leaf_face[a], labels[a], -1)])
+    ok = (src >= 0) & (dst >= 0)
+    src, dst = src[ok], dst[ok]
+    nlab = int(labels.max()) + 1
+    target = np.full(ncomp, -1)
+    if len(src):
+        uk, cnt = np.unique(src * nlab + dst, return_counts=True)
+        s_, d_ = uk // nlab, uk % nlab
+        order = np.lexsort((-cnt, s_))
+        s_, d_ = s_[order], d_[order]
+        first = np.concatenate([[True], s_[1:] != s_[:-1]])
+        target[s_[first]] = d_[first]
+    big = np.bincount(comp[cand], areas[cand], ncomp) / 2.0 >= min_area
+    alone = (target < 0) & big
+    target[alone] = nlab + np.arange(int(alone.sum()))
+    back = cand & (target[np.maximum(comp, 0)] >= 0)
+    labels = labels.copy()
+    labels[back] = target[comp[back]]
+    return labels, back
+
+
+def _merge_crumbs(labels: np.ndarray, crumbs: np.ndarray, pairs: np.ndarray, nlab: int,
+                  rounds: int = 1) -> np.ndarray:
+    """Give each crumb region the label of the non-crumb region it shares most edges with.
+
+    With ``rounds`` > 1, crumbs that touch only other crumbs (a narrow blade tip cut off
+    by a chain of small regions) join in later rounds, once a crumb next to them has
+    joined a region.
+    """
+    crumbs = crumbs.copy()
+    # only edges between different regions matter; they are few compared to all face pairs
     la, lb = labels[pairs[:, 0]], labels[pairs[:, 1]]
     cross = la != lb
     la, lb = la[cross], lb[cross]
-    both = np.concatenate([np.stack([la, lb], 1), np.stack([lb, la], 1)])
-    both = both[crumbs[both[:, 0]] & ~crumbs[both[:, 1]]]
-    if len(both) == 0:
-        return labels
-    key = both[:, 0] * nlab + both[:, 1]
-    uk, cnt = np.unique(key, return_counts=True)
-    src, dst = uk // nlab, uk % nlab
-    order = np.lexsort((-cnt, src))
-    src, dst = src[order], dst[order]
-    first = np.concatenate([[True], src[1:] != src[:-1]])
     mapping = np.arange(nlab)
-    mapping[src[first]] = dst[first]
+    for _ in range(rounds):
+        ma, mb = mapping[la], mapping[lb]
+        both = np.concatenate([np.stack([ma, mb], 1), np.stack([mb, ma], 1)])
+        both = both[crumbs[both[:, 0]] & ~crumbs[both[:, 1]] & (both[:, 0] != both[:, 1])]
+        if len(both) == 0:
+            break
+        key = both[:, 0] * nlab + both[:, 1]
+        uk, cnt = np.unique(key, return_counts=True)
+        src, dst = uk // nlab, uk % nlab
+        order = np.lexsort((-cnt, src))
+        src, dst = src[order], dst[order]
+        first = np.concatenate([[True], src[1:] != src[:-1]])
+        src, dst = src[first], dst[first]
+        step = np.arange(nlab)
+        step[src] = dst
+        mapping = step[mapping]
+        crumbs[src] = False
     return mapping[labels]

@@ -139,3 +139,45 @@ def test_sessile_leaves_sunk_into_the_stem():
     labelled, _ = segment_leaves(mesh)
     m = match_leaves(labelled, mesh.vertices, mesh.faces, part)
     assert len(m["pairs"]) == 3 and not m["merged"]
+
+
+def test_flat_part_of_a_stem_region_goes_back_to_the_leaves():
+    # a 2 mm stem (tube) with a 12 mm wide, 2 mm thick blade fused to it end-on: the kind of
+    # region grass hulls give (blade base and stem grown into one region judged a tube).
+    # Every face starts as stem; the slab-like faces must come back as a leaf, the tube
+    # faces must stay stem.
+    from plantscan_leaves import geometry as geo
+    from plantscan_leaves.segment import _neighbourhood_spread, _sheets_of_stem
+
+    stem = ph.cylinder_field(2.0, 0.0, 80.0)
+    rot = rotation_about_axis((0, 1, 0), -90.0)  # blade long axis along +z
+    blade = ph.placed(ph.ellipse_slab_field(40.0, 6.0, 2.0), rot, (0.0, 0.0, 120.0))
+    mesh = ph.mesh_field(ph.union(stem, blade), (-8, -8, -1), (8, 8, 161), 0.5)
+    f = mesh.faces
+    topo = geo.topology(f)
+    normals, areas = geo.face_normals_areas(mesh.vertices, f)
+    z = mesh.vertices[f].mean(axis=1)[:, 2]
+    is_blade = z > 90.0  # well clear of the junction at z = 80
+    is_stem = z < 70.0
+    spread = _neighbourhood_spread(mesh.vertices, f, normals, areas, 2.0)
+    labels = np.zeros(len(f), np.int64)
+    new_labels, back = _sheets_of_stem(labels, spread < 0.25, np.zeros(len(f), bool),
+                                       np.ones(len(f), bool), areas, topo.face_pairs, 200.0)
+    # the flat sides of the blade are back; its rounded rim (a tube at 2 mm) may stay
+    assert np.sum(areas[back & is_blade]) > 0.75 * np.sum(areas[is_blade])
+    # the stem's sides are a tube: none of them is taken for a blade (< 2 % for the flat caps
+    # and marching-cubes facets on its end)
+    assert np.sum(areas[back & is_stem]) < 0.02 * np.sum(areas[is_stem])
+    assert len(np.unique(new_labels[back])) == 1  # one blade, one new leaf label
+
+
+def test_crumb_chains_join_with_more_rounds():
+    # regions 0 (leaf) - 1 (crumb) - 2 (crumb), one face each, in a row: one round joins only
+    # the crumb next to the leaf, two rounds join the chain
+    from plantscan_leaves.segment import _merge_crumbs
+
+    labels = np.array([0, 1, 2])
+    pairs = np.array([[0, 1], [1, 2]])
+    crumbs = np.array([False, True, True])
+    assert _merge_crumbs(labels, crumbs, pairs, 3).tolist() == [0, 0, 2]
+    assert _merge_crumbs(labels, crumbs, pairs, 3, rounds=2).tolist() == [0, 0, 0]
