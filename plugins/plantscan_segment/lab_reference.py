@@ -133,6 +133,15 @@ def remove_small_blobs(mask: np.ndarray, min_px: int) -> np.ndarray:
     return keep[labels]
 
 
+def mask_box(mask: np.ndarray) -> tuple[slice, slice] | None:
+    """Rows and columns of a mask's bounding box; None when it is empty."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    if rows.size == 0:
+        return None
+    cols = np.flatnonzero(mask.any(axis=0))
+    return slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1)
+
+
 def hole_px(shape: tuple[int, ...], fraction: float) -> int:
     """Largest hole (px) filled in an image of ``shape`` (H, W, ...) by ``fraction`` of its area."""
     return int(round(fraction * shape[0] * shape[1]))
@@ -148,13 +157,9 @@ def fill_small_holes(mask: np.ndarray, max_px: int) -> np.ndarray:
     hole filled in one view is carved by the others.  Only the bounding box
     of the mask is labelled (the plant is ~10-20 % of a scan image).
     """
-    if max_px <= 0:
+    box = mask_box(mask) if max_px > 0 else None
+    if box is None:
         return mask
-    rows = np.flatnonzero(mask.any(axis=1))
-    if rows.size == 0:
-        return mask
-    cols = np.flatnonzero(mask.any(axis=0))
-    box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
     crop = mask[box]
     n, labels, stats, _ = cv2.connectedComponentsWithStats(
         (~crop).view(np.uint8), connectivity=4)

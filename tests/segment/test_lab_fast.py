@@ -5,7 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from plantscan_segment import lab
-from plantscan_segment.lab import LabShadowSegmenter, lab_shadow_mask, remove_tiny_blobs
+from plantscan_segment.lab import (
+    LabShadowSegmenter,
+    fill_holes_fast,
+    lab_shadow_mask,
+    remove_tiny_blobs,
+)
 from plantscan_segment.lab_reference import (
     fill_small_holes,
     lab_shadow_mask_reference,
@@ -63,13 +68,16 @@ def test_fast_path_on_tiny_and_one_row_images():
                                   lab_shadow_mask_reference(image, plate, p)), (shape, band_rows)
 
 
-def test_tiny_blob_removal_equals_connected_components():
+@pytest.mark.parametrize("fast, plain, density, sizes", [
+    (remove_tiny_blobs, remove_small_blobs, (0.02, 0.5), (0, 1, 2, 3, 4)),
+    (fill_holes_fast, fill_small_holes, (0.3, 0.97), (0, 1, 2, 5, 64)),
+])
+def test_fast_clean_ups_equal_labelling_every_component(fast, plain, density, sizes):
     rng = np.random.default_rng(2)
-    for i in range(60):
-        mask = rng.random((40, 50)) < rng.uniform(0.02, 0.5)
-        for min_px in (0, 1, 2, 3, 4):
-            assert np.array_equal(remove_tiny_blobs(mask, min_px),
-                                  remove_small_blobs(mask, min_px)), (i, min_px)
+    for i in range(100):
+        mask = rng.random((30, 40)) < rng.uniform(*density)
+        for px in sizes:
+            assert np.array_equal(fast(mask, px), plain(mask, px)), (i, px)
 
 
 def test_small_holes_are_filled_and_gaps_to_the_outside_kept():
@@ -81,6 +89,7 @@ def test_small_holes_are_filled_and_gaps_to_the_outside_kept():
     mask[40:50, 30:33] = False      # a notch open to the outside: not a hole, kept
     mask[39, 33] = False            # a pixel touching the notch only diagonally: a hole
     out = fill_small_holes(mask, 64)
+    assert np.array_equal(fill_holes_fast(mask, 64), out)
     assert out[20:23, 20:23].all() and out[30, 40] and out[39, 33]
     assert not out[25:35, 50:62].any() and not out[40:50, 30:33].any()
     assert np.array_equal(out & ~mask, out ^ mask)  # only ever adds pixels
