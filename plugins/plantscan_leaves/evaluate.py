@@ -31,6 +31,7 @@ import numpy as np
 
 from plantscan_core.data import TRAIT_NAMES, LabelledMesh, Traits, mean_relative_error
 from plantscan_core.errors import DataError
+from plantscan_leaves import geometry as geo
 
 PAIR_COVER = 0.5  # more than half of a truth leaf must be in its measured leaf
 MERGE_COVER = 0.3  # a measured leaf holding 30 % of each of two truth leaves merged them
@@ -74,10 +75,6 @@ def align_gauge(points: np.ndarray, truth_points: np.ndarray) -> tuple[np.ndarra
                "translation_mm": t[:3, 3].round(3).tolist(), "median_distance_mm": residual}
 
 
-def _face_centroids(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    return vertices[faces].mean(axis=1)
-
-
 def match_leaves(labelled: LabelledMesh, truth_vertices: np.ndarray, truth_faces: np.ndarray,
                  truth_leaf_id: np.ndarray) -> dict[str, Any]:
     """Pair measured leaves with truth leaves by surface overlap.
@@ -99,8 +96,8 @@ def match_leaves(labelled: LabelledMesh, truth_vertices: np.ndarray, truth_faces
                            "measured_labels": leaf_labels}
     if not truth_ids or not leaf_labels or labelled.mesh.is_empty:
         return out
-    mc = _face_centroids(labelled.mesh.vertices, labelled.mesh.faces)
-    tc = _face_centroids(truth_vertices, truth_faces)
+    mc = geo.face_centroids(labelled.mesh.vertices, labelled.mesh.faces)
+    tc = geo.face_centroids(truth_vertices, truth_faces)
     from scipy.spatial import cKDTree as _Tree
 
     probe = mc[:: max(1, len(mc) // 4000)]

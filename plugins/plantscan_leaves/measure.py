@@ -171,7 +171,7 @@ def _axes_at(points: np.ndarray, keys: np.ndarray, axes: np.ndarray, grid: np.nd
         w = np.prod(np.where(corner == 1, frac, 1.0 - frac), axis=1)
         hit = pos >= 0
         out[hit] += w[hit, None] * axes[pos[hit]]
-    norm = np.linalg.norm(out, axis=1)
+    norm = geo.row_norm(out)
     missing = norm < 1e-9
     if missing.any():  # fall back to the own cell's axis (every point's cell is occupied)
         pos = cell_at(np.floor((points[missing] - lo) / cell).astype(np.int64))
@@ -225,11 +225,11 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
         used, f = np.unique(f[main], return_inverse=True)
         v0, f = v0[used], f.reshape(-1, 3)
         topo = geo.topology(f)
-    edge_mm = float(np.mean(np.linalg.norm(v0[topo.edges[:, 0]] - v0[topo.edges[:, 1]], axis=1)))
+    edge_mm = float(np.mean(geo.row_norm(v0[topo.edges[:, 0]] - v0[topo.edges[:, 1]])))
     vop = geo.vertex_adjacency_operator(len(v0), topo.edges)
     v = geo.taubin(v0, vop, geo.diffusion_steps(p.smoothing_mm, edge_mm, 50))
     border = topo.edges[topo.edge_face_count == 1]
-    border_length = float(np.linalg.norm(v[border[:, 0]] - v[border[:, 1]], axis=1).sum())
+    border_length = float(geo.row_norm(v[border[:, 0]] - v[border[:, 1]]).sum())
     n_leaf_faces = len(f)
     leaf_topo = topo
     if topo.border_edges:
@@ -239,13 +239,13 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
         v, f = close_holes(v, f, topo, 2.0 * edge_mm)
         topo = None  # the capped slab's topology, built only if the outline needs it
     fn, fa = geo.face_normals_areas(v, f)
-    fc = v[f].mean(axis=1)
+    fc = geo.face_centroids(v, f)
     cell = p.sheet_scale_mm
     leaf = slice(0, n_leaf_faces)
     keys, axes, grid = _cell_sheet_axes(fc[leaf], fn[leaf], fa[leaf], cell)
     vert_axis = _axes_at(v, keys, axes, grid, cell)
     face_axis = vert_axis[f].sum(axis=1)  # cells are oriented, so corner axes agree in sign
-    face_axis /= np.maximum(np.linalg.norm(face_axis, axis=1), 1e-12)[:, None]
+    face_axis /= np.maximum(geo.row_norm(face_axis), 1e-12)[:, None]
     area = 0.5 * float(np.sum((fa * np.abs(np.einsum("ij,ij->i", fn, face_axis)))[:n_leaf_faces]))
 
     # rim crest: where the slab's two sides (n . N > 0 and < 0) meet (see _outline_length)
@@ -322,7 +322,7 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
     from scipy.spatial import cKDTree
 
     _, k = cKDTree(mid_pts).query(q[valid])
-    unit_across = across / np.maximum(np.linalg.norm(across, axis=1), 1e-12)[:, None]
+    unit_across = across / np.maximum(geo.row_norm(across), 1e-12)[:, None]
     lateral = np.einsum("ij,ij->i", q[valid] - mid_pts[k], unit_across[k])
     mid_len = geo.polyline_length(mid_pts)
     nbins = max(int(mid_len / max(2.0 * spacing, mid_len / 60.0)), 1)
@@ -372,7 +372,7 @@ def close_holes(v: np.ndarray, f: np.ndarray, topo: geo.MeshTopology, min_loop_m
     _, comp = connected_components(g, directed=False)
     loops, loop_of = np.unique(comp[a], return_inverse=True)
     # seams of coincident vertices (a closed truth mesh may have them) are not holes
-    loop_len = np.bincount(loop_of, np.linalg.norm(v[a] - v[b], axis=1), len(loops))
+    loop_len = np.bincount(loop_of, geo.row_norm(v[a] - v[b]), len(loops))
     real = loop_len[loop_of] >= min_loop_mm
     a, b, loop_of = a[real], b[real], loop_of[real]
     if len(a) == 0:
@@ -419,7 +419,7 @@ def _outline_length(v: np.ndarray, f: np.ndarray, topo: geo.MeshTopology | None,
     """
     nf = len(f)
     e = leaf_topo.edges[leaf_topo.edge_face_count == 1]
-    border = float(np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1).sum())
+    border = float(geo.row_norm(v[e[:, 0]] - v[e[:, 1]]).sum())
     # a cut at the base is closed well by its chord (the leaf as it is); a leaf with a long
     # open border (holed by the segmentation) is traced on its capped slab
     crest = _iso_line_lengths(v, leaf_faces, leaf_topo, vertex_side, sigma)
@@ -473,7 +473,7 @@ def _iso_line_lengths(v: np.ndarray, f: np.ndarray, topo: geo.MeshTopology, valu
     two = (fe >= 0).sum(axis=1) == 2
     links = np.sort(fe[two], axis=1)[:, 1:]  # the two crossing points of each such face
     chains: list[float] = []
-    raw_links = np.linalg.norm(pts[links[:, 0]] - pts[links[:, 1]], axis=1)
+    raw_links = geo.row_norm(pts[links[:, 0]] - pts[links[:, 1]])
     for chain, closed in _chains(links, len(pts), raw_links):
         if closed:
             chains.append(geo.polyline_length(_closed_smooth(pts[chain], sigma)))
@@ -540,7 +540,7 @@ def _downsample(idx: np.ndarray, v: np.ndarray, spacing: float) -> np.ndarray:
     cell = np.floor((v[idx] - v[idx].min(axis=0)) / spacing).astype(np.int64)
     # per cell keep the vertex farthest from the leaf's centre: in rim cells that is the
     # outermost crest vertex, so the base, tip and widest points are not pulled inwards
-    far = -np.linalg.norm(v[idx] - v[idx].mean(axis=0), axis=1)
+    far = -geo.row_norm(v[idx] - v[idx].mean(axis=0))
     order = np.lexsort((far, cell[:, 2], cell[:, 1], cell[:, 0]))
     c = cell[order]
     first = np.concatenate([[True], np.any(c[1:] != c[:-1], axis=1)])
@@ -556,7 +556,7 @@ def _radius_graphs(q: np.ndarray, kind: np.ndarray, radius: float
     from scipy.spatial import cKDTree
 
     pairs = cKDTree(q).query_pairs(radius, output_type="ndarray")
-    w = np.maximum(np.linalg.norm(q[pairs[:, 0]] - q[pairs[:, 1]], axis=1), 1e-9)
+    w = np.maximum(geo.row_norm(q[pairs[:, 0]] - q[pairs[:, 1]]), 1e-9)
     n = len(q)
     # one direction per pair (every dijkstra call here is undirected), built once: the side
     # graphs share its structure, with the other side's edges made impassable (infinite)

@@ -138,14 +138,14 @@ def face_curvature(mesh: Mesh, topo: geo.MeshTopology, smoothing_mm: float) -> n
     normals make convex edges positive.
     """
     v, f = mesh.vertices, mesh.faces
-    edge_mm = float(np.mean(np.linalg.norm(v[topo.edges[:, 0]] - v[topo.edges[:, 1]], axis=1)))
+    edge_mm = float(np.mean(geo.row_norm(v[topo.edges[:, 0]] - v[topo.edges[:, 1]])))
     vop = geo.vertex_adjacency_operator(len(v), topo.edges)
     vs = geo.taubin(v, vop, geo.diffusion_steps(smoothing_mm / 2, edge_mm, 30))
     n, _ = geo.face_normals_areas(vs, f)
     fop = geo.face_adjacency_operator(len(f), topo.face_pairs)
     n = geo.smooth(fop, n, geo.diffusion_steps(smoothing_mm, edge_mm * 0.6))
-    n /= np.maximum(np.linalg.norm(n, axis=1), 1e-12)[:, None]
-    c = vs[f].mean(axis=1)
+    n /= np.maximum(geo.row_norm(n), 1e-12)[:, None]
+    c = geo.face_centroids(vs, f)
     i, j = topo.face_pairs[:, 0], topo.face_pairs[:, 1]
     dc = c[j] - c[i]
     k = np.einsum("ij,ij->i", n[j] - n[i], dc) / np.maximum(np.einsum("ij,ij->i", dc, dc), 1e-12)
@@ -156,10 +156,12 @@ def face_curvature(mesh: Mesh, topo: geo.MeshTopology, smoothing_mm: float) -> n
     return kf
 
 
-def _region_shape(vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray,
-                  areas: np.ndarray, labels: np.ndarray, nlab: int) -> dict[str, np.ndarray]:
-    """Per-region area, normal-tensor spread, long axis alignment, elongation."""
-    c = vertices[faces].mean(axis=1)
+def _region_shape(c: np.ndarray, normals: np.ndarray, areas: np.ndarray, labels: np.ndarray,
+                  nlab: int) -> dict[str, np.ndarray]:
+    """Per-region area, normal-tensor spread, long axis alignment, elongation.
+
+    ``c`` (F, 3) face centroids, ``normals`` (F, 3), ``areas`` (F,), ``labels`` (F,) < nlab.
+    """
     w = areas
     tot = np.bincount(labels, w, nlab)
     safe = np.maximum(tot, 1e-12)
@@ -213,6 +215,7 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
         log.warning(msg)
         info["warnings"].append(msg)
     normals, areas = geo.face_normals_areas(v, f)
+    centroids = geo.face_centroids(v, f)
     kf = face_curvature(mesh, topo, p.smoothing_mm)
     crease = kf < -p.concave_curvature_per_mm
     info["crease_faces"] = int(crease.sum())
@@ -230,7 +233,7 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
     nlab = int(labels.max()) + 1
     info["regions"] = nlab
 
-    shape = _region_shape(v, f, normals, areas, labels, nlab)
+    shape = _region_shape(centroids, normals, areas, labels, nlab)
     tube = ((shape["spread"] > p.stem_tube_ratio) & (shape["axis_alignment"] > 0.8)
             & (shape["elongation"] > p.stem_min_elongation))
     leafy = ~tube & (shape["area"] / 2.0 >= p.min_leaf_area_mm2)
@@ -243,7 +246,7 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
     moved = np.zeros(nf, bool)
     spread = None
     if p.petiole_tube_ratio < 1 or p.stem_sheet_ratio > 0:
-        spread = _neighbourhood_spread(v, f, normals, areas, p.petiole_scale_mm)
+        spread = _neighbourhood_spread(centroids, normals, areas, p.petiole_scale_mm)
     if p.stem_sheet_ratio > 0:
         labels, recovered = _sheets_of_stem(labels, spread < p.stem_sheet_ratio, leaf_face,
                                             stem_face, areas, topo.face_pairs,
@@ -270,14 +273,14 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
     if n_pieces:
         # a piece left after the petiole test may itself be a stem piece (a thick stem is
         # not tube-like at the petiole scale) or a remnant of the pot cut near the ground
-        ps = _region_shape(v, f, normals, areas, np.where(leaf_face, pieces, n_pieces),
+        ps = _region_shape(centroids, normals, areas, np.where(leaf_face, pieces, n_pieces),
                            n_pieces + 1)
         piece_tube = ((ps["spread"] > p.stem_tube_ratio) & (ps["axis_alignment"] > 0.8)
                       & (ps["elongation"] > p.stem_min_elongation))[:n_pieces]
         ground = np.zeros(n_pieces, bool)
         if p.ground_band_mm > 0 and stem_face.any():  # a plant on a pot, not a lone leaf
             zmax = np.full(n_pieces + 1, -np.inf)
-            np.maximum.at(zmax, np.where(leaf_face, pieces, n_pieces), v[f].max(axis=1)[:, 2])
+            np.maximum.at(zmax, np.where(leaf_face, pieces, n_pieces), v[:, 2][f].max(axis=1))
             ground = zmax[:n_pieces] < v[:, 2].min() + p.ground_band_mm
         drop = piece_tube | ground
         if drop.any():
@@ -332,14 +335,14 @@ def _petioles_to_stem(spread: np.ndarray, pairs: np.ndarray, leaf_face: np.ndarr
     return (comp >= 0) & (touch | big)[np.maximum(comp, 0)]
 
 
-def _neighbourhood_spread(v: np.ndarray, f: np.ndarray, normals: np.ndarray, areas: np.ndarray,
+def _neighbourhood_spread(centroids: np.ndarray, normals: np.ndarray, areas: np.ndarray,
                           scale: float) -> np.ndarray:
     """(F,) how tube-like each face's neighbourhood is: 2nd/1st eigenvalue of the normal tensor.
 
     Over the 3x3x3 block of ``scale`` mm cells around the face's cell: about 0.5-1 on a
     tube of that diameter, near 0 on a slab (its two sides share one sign-free normal).
     """
-    _, tens, cell_of, _ = geo.cell_normal_tensors(v[f].mean(axis=1), normals, areas, scale)
+    _, tens, cell_of, _ = geo.cell_normal_tensors(centroids, normals, areas, scale)
     ev = np.linalg.eigvalsh(tens)  # ascending
     return (ev[:, 1] / np.maximum(ev[:, 2], 1e-12))[cell_of]
 

@@ -159,7 +159,7 @@ def test_flat_part_of_a_stem_region_goes_back_to_the_leaves():
     z = mesh.vertices[f].mean(axis=1)[:, 2]
     is_blade = z > 90.0  # well clear of the junction at z = 80
     is_stem = z < 70.0
-    spread = _neighbourhood_spread(mesh.vertices, f, normals, areas, 2.0)
+    spread = _neighbourhood_spread(geo.face_centroids(mesh.vertices, f), normals, areas, 2.0)
     labels = np.zeros(len(f), np.int64)
     new_labels, back = _sheets_of_stem(labels, spread < 0.25, np.zeros(len(f), bool),
                                        np.ones(len(f), bool), areas, topo.face_pairs, 200.0)
