@@ -114,14 +114,13 @@ def _cell_sheet_axes(points: np.ndarray, normals: np.ndarray, weights: np.ndarra
     keys, m, _, grid = geo.cell_normal_tensors(points, normals, weights, cell)
     nc = len(keys)
     dims = grid[3:].astype(np.int64)
-    ci = np.stack([keys // (dims[1] * dims[2]), (keys // dims[2]) % dims[1], keys % dims[2]], 1)
     nbr_of = []
     for d in np.array(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1])).reshape(3, -1).T:
         if not np.any(d != 0):
             continue
-        q = ci + d
-        qk = (q[:, 0] * dims[1] + q[:, 1]) * dims[2] + q[:, 2]
-        pos = np.clip(np.searchsorted(keys, qk), 0, nc - 1)
+        # occupied cells have a free margin: a neighbour's key is the key plus a constant
+        qk = keys + int((d[0] * dims[1] + d[1]) * dims[2] + d[2])
+        pos = np.minimum(np.searchsorted(keys, qk), nc - 1)
         nbr_of.append(np.where(keys[pos] == qk, pos, -1))
     ev, vec = np.linalg.eigh(m)
     axes = vec[:, :, 2].copy()
@@ -607,12 +606,28 @@ def plant_traits(mesh: Mesh, leaves: list[LeafTraits], pixel_mm: float = 0.25) -
     size = np.ceil((v[:, :2].max(axis=0) + 2 * pixel_mm - lo) / pixel_mm).astype(int) + 1
     img = np.zeros((int(size[1]), int(size[0])), np.uint8)
     # the top-view shadow of a closed surface is covered by its up-facing triangles alone
-    up = mesh.faces[np.cross(v[mesh.faces[:, 1]] - v[mesh.faces[:, 0]],
-                             v[mesh.faces[:, 2]] - v[mesh.faces[:, 0]])[:, 2] >= 0]
+    up = mesh.faces[geo.face_cross(v, mesh.faces)[:, 2] >= 0]
     tri = np.round((v[up][:, :, :2] - lo) / pixel_mm * 16).astype(np.int32)
     cv2.fillPoly(img, list(tri), 1, lineType=cv2.LINE_8, shift=4)
     out["projected_area_mm2"] = float(img.sum()) * pixel_mm * pixel_mm
     return out
+
+
+def _submeshes(labelled: LabelledMesh, labels: list[int]):
+    """``labelled.submesh(label)`` for each of ``labels`` (one sort of the labels for all)."""
+    lab = labelled.face_labels
+    faces, vertices = labelled.mesh.faces, labelled.mesh.vertices
+    order = np.argsort(lab, kind="stable")  # keeps each label's faces in mesh order
+    sorted_lab = lab[order]
+    lut = np.full(len(vertices), -1, np.int64)
+    for label in labels:
+        f = faces[order[np.searchsorted(sorted_lab, label):
+                        np.searchsorted(sorted_lab, label, side="right")]]
+        used = np.zeros(len(vertices), bool)
+        used[f.ravel()] = True
+        idx = np.flatnonzero(used)
+        lut[idx] = np.arange(len(idx))
+        yield Mesh(vertices[idx], lut[f])
 
 
 def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = None
@@ -640,8 +655,7 @@ def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = No
 
         tree = cKDTree(mesh.vertices[stem_vertices])
     measurements = []
-    for leaf_id in leaf_labels:
-        sub = labelled.submesh(leaf_id)
+    for leaf_id, sub in zip(leaf_labels, _submeshes(labelled, leaf_labels)):
         hint = None
         if tree is not None:
             probe = sub.vertices[:: max(1, len(sub.vertices) // 5000)]  # 5000 are plenty
