@@ -5,12 +5,13 @@ numpy reference), fused over views per point so a point stops being tested
 as soon as its fate is sealed.  Only for the seed's camera model
 (``CameraModel`` itself: pinhole + d1, d2); another model falls back to the
 numpy path, which calls the model's own projection.  Tested against the numpy
-path and ``dense-hull`` in ``tests/hull/test_kernels.py``.
+path and ``dense-hull`` in ``tests/hull/test_carve.py``.
 """
 
 from __future__ import annotations
 
 import warnings
+from collections import namedtuple
 from collections.abc import Sequence
 
 import numpy as np
@@ -33,6 +34,8 @@ except ImportError:  # pragma: no cover - exercised only without numba
 _R, _T, _F, _CU, _CV, _D1, _D2 = 0, 9, 12, 13, 14, 15, 16
 _W, _H, _GAIN, _U0, _V0, _TW, _TH, _BOX, _OFF, _FY = 17, 18, 19, 20, 21, 22, 23, 24, 28, 29
 _NPARAM = 30
+# Outcomes of the conservative cell test in one view (``_cell_test``).
+CELL_OFF, CELL_EDGE, CELL_OUT, CELL_IN, CELL_AMB = 0, 1, 2, 3, 4
 # Fixed-point step of the distance tables (px), a compile-time constant of the kernels.
 _SD_STEP = np.float32(SD_STEP)
 # Points per chunk of the view-major loops (neighbours in the octree's order).
@@ -97,52 +100,77 @@ def _offsets_in_shared_buffer(views: Sequence[ViewField]) -> np.ndarray | None:
     return out
 
 
+# One view's constants in the kernels' inner loops, read from its ``params`` row once per
+# view: indexing ``params`` inside a loop reloads them at every test (the compiler cannot
+# prove the loop's stores do not alias it); a tuple stays in registers.
+ViewRow = namedtuple("ViewRow", [
+    "r00", "r01", "r02", "r10", "r11", "r12", "r20", "r21", "r22", "t0", "t1", "t2",
+    "f", "fy", "cu", "cv", "d1", "d2", "u_hi", "v_hi", "gain",
+    "u0", "v0", "tw", "th", "off", "bu0", "bv0", "bu1", "bv1"])
+
 if HAVE_NUMBA:
 
     @njit(cache=True, inline="always")
-    def _project(params, j, x, y, z):
-        xc = params[j, 0] * x + params[j, 1] * y + params[j, 2] * z + params[j, 9]
-        yc = params[j, 3] * x + params[j, 4] * y + params[j, 5] * z + params[j, 10]
-        zc = params[j, 6] * x + params[j, 7] * y + params[j, 8] * z + params[j, 11]
+    def _row(params, j):
+        p = params[j]
+        return ViewRow(p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7], p[8], p[9], p[10], p[11],
+                       p[12], p[29], p[13], p[14], p[15], p[16], p[17] - 0.5, p[18] - 0.5, p[19],
+                       p[20], p[21], int(p[22]), int(p[23]), int(p[28]),
+                       p[24], p[25], p[26], p[27])
+
+    @njit(cache=True, inline="always")
+    def _cam(vr, x, y, z):
+        # World (mm) -> camera frame (mm).
+        return (vr.r00 * x + vr.r01 * y + vr.r02 * z + vr.t0,
+                vr.r10 * x + vr.r11 * y + vr.r12 * z + vr.t1,
+                vr.r20 * x + vr.r21 * y + vr.r22 * z + vr.t2)
+
+    @njit(cache=True, inline="always")
+    def _pixel(vr, xc, yc, zc):
+        # Camera frame -> pixels, the seed's radial model; NaN behind the camera.
         if zc <= 0.0:
-            return np.nan, np.nan, zc
+            return np.nan, np.nan
         xn = xc / zc
         yn = yc / zc
         r2 = xn * xn + yn * yn
-        s = 1.0 + params[j, 15] * r2 + params[j, 16] * r2 * r2
-        return params[j, 12] * xn * s + params[j, 13], params[j, 29] * yn * s + params[j, 14], zc
+        s = 1.0 + vr.d1 * r2 + vr.d2 * r2 * r2
+        return vr.f * xn * s + vr.cu, vr.fy * yn * s + vr.cv
 
     @njit(cache=True, inline="always")
-    def _to_camera(params, j, x, y, z):
-        return (params[j, 0] * x + params[j, 1] * y + params[j, 2] * z + params[j, 9],
-                params[j, 3] * x + params[j, 4] * y + params[j, 5] * z + params[j, 10],
-                params[j, 6] * x + params[j, 7] * y + params[j, 8] * z + params[j, 11])
+    def _child_offsets(vr, half, out):
+        # Camera-frame offsets (8, 3) of the 8 children's centres from their parent's,
+        # in the order of ``carve._children`` (x: bit 4, y: bit 2, z: bit 1).
+        for ch in range(8):
+            sx = half if ch & 4 else -half
+            sy = half if ch & 2 else -half
+            sz = half if ch & 1 else -half
+            out[ch, 0] = vr.r00 * sx + vr.r01 * sy + vr.r02 * sz
+            out[ch, 1] = vr.r10 * sx + vr.r11 * sy + vr.r12 * sz
+            out[ch, 2] = vr.r20 * sx + vr.r21 * sy + vr.r22 * sz
 
     @njit(cache=True, inline="always")
-    def _project_cam(params, j, xc, yc, zc):
-        # Camera frame -> pixels (same arithmetic as the tail of ``_project``).
-        if zc <= 0.0:
-            return np.nan, np.nan, zc
-        xn = xc / zc
-        yn = yc / zc
-        r2 = xn * xn + yn * yn
-        s = 1.0 + params[j, 15] * r2 + params[j, 16] * r2 * r2
-        return params[j, 12] * xn * s + params[j, 13], params[j, 29] * yn * s + params[j, 14], zc
+    def _takes_view(cursor, c, p_start, p_views, i, j):
+        # Whether view j is next in parent i's list (global view order); advances its cursor.
+        t = cursor[c]
+        if t >= p_start[i + 1] or p_views[t] != j:
+            return False
+        cursor[c] = t + 1
+        return True
 
     @njit(cache=True, inline="always")
-    def _box_bound(params, j, u, v):
-        du = max(max(params[j, 24] - 0.5 - u, u - params[j, 26] - 0.5), 0.0)
-        dv = max(max(params[j, 25] - 0.5 - v, v - params[j, 27] - 0.5), 0.0)
+    def _box_bound(vr, u, v):
+        du = max(max(vr.bu0 - 0.5 - u, u - vr.bu1 - 0.5), 0.0)
+        dv = max(max(vr.bv0 - 0.5 - v, v - vr.bv1 - 0.5), 0.0)
         return -np.float32(np.sqrt(du * du + dv * dv))
 
     @njit(cache=True, inline="always")
-    def _bilinear(params, j, tables, u, v):
-        w = int(params[j, 22])
-        h = int(params[j, 23])
-        lu = u - params[j, 20]
-        lv = v - params[j, 21]
+    def _bilinear_row(vr, tables, u, v):
+        w = vr.tw
+        h = vr.th
+        lu = u - vr.u0
+        lv = v - vr.v0
         if not (lu >= -0.5 and lu <= w - 0.5 and lv >= -0.5 and lv <= h - 0.5):
-            return _box_bound(params, j, u, v)
+            return _box_bound(vr, u, v)
         lu = min(max(lu, 0.0), w - 1.0)
         lv = min(max(lv, 0.0), h - 1.0)
         x0 = min(int(np.floor(lu)), w - 2 if w > 1 else 0)
@@ -151,26 +179,75 @@ if HAVE_NUMBA:
         y1 = min(y0 + 1, h - 1)
         fx = np.float32(lu - x0)
         fy = np.float32(lv - y0)
-        off = int(params[j, 28])
-        a = np.float32(tables[off + y0 * w + x0])
-        b = np.float32(tables[off + y0 * w + x1])
-        c = np.float32(tables[off + y1 * w + x0])
-        d = np.float32(tables[off + y1 * w + x1])
+        a = np.float32(tables[vr.off + y0 * w + x0])
+        b = np.float32(tables[vr.off + y0 * w + x1])
+        c = np.float32(tables[vr.off + y1 * w + x0])
+        d = np.float32(tables[vr.off + y1 * w + x1])
         top = a * (1 - fx) + b * fx
         bot = c * (1 - fx) + d * fx
         return (top * (1 - fy) + bot * fy) * _SD_STEP
 
     @njit(cache=True, inline="always")
-    def _nearest(params, j, tables, u, v):
-        w = int(params[j, 22])
-        h = int(params[j, 23])
-        lu = u - params[j, 20]
-        lv = v - params[j, 21]
+    def _nearest_row(vr, tables, u, v):
+        w = vr.tw
+        h = vr.th
+        lu = u - vr.u0
+        lv = v - vr.v0
         if not (lu >= -0.5 and lu <= w - 0.5 and lv >= -0.5 and lv <= h - 0.5):
-            return _box_bound(params, j, u, v)
+            return _box_bound(vr, u, v)
         iu = min(max(int(np.rint(lu)), 0), w - 1)
         iv = min(max(int(np.rint(lv)), 0), h - 1)
-        return np.float32(tables[int(params[j, 28]) + iv * w + iu]) * _SD_STEP
+        return np.float32(tables[vr.off + iv * w + iu]) * _SD_STEP
+
+    @njit(cache=True, inline="always")
+    def _cell_test(vr, tables, xc, yc, zc, rho, voxel_size, lip, slack):
+        # A cell (bounding ball radius rho mm, centre xc, yc, zc in the camera frame) in
+        # one view: CELL_OFF its footprint is off the image (not seen), CELL_EDGE partly
+        # off (or the camera within reach), CELL_OUT / CELL_IN every voxel of it beyond
+        # the clamp outside / inside, CELL_AMB on the image and undecided.  See
+        # ``carve.classify_cells``.
+        if zc + rho <= 0:
+            return CELL_OFF  # wholly behind the camera
+        near = zc - rho
+        if near <= 0:
+            return CELL_EDGE
+        u, v = _pixel(vr, xc, yc, zc)
+        inv = vr.gain / near
+        r = rho * inv
+        if u + r < -0.5 or u - r > vr.u_hi or v + r < -0.5 or v - r > vr.v_hi:
+            return CELL_OFF
+        if not (u - r >= -0.5 and u + r <= vr.u_hi and v - r >= -0.5 and v + r <= vr.v_hi):
+            return CELL_EDGE
+        margin = lip * r + voxel_size * inv + slack
+        sd = _nearest_row(vr, tables, u, v)
+        if sd < -margin:
+            return CELL_OUT
+        if sd > margin:
+            return CELL_IN
+        return CELL_AMB
+
+    @njit(cache=True, inline="always")
+    def _voxel_test(vr, tables, xc, yc, zc, fs):
+        # (seen, d): whether a voxel centre (camera frame) projects on the image, and its
+        # cone distance d (voxels; ``fs`` = focal length * voxel size).
+        u, v = _pixel(vr, xc, yc, zc)
+        if not (zc > 0 and u >= -0.5 and u <= vr.u_hi and v >= -0.5 and v <= vr.v_hi):
+            return False, np.float32(0.0)
+        return True, np.float32(_bilinear_row(vr, tables, u, v) * (zc / fs))
+
+    @njit(cache=True, inline="always")
+    def _keep_smallest(kept, f, k, d):
+        # Replace the largest of row f's k+1 smallest values by d (< it); returns the new
+        # largest: the (k+1)-th smallest so far.
+        worst = 0
+        for q in range(1, k + 1):
+            if kept[f, q] > kept[f, worst]:
+                worst = q
+        kept[f, worst] = d
+        m = kept[f, 0]
+        for q in range(1, k + 1):
+            m = max(m, kept[f, q])
+        return m
 
     @njit(cache=True, parallel=True)
     def _voxel_field(points, params, tables, voxel_size, k, min_seen, chunk):
@@ -188,30 +265,24 @@ if HAVE_NUMBA:
             kept = np.full((m, k + 1), np.inf, dtype=np.float32)
             seen = np.zeros(m, dtype=np.int32)
             done = np.zeros(m, dtype=np.bool_)
+            mxs = np.full(m, np.inf, dtype=np.float32)
             count = 0
             for j in range(nv):
+                vr = _row(params, j)
+                fs = vr.f * voxel_size
                 for ii in range(m):
                     if done[ii]:
                         continue
                     i = a + ii
                     count += 1
-                    u, v, zc = _project(params, j, points[i, 0], points[i, 1], points[i, 2])
-                    if not (zc > 0 and u >= -0.5 and u <= params[j, 17] - 0.5 and v >= -0.5
-                            and v <= params[j, 18] - 0.5):
+                    xc, yc, zc = _cam(vr, points[i, 0], points[i, 1], points[i, 2])
+                    on, d = _voxel_test(vr, tables, xc, yc, zc, fs)
+                    if not on:
                         continue
                     seen[ii] += 1
-                    d = np.float32(_bilinear(params, j, tables, u, v)
-                                   * (zc / (params[j, 12] * voxel_size)))
-                    worst = 0
-                    for q in range(1, k + 1):
-                        if kept[ii, q] > kept[ii, worst]:
-                            worst = q
-                    if d < kept[ii, worst]:
-                        kept[ii, worst] = d
-                        mx = kept[ii, 0]
-                        for q in range(1, k + 1):
-                            mx = max(mx, kept[ii, q])
-                        if mx <= -1.0:
+                    if d < mxs[ii]:
+                        mxs[ii] = _keep_smallest(kept, ii, k, d)
+                        if mxs[ii] <= -1.0:
                             done[ii] = True  # k+1 views at <= -1: final after clamping
             for ii in range(m):
                 mx = kept[ii, 0]
@@ -243,36 +314,24 @@ if HAVE_NUMBA:
             n_off = np.zeros(m, dtype=np.int32)
             count = 0
             for j in range(nv):
-                lo_u, hi_u, lo_v, hi_v = -0.5, params[j, 17] - 0.5, -0.5, params[j, 18] - 0.5
+                vr = _row(params, j)
                 for ii in range(m):
                     if n_out[ii] > k or n_off[ii] > max_off:
                         continue  # removed already
                     i = a + ii
                     count += 1
-                    u, v, zc = _project(params, j, centres[i, 0], centres[i, 1], centres[i, 2])
-                    if zc + rho <= 0:
-                        n_off[ii] += 1  # wholly behind the camera: not seen
-                        continue
-                    near = zc - rho
-                    if near <= 0:
+                    xc, yc, zc = _cam(vr, centres[i, 0], centres[i, 1], centres[i, 2])
+                    res = _cell_test(vr, tables, xc, yc, zc, rho, voxel_size, lip, slack)
+                    if res == CELL_OFF:
+                        n_off[ii] += 1
+                    elif res == CELL_EDGE:
                         n_amb[ii] += 1
-                        continue
-                    inv = params[j, 19] / near
-                    r = rho * inv
-                    if u + r < lo_u or u - r > hi_u or v + r < lo_v or v - r > hi_v:
-                        n_off[ii] += 1  # footprint off the image: not seen
-                        continue
-                    if not (u - r >= lo_u and u + r <= hi_u and v - r >= lo_v
-                            and v + r <= hi_v):
-                        n_amb[ii] += 1
-                        continue
-                    n_on[ii] += 1
-                    margin = lip * r + voxel_size * inv + slack
-                    sd = _nearest(params, j, tables, u, v)
-                    if sd < -margin:
-                        n_out[ii] += 1
-                    elif not sd > margin:
-                        n_amb[ii] += 1
+                    else:
+                        n_on[ii] += 1
+                        if res == CELL_OUT:
+                            n_out[ii] += 1
+                        elif res == CELL_AMB:
+                            n_amb[ii] += 1
             for ii in range(m):
                 if n_out[ii] > k or n_off[ii] > max_off:
                     decision[a + ii] = 0
@@ -325,37 +384,19 @@ if HAVE_NUMBA:
                         break  # removed already
                     j = p_views[t]
                     count += 1
-                    u, v, zc = _project(params, j, x, y, z)
-                    if zc + rho <= 0:
+                    vr = _row(params, j)
+                    xc, yc, zc = _cam(vr, x, y, z)
+                    res = _cell_test(vr, tables, xc, yc, zc, rho, voxel_size, lip, slack)
+                    if res == CELL_OFF:
                         n_off += 1
-                        continue
-                    near = zc - rho
-                    if near <= 0:
-                        amb[w + na] = j
-                        na += 1
-                        continue
-                    inv = params[j, 19] / near
-                    r = rho * inv
-                    hi_u = params[j, 17] - 0.5
-                    hi_v = params[j, 18] - 0.5
-                    if u + r < -0.5 or u - r > hi_u or v + r < -0.5 or v - r > hi_v:
-                        n_off += 1
-                        continue
-                    if not (u - r >= -0.5 and u + r <= hi_u and v - r >= -0.5
-                            and v + r <= hi_v):
-                        amb[w + na] = j
-                        na += 1
-                        continue
-                    margin = lip * r + voxel_size * inv + slack
-                    sd = _nearest(params, j, tables, u, v)
-                    if sd < -margin:
+                    elif res == CELL_OUT:
                         n_out += 1
-                    elif sd > margin:
+                    elif res == CELL_IN:
                         n_in += 1
                     else:
-                        amb[w + na] = j
+                        amb[w + na] = j  # ambiguous views, in the global view order
                         na += 1
-                        n_on_amb += 1
+                        n_on_amb += res == CELL_AMB
                 c_out[i] = n_out
                 c_in[i] = n_in
                 c_off[i] = n_off
@@ -465,57 +506,31 @@ if HAVE_NUMBA:
                 n_on_amb[f] = 0
                 live[f] = valid[i * 8 + ch]
                 alive[i - lo] += live[f]
+        offs = np.empty((8, 3))
         for j in range(nv):
-            hi_u = params[j, 17] - 0.5
-            hi_v = params[j, 18] - 0.5
+            vr = _row(params, j)
+            _child_offsets(vr, half_size, offs)
             for i in range(lo, hi):
-                t = cursor[i - lo]
-                if t >= p_start[i + 1] or p_views[t] != j:
+                if not _takes_view(cursor, i - lo, p_start, p_views, i, j) or alive[i - lo] == 0:
                     continue
-                cursor[i - lo] = t + 1
-                if alive[i - lo] == 0:
-                    continue
-                xc0, yc0, zc0 = _to_camera(params, j, centres[i, 0], centres[i, 1],
-                                           centres[i, 2])
+                xc0, yc0, zc0 = _cam(vr, centres[i, 0], centres[i, 1], centres[i, 2])
                 for ch in range(8):
                     f = (i - lo) * 8 + ch
                     if not live[f]:
                         continue
-                    sx = half_size if ch & 4 else -half_size
-                    sy = half_size if ch & 2 else -half_size
-                    sz = half_size if ch & 1 else -half_size
-                    zc = zc0 + params[j, 6] * sx + params[j, 7] * sy + params[j, 8] * sz
                     count += 1
-                    w = scratch_off[i * 8 + ch]
-                    if zc + rho <= 0:
+                    res = _cell_test(vr, tables, xc0 + offs[ch, 0], yc0 + offs[ch, 1],
+                                     zc0 + offs[ch, 2], rho, voxel_size, lip, slack)
+                    if res == CELL_OFF:
                         n_off[f] += 1
-                    elif zc - rho <= 0:
-                        amb[w + na[f]] = j
-                        na[f] += 1
+                    elif res == CELL_OUT:
+                        n_out[f] += 1
+                    elif res == CELL_IN:
+                        n_in[f] += 1
                     else:
-                        u, v, _zc = _project_cam(
-                            params, j,
-                            xc0 + params[j, 0] * sx + params[j, 1] * sy + params[j, 2] * sz,
-                            yc0 + params[j, 3] * sx + params[j, 4] * sy + params[j, 5] * sz, zc)
-                        inv = params[j, 19] / (zc - rho)
-                        r = rho * inv
-                        if u + r < -0.5 or u - r > hi_u or v + r < -0.5 or v - r > hi_v:
-                            n_off[f] += 1
-                        elif not (u - r >= -0.5 and u + r <= hi_u and v - r >= -0.5
-                                  and v + r <= hi_v):
-                            amb[w + na[f]] = j
-                            na[f] += 1
-                        else:
-                            margin = lip * r + voxel_size * inv + slack
-                            sd = _nearest(params, j, tables, u, v)
-                            if sd < -margin:
-                                n_out[f] += 1
-                            elif sd > margin:
-                                n_in[f] += 1
-                            else:
-                                amb[w + na[f]] = j
-                                na[f] += 1
-                                n_on_amb[f] += 1
+                        amb[scratch_off[i * 8 + ch] + na[f]] = j
+                        na[f] += 1
+                        n_on_amb[f] += res == CELL_AMB
                     if n_out[f] > k or n_off[f] > max_off:
                         live[f] = False  # removed already
                         alive[i - lo] -= 1
@@ -597,47 +612,30 @@ if HAVE_NUMBA:
                 live[f] = valid[i * 8 + ch] and m > -1.0
                 alive[i - lo] += live[f]
             total += alive[i - lo]
+        offs = np.empty((8, 3))
         for j in range(nv):
             if total == 0:
                 break
-            fs = params[j, 12] * voxel_size
+            vr = _row(params, j)
+            fs = vr.f * voxel_size
+            _child_offsets(vr, h, offs)
             for i in range(lo, hi):
-                t = cursor[i - lo]
-                if t >= p_start[i + 1] or p_views[t] != j:
+                if not _takes_view(cursor, i - lo, p_start, p_views, i, j) or alive[i - lo] == 0:
                     continue
-                cursor[i - lo] = t + 1
-                if alive[i - lo] == 0:
-                    continue
-                xc0, yc0, zc0 = _to_camera(params, j, centres[i, 0], centres[i, 1],
-                                           centres[i, 2])
+                xc0, yc0, zc0 = _cam(vr, centres[i, 0], centres[i, 1], centres[i, 2])
                 for ch in range(8):
                     f = (i - lo) * 8 + ch
                     if not live[f]:
                         continue
-                    sx = h if ch & 4 else -h
-                    sy = h if ch & 2 else -h
-                    sz = h if ch & 1 else -h
                     count += 1
-                    xc = xc0 + params[j, 0] * sx + params[j, 1] * sy + params[j, 2] * sz
-                    yc = yc0 + params[j, 3] * sx + params[j, 4] * sy + params[j, 5] * sz
-                    zc = zc0 + params[j, 6] * sx + params[j, 7] * sy + params[j, 8] * sz
-                    u, v, _z = _project_cam(params, j, xc, yc, zc)
-                    if not (zc > 0 and u >= -0.5 and u <= params[j, 17] - 0.5 and v >= -0.5
-                            and v <= params[j, 18] - 0.5):
+                    on, d = _voxel_test(vr, tables, xc0 + offs[ch, 0], yc0 + offs[ch, 1],
+                                        zc0 + offs[ch, 2], fs)
+                    if not on:
                         continue
                     seen[f] += 1
-                    d = np.float32(_bilinear(params, j, tables, u, v) * (zc / fs))
                     if d < mx[f]:
-                        worst = 0
-                        for q in range(1, k + 1):
-                            if kept[f, q] > kept[f, worst]:
-                                worst = q
-                        kept[f, worst] = d
-                        m = kept[f, 0]
-                        for q in range(1, k + 1):
-                            m = max(m, kept[f, q])
-                        mx[f] = m
-                        if m <= -1.0:
+                        mx[f] = _keep_smallest(kept, f, k, d)
+                        if mx[f] <= -1.0:
                             live[f] = False  # k+1 views at <= -1: final after clamping
                             alive[i - lo] -= 1
                             total -= 1
