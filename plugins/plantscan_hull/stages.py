@@ -99,6 +99,8 @@ class _HullBase(Reconstructor):
         t_box = time.perf_counter() - t0 - t_prep
         grid = Grid.from_box(lo, hi, p.resolution)
         phi, stats = self._carve(views, grid)
+        n_views = len(views)
+        del views  # the tables (1.3 GB for 360 views at 2592x1728) are not needed any more
         faces = touching_faces(phi > 0)
         if p.floor_z_mm is not None and grid.lo[2] <= p.floor_z_mm + 1e-6:
             faces = [f for f in faces if f != "z-"]  # resting on the plate is not clipping
@@ -109,7 +111,7 @@ class _HullBase(Reconstructor):
                 f"({grid.lo.round(1).tolist()} .. {grid.hi.round(1).tolist()} mm): the box "
                 "clips the plant; enlarge it")
         out = stats.as_dict()
-        out.update({"views": len(views), "prep_seconds": t_prep, "bbox_seconds": t_box,
+        out.update({"views": n_views, "prep_seconds": t_prep, "bbox_seconds": t_box,
                     "grid_shape": list(grid.shape), "voxel_size_mm": grid.voxel_size,
                     "bbox_mm": [grid.lo.tolist(), grid.hi.tolist()], "k": p.k, **info})
         return Volume(phi, grid.origin, grid.voxel_size, out)

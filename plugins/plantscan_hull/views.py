@@ -172,12 +172,13 @@ def view_label(sil: Silhouette) -> str:
 
 
 def _checked_region(sil: Silhouette, camera: Camera
-                    ) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int, int]]:
-    """The silhouette's bool mask, its pixel box and its table's region of interest.
+                    ) -> tuple[np.ndarray, tuple[int, int, int, int]]:
+    """The silhouette's pixel box and its table's region of interest.
 
-    Returns ``mask`` (H, W) bool C-contiguous, ``box`` (4,) float64
-    ``u_min, v_min, u_max, v_max`` px, and ``(u0, v0, u1, v1)``: the box plus
-    ``ROI_MARGIN_PX``, within the image.
+    Returns ``box`` (4,) float64 ``u_min, v_min, u_max, v_max`` px, and
+    ``(u0, v0, u1, v1)``: the box plus ``ROI_MARGIN_PX``, within the image.
+    A mask that is not bool is converted for the check only (no copy of 360
+    masks is held while the tables are built).
 
     Raises
     ------
@@ -207,13 +208,14 @@ def _checked_region(sil: Silhouette, camera: Camera
     u_max, v_max = u_min + bw - 1, v_min + bh - 1
     roi = (max(0, u_min - ROI_MARGIN_PX), max(0, v_min - ROI_MARGIN_PX),
            min(w, u_max + ROI_MARGIN_PX + 1), min(h, v_max + ROI_MARGIN_PX + 1))
-    return mask, np.array([u_min, v_min, u_max, v_max], dtype=float), roi
+    return np.array([u_min, v_min, u_max, v_max], dtype=float), roi
 
 
-def _view_field(sil: Silhouette, camera: Camera, mask: np.ndarray, box: np.ndarray,
+def _view_field(sil: Silhouette, camera: Camera, box: np.ndarray,
                 roi: tuple[int, int, int, int], out: np.ndarray | None) -> ViewField:
     u0, v0, u1, v1 = roi
-    sd = signed_distance_table(mask[v0:v1, u0:u1], out)
+    mask = np.asarray(sil.mask)
+    sd = signed_distance_table(mask[v0:v1, u0:u1].astype(bool, copy=False), out)
     h, w = mask.shape
     return ViewField(camera=camera, sd=sd, u0=u0, v0=v0, box=box, width=w, height=h,
                      gain=projection_gain(camera.model), label=view_label(sil))
@@ -256,15 +258,15 @@ def prepare_views(silhouettes: Sequence[Silhouette], calibration: Calibration) -
             return list(pool.map(fn, *args))
 
     checked = run(_checked_region, silhouettes, cameras)
-    sizes = [(r[3] - r[1]) * (r[2] - r[0]) for _, _, r in checked]
+    sizes = [(r[3] - r[1]) * (r[2] - r[0]) for _, r in checked]
     buffer = np.empty(int(sum(sizes)), dtype=SD_DTYPE)
     starts = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
     outs = [buffer[a:a + n].reshape(r[3] - r[1], r[2] - r[0])
-            for a, n, (_, _, r) in zip(starts[:-1], sizes, checked, strict=True)]
+            for a, n, (_, r) in zip(starts[:-1], sizes, checked, strict=True)]
 
     def one(i: int) -> ViewField:
-        mask, box, roi = checked[i]
-        return _view_field(silhouettes[i], cameras[i], mask, box, roi, outs[i])
+        box, roi = checked[i]
+        return _view_field(silhouettes[i], cameras[i], box, roi, outs[i])
 
     return run(one, range(len(cameras)))
 
