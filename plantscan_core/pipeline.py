@@ -87,6 +87,29 @@ def read_mask(path: Path) -> np.ndarray:
     return img > 0
 
 
+# segment.reduce "auto" keeps the long side of the images the segmenter sees at least this
+# long: on the 18 MP virtual scans 1296 px masks (1/4) gave the 512^3 hull the leaf errors
+# of 2592 px ones (docs/decisions.md).
+AUTO_REDUCE_MIN_LONG_SIDE_PX = 1200
+
+
+def resolve_reduce(reduce: int | str, image_path: Path) -> int:
+    """``segment.reduce`` as a number; "auto" from the size in ``image_path``'s header."""
+    if reduce != "auto":
+        return int(reduce)
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(image_path) as im:  # reads the header only
+            long_side = max(im.size)
+    except (OSError, UnidentifiedImageError) as exc:
+        raise DataError(f"{image_path}: cannot read the image size ({exc})") from exc
+    for r in (8, 4, 2):
+        if long_side / r >= AUTO_REDUCE_MIN_LONG_SIDE_PX:
+            return r
+    return 1
+
+
 def calibration_for_masks(calibration: Calibration, silhouettes: Silhouettes,
                           reduce: int) -> Calibration:
     """The calibration whose camera models match masks taken at 1/``reduce`` size.
@@ -139,6 +162,7 @@ class Run:
         self.run_dir = Path(run_dir)
         self.manager = manager
         self.progress = progress
+        self.reduce = 1  # segment.reduce as a number, set by the segment stage
         self.workers = workers or min(4, os.cpu_count() or 1)
         self.context = StageContext(recipe=recipe, scan=scan, run_dir=self.run_dir)
         self.result = RunResult(run_dir=self.run_dir, recipe=recipe, scan=scan)
@@ -255,7 +279,9 @@ class Run:
         inputs = _sha([views_fingerprint(self.scan, views),
                        views_fingerprint(self.scan, [backgrounds[k] for k in used_bg])])
         self.info["input_hashes"]["plant_views"] = inputs
-        reduce = self.recipe.segment.reduce
+        reduce = self.reduce = resolve_reduce(self.recipe.segment.reduce,
+                                              self.scan.path_of(views[0]))
+        self.info["segment_reduce"] = reduce
         inputs = _sha([inputs, {"reduce": reduce}])
         mask_dir = self.run_dir / MASKS_DIR
         paths = [mask_dir / f"{v.index:05d}.png" for v in views]
@@ -329,8 +355,7 @@ class Run:
 
         def compute(plugin):
             calibration = calibration_for_masks(self.result.calibration,
-                                                self.result.silhouettes,
-                                                self.recipe.segment.reduce)
+                                                self.result.silhouettes, self.reduce)
             v = plugin.reconstruct(self.result.silhouettes, calibration)
             v.save(out)
             self.info["reconstruct_stats"] = plain(v.stats)

@@ -32,10 +32,12 @@ class StageSpec(_Model):
 class SegmentSpec(StageSpec):
     """The segmenter, and the image resolution it works at."""
 
-    reduce: Literal[1, 2, 4, 8] = Field(
-        default=1,
+    reduce: Literal[1, 2, 4, 8, "auto"] = Field(
+        default="auto",
         description="decode plant images at 1/reduce of their size (JPEG DCT scaling: faster, "
-                    "4x less memory per step); masks and the hull then work at that size")
+                    "4x less memory per step); masks and the hull then work at that size. "
+                    "auto: the largest reduction that keeps the image's long side >= "
+                    "1200 px (18 MP -> 4, 3000x2000 -> 2, smaller -> 1; docs/decisions.md)")
 
 
 class CameraSpec(StageSpec):

@@ -10,9 +10,9 @@ import pytest
 
 from plantscan_core import iostats
 from plantscan_core.data import Calibration, Volume
-from plantscan_core.errors import StageError
+from plantscan_core.errors import DataError, StageError
 from plantscan_core.hookspecs import hookimpl
-from plantscan_core.pipeline import process, read_mask
+from plantscan_core.pipeline import process, read_mask, resolve_reduce
 from plantscan_core.recipe import validate_recipe
 from plantscan_core.stages import Calibrator, Reconstructor, Segmenter, StageParams
 from plantscan_core.testing import (
@@ -175,6 +175,25 @@ def test_reduced_decoding_gives_half_size_masks_and_a_matching_calibration(
     uv = cam.project(np.array([TINY_SPHERE_CENTRE_MM]))[0]
     rows, cols = np.nonzero(s_half.mask)
     assert np.hypot(cols.mean() - uv[0], rows.mean() - uv[1]) < 0.5
+
+
+@pytest.mark.parametrize("size, expected", [
+    ((5184, 3456), 4), ((3456, 5184), 4), ((3000, 2000), 2), ((2400, 1600), 2),
+    ((2399, 1599), 1), ((640, 427), 1), ((9700, 6500), 8)])
+def test_auto_reduce_keeps_the_long_side_at_least_1200_px(tmp_path, size, expected):
+    from PIL import Image
+
+    path = tmp_path / "img.jpg"
+    Image.new("L", size).save(path)  # header is what counts; a black JPEG is small
+    assert resolve_reduce("auto", path) == expected
+    assert resolve_reduce(2, path) == 2  # a number is used as given
+
+
+def test_auto_reduce_names_an_unreadable_image(tmp_path):
+    path = tmp_path / "broken.jpg"
+    path.write_bytes(b"not a jpeg")
+    with pytest.raises(DataError, match="broken.jpg"):
+        resolve_reduce("auto", path)
 
 
 def test_stage_failure_is_wrapped_and_earlier_results_are_kept(tiny_scan, manager, tmp_path):
