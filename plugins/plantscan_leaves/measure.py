@@ -191,7 +191,7 @@ def _two_side_length(graphs: list[sparse.csr_matrix], vertices: np.ndarray, a: i
     """Mean over the slab's sides of the smoothed shortest-path length from ``a`` to ``b``."""
     lengths = []
     for g in graphs:
-        dist, pred = dijkstra(g, directed=False, indices=a, return_predecessors=True,
+        dist, pred = dijkstra(g, directed=True, indices=a, return_predecessors=True,
                               limit=limit)
         if not np.isfinite(dist[b]):
             continue
@@ -292,16 +292,18 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
     # base and tip are the two ends of the leaf's geodesic diameter (double sweep); the base
     # is the end nearer to where the leaf attaches.  (The crest point nearest to the stem is
     # not used directly: a drooping blade's tip may hang close to another stem.)
-    d0 = dijkstra(g_all, directed=False, indices=int(crest[0]))
+    d0 = dijkstra(g_all, directed=True, indices=int(crest[0]))
     end1 = int(crest[np.argmax(np.where(np.isfinite(d0[crest]), d0[crest], -1))])
-    d1 = dijkstra(g_all, directed=False, indices=end1)
+    d1, pred1 = dijkstra(g_all, directed=True, indices=end1, return_predecessors=True)
     end2 = int(crest[np.argmax(np.where(np.isfinite(d1[crest]), d1[crest], -1))])
     base, tip = end1, end2
+    dist_b, pred_b = d1, pred1
     if base_hint is not None:
         hint = np.asarray(base_hint, float)
         if np.linalg.norm(q[end2] - hint) < np.linalg.norm(q[end1] - hint):
             base, tip = end2, end1
-    dist_b, pred_b = dijkstra(g_all, directed=False, indices=base, return_predecessors=True)
+            dist_b, pred_b = dijkstra(g_all, directed=True, indices=base,
+                                      return_predecessors=True)
     midrib_idx = np.array(_path(pred_b, tip))
     sigma = p.path_smoothing_mm
     rim_excess = (math.pi / 2 - 1) * thickness if p.rim_correction else 0.0
@@ -550,17 +552,23 @@ def _radius_graphs(q: np.ndarray, kind: np.ndarray, radius: float
                    ) -> tuple[sparse.csr_matrix, sparse.csr_matrix, sparse.csr_matrix]:
     """Graphs joining points closer than ``radius``: all, side A + crest, side B + crest.
 
-    ``kind`` is 0 for crest points, 1 for side A, 2 for side B.
+    ``kind`` is 0 for crest points, 1 for side A, 2 for side B.  Symmetric (each edge
+    stored both ways): search them with ``directed=True``.
     """
     from scipy.spatial import cKDTree
 
     pairs = cKDTree(q).query_pairs(radius, output_type="ndarray")
     w = np.maximum(geo.row_norm(q[pairs[:, 0]] - q[pairs[:, 1]]), 1e-9)
     n = len(q)
-    # one direction per pair (every dijkstra call here is undirected), built once: the side
-    # graphs share its structure, with the other side's edges made impassable (infinite)
-    g_all = sparse.csr_matrix((np.arange(1.0, len(pairs) + 1), (pairs[:, 0], pairs[:, 1])),
-                              shape=(n, n))
+    # built once: the side graphs share its structure, with the other side's edges made
+    # impassable (infinite)
+    # both directions stored (pairs are i < j, so none is summed twice): a dijkstra with
+    # directed=False would build this symmetric copy again on every call; the data hold
+    # each entry's pair number + 1 until replaced by weights
+    ids = np.arange(1.0, len(pairs) + 1)
+    g_all = sparse.csr_matrix((np.concatenate([ids, ids]),
+                               (np.concatenate([pairs[:, 0], pairs[:, 1]]),
+                                np.concatenate([pairs[:, 1], pairs[:, 0]]))), shape=(n, n))
     pair_of = g_all.data.astype(np.int64) - 1
     g_all.data = w[pair_of]
     ka, kb = kind[pairs[pair_of, 0]], kind[pairs[pair_of, 1]]
