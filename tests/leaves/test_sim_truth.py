@@ -16,13 +16,16 @@ plants = pytest.importorskip("plantscan_sim.plants")
 
 from plantscan_leaves.evaluate import match_leaves, trait_errors  # noqa: E402
 from plantscan_leaves.measure import measure_plant  # noqa: E402
-from plantscan_leaves.segment import segment_leaves  # noqa: E402
+from plantscan_leaves.segment import CurvatureRegionsParams, segment_leaves  # noqa: E402
+
+# the grass settings of docs/leaves.md (blades fused with their stem, chains of crumbs)
+GRASS = CurvatureRegionsParams(stem_sheet_ratio=0.25, crumb_merge_rounds=20)
 
 
-def _run(preset: str, seed: int = 1):
+def _run(preset: str, seed: int = 1, params: CurvatureRegionsParams | None = None):
     plant = plants.build_plant(preset, seed, 0.0)
     tm = plant.mesh
-    labelled, _ = segment_leaves(Mesh(tm.vertices, tm.faces))
+    labelled, _ = segment_leaves(Mesh(tm.vertices, tm.faces), params)
     traits, _, _ = measure_plant(labelled)
     m = match_leaves(labelled, tm.vertices, tm.faces, tm.face_attr)
     return plant, m, trait_errors(plant.traits(), traits, m["pairs"])["mean_relative_error"]
@@ -38,9 +41,10 @@ def test_plastic_dicot_truth_mesh():
         assert err[name] < 0.01, (name, err)
 
 
+@pytest.mark.parametrize("grass_params", [False, True], ids=["defaults", "grass-params"])
 @pytest.mark.parametrize("preset", ["wheat", "sorghum"])
-def test_grass_truth_mesh(preset):
-    plant, m, err = _run(preset)
+def test_grass_truth_mesh(preset, grass_params):
+    plant, m, err = _run(preset, params=GRASS if grass_params else None)
     assert len(m["pairs"]) == len(m["truth_ids"]) and not m["merged"]
     # the grass targets (length 3 %, area 5 %) for the chain, met by the stages alone
     assert err["length"] < 0.03 and err["area"] < 0.05, err
