@@ -88,9 +88,9 @@ def read_mask(path: Path) -> np.ndarray:
 
 
 # segment.reduce "auto" keeps the long side of the images the segmenter sees at least this
-# long: on the 18 MP virtual scans 1296 px masks (1/4) gave the 512^3 hull the leaf errors
-# of 2592 px ones (docs/decisions.md).
-AUTO_REDUCE_MIN_LONG_SIDE_PX = 1200
+# long: on the 18 MP virtual paper-72 scan 1296 px masks (1/4) merged two leaf pairs at 512^3
+# where 2592 px ones (1/2) found all 12 (docs/decisions.md).
+AUTO_REDUCE_MIN_LONG_SIDE_PX = 2400
 
 
 def resolve_reduce(reduce: int | str, image_path: Path) -> int:

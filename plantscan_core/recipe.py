@@ -37,7 +37,7 @@ class SegmentSpec(StageSpec):
         description="decode plant images at 1/reduce of their size (JPEG DCT scaling: faster, "
                     "4x less memory per step); masks and the hull then work at that size. "
                     "auto: the largest reduction that keeps the image's long side >= "
-                    "1200 px (18 MP -> 4, 3000x2000 -> 2, smaller -> 1; docs/decisions.md)")
+                    "2400 px (18 MP -> 2, 3000x2000 and smaller -> 1; docs/decisions.md)")
 
 
 class CameraSpec(StageSpec):

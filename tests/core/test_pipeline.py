@@ -178,9 +178,9 @@ def test_reduced_decoding_gives_half_size_masks_and_a_matching_calibration(
 
 
 @pytest.mark.parametrize("size, expected", [
-    ((5184, 3456), 4), ((3456, 5184), 4), ((3000, 2000), 2), ((2400, 1600), 2),
-    ((2399, 1599), 1), ((640, 427), 1), ((9700, 6500), 8)])
-def test_auto_reduce_keeps_the_long_side_at_least_1200_px(tmp_path, size, expected):
+    ((5184, 3456), 2), ((3456, 5184), 2), ((4800, 3200), 2), ((4799, 3199), 1),
+    ((3000, 2000), 1), ((640, 427), 1), ((9700, 6500), 4), ((19200, 100), 8)])
+def test_auto_reduce_keeps_the_long_side_at_least_2400_px(tmp_path, size, expected):
     from PIL import Image
 
     path = tmp_path / "img.jpg"
