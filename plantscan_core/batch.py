@@ -140,7 +140,7 @@ def _worker_name() -> str:
 
 
 def process_plant(scan_dir: str, recipe_path: str, overrides: Sequence[str], run_dir: str,
-                  threads: int = 1) -> PlantOutcome:
+                  threads: int = 1, calibration_path: str | None = None) -> PlantOutcome:
     """Process one scan; never raises for a plant's own failure (it is returned as such).
 
     Parameters
@@ -151,6 +151,8 @@ def process_plant(scan_dir: str, recipe_path: str, overrides: Sequence[str], run
         ``--set PATH=VALUE`` overrides of the recipe.
     threads : int
         Threads a plant may use inside its stages (1 when plants already fill the cores).
+    calibration_path : str, optional
+        A calibration YAML used instead of calibrating (one per session).
     """
     t0, cpu0 = time.perf_counter(), time.process_time()
     outcome = PlantOutcome(scan=str(scan_dir), run_dir=str(run_dir), worker=_worker_name())
@@ -167,7 +169,8 @@ def process_plant(scan_dir: str, recipe_path: str, overrides: Sequence[str], run
         outcome.plant_id = str(ScanFolder.open(Path(scan_dir)).info.get("plant_id")
                                or recipe.plant.id)
         result = process(Path(scan_dir), recipe, Path(run_dir), manager, raw_recipe=raw,
-                         overrides=list(overrides), workers=threads)
+                         overrides=list(overrides), workers=threads,
+                         calibration_path=Path(calibration_path) if calibration_path else None)
         if result.traits is not None:
             outcome.leaf_count = len(result.traits.leaves)
             plant = result.traits.plant
@@ -266,6 +269,7 @@ def run_batch(
     progress: bool = True,
     connect_timeout_s: float = 30.0,
     task: Callable[..., PlantOutcome] = process_plant,
+    calibration: Path | None = None,
 ) -> BatchSummary:
     """Process every scan in ``scans`` with the recipe, one Dask task per plant.
 
@@ -291,6 +295,10 @@ def run_batch(
     task : callable
         The per-plant function, ``process_plant`` or one with its signature (an
         importable module-level function: it is pickled to the workers).
+    calibration : Path, optional
+        A calibration YAML (e.g. the session's, from ``plantscan calibrate``)
+        used by every plant instead of calibrating each scan; read once here,
+        so a bad file fails before any work.
 
     Returns
     -------
@@ -311,6 +319,13 @@ def run_batch(
     from plantscan_core.plugins import get_manager
 
     load_recipe(recipe_path, list(overrides), get_manager().registry)
+    extra = {}
+    if calibration is not None:
+        from plantscan_core.data import Calibration
+
+        calibration = Path(calibration).resolve()
+        Calibration.load(calibration)  # names the file when missing or malformed
+        extra["calibration_path"] = str(calibration)
     out_dir.mkdir(parents=True, exist_ok=True)
     run_dirs = _run_dirs(scans, out_dir)
     t0 = time.perf_counter()
@@ -331,7 +346,8 @@ def run_batch(
     try:
         futures = {
             client.submit(task, str(scan), str(recipe_path), list(overrides), str(rd),
-                          1, key=f"plantscan-{batch_id}-{i}-{scan.name}", pure=False): i
+                          1, key=f"plantscan-{batch_id}-{i}-{scan.name}", pure=False,
+                          **extra): i
             for i, (scan, rd) in enumerate(zip(scans, run_dirs, strict=True))
         }
         bar = _Progress(len(futures), where) if progress else None

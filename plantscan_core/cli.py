@@ -228,7 +228,8 @@ def cmd_batch(args) -> int:
         raise PlantScanError(f"batch: not available ({exc})") from exc
     summary = run_batch([Path(s) for s in args.scans], resolve_recipe_path(args.recipe),
                         Path(args.out), overrides=args.overrides, scheduler=args.scheduler,
-                        workers=args.workers, progress=sys.stderr.isatty())
+                        workers=args.workers, progress=sys.stderr.isatty(),
+                        calibration=Path(args.calibration) if args.calibration else None)
     print(summary)
     return summary.exit_status  # the number of failed plants (capped at 125)
 
@@ -295,6 +296,8 @@ def build_parser(manager: PluginManager | None = None) -> argparse.ArgumentParse
     p.add_argument("--out", default="plantscan-batch", help="output folder for runs + summary")
     p.add_argument("--scheduler", help="address of a running Dask scheduler (default: local)")
     p.add_argument("--workers", type=int, default=2, help="local workers (default 2)")
+    p.add_argument("--calibration", help="use this calibration YAML for every plant instead of "
+                   "calibrating each scan (one calibration per session)")
     p.set_defaults(func=cmd_batch)
 
     (manager or get_manager()).add_commands(sub)

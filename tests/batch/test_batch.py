@@ -16,7 +16,7 @@ from batch_fixtures import PLUGINS, crash_on_scan_named_crash
 
 from plantscan_core.batch import ERROR_TXT, _run_dirs, process_plant, run_batch
 from plantscan_core.data import Traits
-from plantscan_core.errors import RecipeError
+from plantscan_core.errors import DataError, RecipeError
 
 
 def _csv(path: Path) -> list[dict[str, str]]:
@@ -69,6 +69,14 @@ def test_a_broken_recipe_fails_once_before_any_work(tmp_path: Path, batch_recipe
     assert not (tmp_path / "out").exists()  # no cluster started, nothing written
 
 
+def test_a_missing_session_calibration_fails_once_before_any_work(tmp_path: Path,
+                                                                   batch_recipe):
+    with pytest.raises(DataError, match="no-such-calibration.yaml"):
+        run_batch([tmp_path / "some-scan"], batch_recipe, tmp_path / "out", progress=False,
+                  calibration=tmp_path / "no-such-calibration.yaml")
+    assert not (tmp_path / "out").exists()
+
+
 def test_a_plant_task_returns_its_failure_instead_of_raising(tmp_path: Path, batch_recipe):
     recipe = batch_recipe
     not_a_scan = tmp_path / "empty-folder"
@@ -80,6 +88,21 @@ def test_a_plant_task_returns_its_failure_instead_of_raising(tmp_path: Path, bat
 
 
 # --------------------------------------------------------------------------- end to end
+@pytest.mark.slow
+def test_a_session_calibration_replaces_calibrating_each_plant(tmp_path: Path, batch_inputs):
+    # The virtual scanner's exact calibration stands for the session's: every plant uses it
+    # (no board detection), and the plant is measured as usual.
+    scans, recipe = batch_inputs
+    session = scans["good1"] / "ground_truth" / "calibration.yaml"
+    outcome = process_plant(str(scans["good1"]), str(recipe), [], str(tmp_path / "run"),
+                            calibration_path=str(session))
+    assert outcome.status == "ok", outcome.error
+    assert outcome.leaf_count and outcome.leaf_count > 0
+    info = json.loads((tmp_path / "run" / "run.json").read_text())
+    assert info["stages"]["calibrate"]["plugin"] == "--calibration"
+    assert info["stages"]["calibrate"]["file"] == str(session)
+
+
 @pytest.mark.slow
 def test_cli_batch_on_a_two_worker_local_cluster(tmp_path: Path, batch_inputs, capsys):
     from plantscan_core.cli import main
