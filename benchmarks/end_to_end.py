@@ -15,9 +15,13 @@ an accuracy loss.
 The scans are rendered (not timed) by ``benchmarks/make_e2e_scans.py``; without
 ``--scan`` the paper-72 scan is taken from (or rendered into) its cache.
 
-Configurations default to the recipe as stored in the scan (what a user gets:
-every image decoded and segmented at full resolution, the simplest correct
-way), the same with ``segment.reduce=2``, and that with a 512^3 hull.
+Configurations default to: the recipe as stored in the scan (what a user
+gets: ``segment.reduce: auto``, i.e. 1/2 at 18 MP, and a 256^3 hull), every
+image decoded and segmented at full resolution (``segment.reduce=1``, the
+simplest correct way), the 512^3 hull, and the 512^3 hull with the session's
+calibration reused (``--calibration``; a config item ``@calibration`` takes the
+calibration.yaml of this scan's first run, as a lab that calibrates once per
+session would).
 """
 
 from __future__ import annotations
@@ -43,11 +47,14 @@ def _parse_config(text: str) -> tuple[str, list[str]]:
     return name, [s for s in sets.split(",") if s]
 
 
-def run_one(scan: Path, out: Path, overrides: list[str]) -> dict:
+def run_one(scan: Path, out: Path, overrides: list[str],
+            calibration: Path | None = None) -> dict:
     """Process ``scan`` into ``out`` in a child process; timings, memory and trait errors."""
     if out.exists():
         shutil.rmtree(out)
     cmd = PLANTSCAN + ["process", str(scan), "--out", str(out), "--profile"]
+    if calibration is not None:
+        cmd += ["--calibration", str(calibration)]
     for o in overrides:
         cmd += ["--set", o]
     t0 = time.perf_counter()
@@ -121,16 +128,23 @@ def main(argv: list[str] | None = None) -> int:
     # The scans store the recipe they were made with; the shipped recipe's leaf parameter
     # (recipes/plastic-dicot.yaml) came later, so it is applied as an override.
     leaf = "segment_mesh.params.concave_curvature_per_mm=0.06"
+    hull512 = "reconstruct.params.resolution=512"
     configs = dict(_parse_config(c) for c in args.config) or {
-        "recipe as scanned": [leaf], "reduce 2": ["segment.reduce=2", leaf],
-        "reduce 2, hull 512": ["segment.reduce=2", "reconstruct.params.resolution=512", leaf]}
+        "recipe as scanned (reduce auto, hull 256)": [leaf],
+        "full-resolution decode (reduce 1, hull 256)": ["segment.reduce=1", leaf],
+        "hull 512": [hull512, leaf],
+        "hull 512, session calibration": [hull512, leaf, "@calibration"]}
     for scan in scans:
         n_images = sum(1 for p in (scan / "images").rglob("*") if p.is_file())
         print(f"scan {scan} ({n_images} images), {platform.machine()}, {os.cpu_count()} cores, "
               f"load {os.getloadavg()[0]:.1f}")
         results = {}
-        for i, (name, overrides) in enumerate(configs.items()):
-            r = run_one(scan, args.runs / f"run{i}", overrides)
+        for i, (name, items) in enumerate(configs.items()):
+            overrides = [o for o in items if o != "@calibration"]
+            session = args.runs / "run0" / "calibration.yaml" if "@calibration" in items else None
+            if session is not None and (i == 0 or not session.exists()):
+                raise SystemExit(f"{name}: @calibration needs an earlier run of this scan")
+            r = run_one(scan, args.runs / f"run{i}", overrides, session)
             results[name] = r
             print(f"\n== {name} {overrides}\n{r['profile']}")
             print(f"command wall {r['wall_s']:.1f} s, CPU {r['cpu_s']:.1f} s, "
