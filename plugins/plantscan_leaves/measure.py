@@ -34,7 +34,8 @@ those of its **mid-surface**, measured without building it:
 Paths over a side run from crest to crest over the rounded rim, a little
 longer than the mid-surface would be (``(pi/2 - 1) r`` per end for a
 semicircular rim of radius ``r``); with ``rim_correction`` that amount is
-removed with ``r`` half the measured slab thickness.
+removed with ``r`` half the measured slab thickness: by default from the width
+only (a rim-to-rim path; a length path starts at the cut base, see docs).
 """
 
 from __future__ import annotations
@@ -42,6 +43,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 from pydantic import Field
@@ -89,8 +91,11 @@ class LeafGeometryParams(StageParams):
         200.0, gt=0,
         description="the spacing of path points is at least the leaf's bounding-box diagonal "
                     "over this (big leaves: fewer points, same relative accuracy)")
-    rim_correction: bool = Field(
-        False, description="remove the rounded-rim excess of over-the-side paths (see docs)")
+    rim_correction: bool | Literal["width"] = Field(
+        "width",
+        description="remove the rounded-rim excess of over-the-side paths (see docs): True "
+                    "for length and width, 'width' for the width only (rim-to-rim paths "
+                    "cross two rims, a length path starts at the cut base)")
     min_leaf_faces: int = Field(20, ge=1, description="leaves with fewer faces are skipped")
 
 
@@ -307,8 +312,10 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
     midrib_idx = np.array(_path(pred_b, tip))
     sigma = p.path_smoothing_mm
     rim_excess = (math.pi / 2 - 1) * thickness if p.rim_correction else 0.0
+    length_rim_excess = rim_excess if p.rim_correction is True else 0.0
     # a path over one side is never twice the shortest path over both (limit: speed)
-    length = _two_side_length([g_a, g_b], q, base, tip, sigma, 2.0 * dist_b[tip]) - rim_excess
+    length = (_two_side_length([g_a, g_b], q, base, tip, sigma, 2.0 * dist_b[tip])
+              - length_rim_excess)
     mid_pts = geo.smooth_polyline(q[midrib_idx], sigma) if len(midrib_idx) > 2 else q[midrib_idx]
     if not np.isfinite(length):
         # neither side joins base and tip on its own (a side broken by phantom volume or

@@ -127,3 +127,17 @@ def test_close_holes_caps_every_real_hole():
     assert len(v) == len(mesh.vertices) + 2  # one centre per hole
     t = topology(capped)
     assert t.border_edges == 0 and t.non_manifold_edges == 0
+
+
+def test_width_rim_correction_on_a_thick_slab():
+    # a 4 mm slab with semicircular rims (what a hull leaf's rim is at most): a rim-to-rim
+    # path over one side is (pi/2 - 1) r longer per rim than the mid-surface, 2.3 mm here
+    # (7 % of this 30 mm width); the length path starts at the cut base and is not corrected
+    leaf = ph.EllipseLeaf(60.0, 15.0)
+    mesh = ph.ellipse_slab_mesh(leaf.a, leaf.b, 4.0, voxel_mm=0.4)
+    raw = measure_leaf(mesh, 1, LeafGeometryParams(rim_correction=False)).traits
+    fixed = measure_leaf(mesh, 1, LeafGeometryParams()).traits  # default: "width"
+    # half a voxel of outline (0.2 mm of 30 mm) and the path points: 2 % as in the slab tests
+    assert _rel(fixed.width_mm, leaf.width_mm) < 0.02, (fixed, raw)
+    assert _rel(fixed.width_mm, leaf.width_mm) < _rel(raw.width_mm, leaf.width_mm)
+    assert fixed.length_mm == raw.length_mm
