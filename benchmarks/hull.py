@@ -1,6 +1,13 @@
 """Visual hull benchmark: octree-hull vs dense-hull vs Open3D's VoxelGrid.carve_silhouette.
 
     python benchmarks/hull.py [--views 360] [--size 1500x1000] [--res 128,256,512]
+    python benchmarks/hull.py --run-masks RUN --scan SCAN [--baseline REV]   # memory
+
+The second form measures the ``octree-hull`` reconstructor on the masks of a
+processing run (``RUN/masks``, ``RUN/calibration.yaml``, the plant views of
+``SCAN``: e.g. the 18 MP paper-360 scan segmented at ``segment.reduce=2``):
+peak RSS per phase (masks loaded, tables prepared, box, carve), CPU time and
+work counts, each revision in its own process.
 
 Silhouettes: the virtual scanner's truth plant (plastic dicot) and pot,
 rasterised (cv2.fillPoly of the projected triangles) in every view of the
@@ -205,6 +212,143 @@ def prep_full_size(n: int = 24) -> dict:
             "table_mb_per_view": float(np.mean([v.sd.nbytes for v in views]) / 2**20)}
 
 
+# --------------------------------------------------------------------------- run masks
+def _rss_mb() -> float:
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("VmRSS"):
+                return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+class _RssProbe:
+    """Peak resident memory per named phase, sampled every 5 ms on a thread (Linux)."""
+
+    def __init__(self):
+        import threading
+
+        self.phase, self.peaks, self.stop = "start", {}, False
+        threading.Thread(target=self._run, daemon=True).start()
+
+    def _run(self):
+        while not self.stop:
+            self.mark()
+            time.sleep(0.005)
+
+    def mark(self, phase: str | None = None):
+        r = _rss_mb()
+        self.peaks[self.phase] = max(self.peaks.get(self.phase, 0.0), r)
+        if phase is not None:
+            self.phase = phase
+            self.peaks[phase] = r
+
+
+def run_masks_case(run: Path, scan: Path, res: int, reduce: int) -> dict:
+    """``octree-hull`` on a run's masks, as the pipeline calls it, with RSS per phase."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    import plantscan_hull.stages as hull_stages
+    from plantscan_hull.stages import OctreeHull
+
+    from plantscan_core.data import Calibration, Silhouette, Silhouettes, ViewRecord
+    from plantscan_core.pipeline import calibration_for_masks, read_mask
+
+    probe = _RssProbe()
+    records = [ViewRecord.from_dict(json.loads(line))
+               for line in (scan / "views.jsonl").read_text().splitlines() if line.strip()]
+    records = [v for v in records if v.role == "plant"]
+    with ThreadPoolExecutor(2) as pool:
+        masks = list(pool.map(lambda v: read_mask(run / "masks" / f"{v.index:05d}.png"),
+                              records))
+    sils = Silhouettes([Silhouette(v, m) for v, m in zip(records, masks, strict=True)])
+    del masks
+    cal = calibration_for_masks(Calibration.load(run / "calibration.yaml"), sils, reduce)
+    try:  # JIT warm-up on 12 views (numba's cache may hold another signature)
+        OctreeHull(OctreeHull.Params(resolution=16, bbox=[-300, -300, 0, 300, 300, 500])
+                   ).reconstruct(Silhouettes(sils.items[::30]), cal)
+    except Exception:  # noqa: BLE001 - a clipped warm-up box is fine: the kernels are compiled
+        pass
+    probe.mark("masks loaded")
+    base = _rss_mb()
+    prepare, carve = hull_stages.prepare_views, hull_stages.carve_octree
+    tables = {}
+
+    def timed_prepare(*a, **kw):
+        probe.mark("prepare tables")
+        views = prepare(*a, **kw)
+        tables["mb"] = sum(v.sd.nbytes for v in views) / 2**20
+        probe.mark("bounding box")
+        return views
+
+    def timed_carve(*a, **kw):
+        probe.mark("carve")
+        out = carve(*a, **kw)
+        probe.mark("after carve")
+        return out
+
+    hull_stages.prepare_views, hull_stages.carve_octree = timed_prepare, timed_carve
+    t0, c0 = time.perf_counter(), time.process_time()
+    vol = OctreeHull(OctreeHull.Params(resolution=res)).reconstruct(sils, cal)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    probe.mark("returned")
+    probe.stop = True
+    st = vol.stats
+    h, w = sils[0].shape
+    return {"case": "run masks", "res": res, "views": len(sils), "size": f"{w}x{h}",
+            "wall_s": wall, "cpu_s": cpu, "prep_s": st["prep_seconds"],
+            "bbox_s": st["bbox_seconds"], "carve_s": st["carve_seconds"],
+            "masks_mb": base, "tables_mb": tables.get("mb", float("nan")),
+            "phase_peak_rss_mb": {k: round(v) for k, v in probe.peaks.items()},
+            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+            "voxel_view_tests": st["voxel_view_tests"], "cell_view_tests": st["cell_view_tests"],
+            "inside": int((vol.field > 0).sum()), "grid": st["grid_shape"]}
+
+
+def run_masks_main(args) -> int:
+    """Each revision (``--baseline`` first, then this tree) in its own process."""
+    rows = []
+    plugin_dirs = [("now", None)]
+    if args.baseline:
+        plugin_dirs.insert(0, (args.baseline, _extract(args.baseline)))
+    for label, plugins in plugin_dirs:
+        for res in [r for r in args.res.split(",") if r]:
+            cmd = [sys.executable, __file__, "--run-masks", str(args.run_masks), "--scan",
+                   str(args.scan), "--reduce", str(args.reduce), "--case", f"masks:{res}"]
+            if plugins:
+                cmd += ["--plugins", str(plugins)]
+            proc = subprocess.run(cmd, capture_output=True, text=True)
+            if proc.returncode != 0:
+                print(f"{label} {res}: failed\n{proc.stderr[-2000:]}", file=sys.stderr)
+                continue
+            row = json.loads(proc.stdout.strip().splitlines()[-1])
+            row["revision"] = label
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+    load = os.getloadavg()
+    print(f"\nload average {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f}\n")
+    print("| revision | grid | views | masks | reconstruct s wall | s CPU | prep s | carve s "
+          "| voxel-view tests | cell-view tests | inside voxels | tables MB | RSS with masks "
+          "MB | peak RSS MB (phase) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        phase = max(r["phase_peak_rss_mb"], key=r["phase_peak_rss_mb"].get)
+        print(f"| {r['revision']} | {r['res']} ({'x'.join(map(str, r['grid']))}) | "
+              f"{r['views']} | {r['size']} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | "
+              f"{r['prep_s']:.1f} | {r['carve_s']:.1f} | {r['voxel_view_tests']:.3g} | "
+              f"{r['cell_view_tests']:.3g} | {r['inside']} | {r['tables_mb']:.0f} | "
+              f"{r['masks_mb']:.0f} | {r['peak_rss_mb']:.0f} ({phase}) |")
+    return 0
+
+
+def _extract(rev: str) -> Path:
+    """``plugins/plantscan_hull`` of git revision ``rev`` in a temporary folder."""
+    base_dir = Path(tempfile.mkdtemp(prefix="hull_baseline_"))
+    archive = subprocess.run(["git", "-C", str(ROOT), "archive", rev, "plugins/plantscan_hull"],
+                             capture_output=True, check=True)
+    subprocess.run(["tar", "-x", "-C", str(base_dir)], input=archive.stdout, check=True)
+    return base_dir / "plugins"
+
+
 # --------------------------------------------------------------------------- driver
 def main() -> int:
     ap = argparse.ArgumentParser()
@@ -220,7 +364,19 @@ def main() -> int:
                     help="git revision whose plantscan_hull is also run (octree at the "
                          "largest --res), e.g. 2459b3ff: before/after in the same run")
     ap.add_argument("--write", action="store_true", help="write docs/benchmarks/hull.md")
+    ap.add_argument("--run-masks", type=Path,
+                    help="a processing run folder (masks/, calibration.yaml): memory case")
+    ap.add_argument("--scan", type=Path, help="the scan folder of --run-masks (views.jsonl)")
+    ap.add_argument("--reduce", type=int, default=2, help="segment.reduce of --run-masks")
     args = ap.parse_args()
+    if args.run_masks:
+        if args.case:
+            if args.plugins:
+                sys.path.insert(0, args.plugins)
+            res = int(args.case.split(":")[1])
+            print(json.dumps(run_masks_case(args.run_masks, args.scan, res, args.reduce)))
+            return 0
+        return run_masks_main(args)
     size = tuple(int(x) for x in args.size.split("x"))
     folder = make_scene(args.views, size)
     if args.case:  # child process: one case
@@ -235,16 +391,13 @@ def main() -> int:
             [("open3d", r) for r in args.open3d_res.split(",") if r]
     base_dir = None
     if args.baseline:
-        base_dir = Path(tempfile.mkdtemp(prefix="hull_baseline_"))
-        archive = subprocess.run(["git", "-C", str(ROOT), "archive", args.baseline,
-                                  "plugins/plantscan_hull"], capture_output=True, check=True)
-        subprocess.run(["tar", "-x", "-C", str(base_dir)], input=archive.stdout, check=True)
+        base_dir = _extract(args.baseline)
         cases.insert(0, ("baseline", max(args.res.split(","), key=int)))
     for case, res in cases:
         cmd = [sys.executable, __file__, "--views", str(args.views), "--size", args.size,
                "--k", str(args.k), "--case", f"{'octree' if case == 'baseline' else case}:{res}"]
         if case == "baseline":
-            cmd += ["--plugins", str(base_dir / "plugins")]
+            cmd += ["--plugins", str(base_dir)]
         proc = subprocess.run(cmd, capture_output=True, text=True)
         if proc.returncode != 0:
             print(f"{case} {res}: failed\n{proc.stderr[-2000:]}", file=sys.stderr)
