@@ -302,7 +302,9 @@ def prepare_views(silhouettes: Sequence[Silhouette], calibration: Calibration) -
         box, roi = checked[i]
         return _view_field(silhouettes[i], cameras[i], box, roi, outs[i])
 
-    return run(one, range(len(cameras)))
+    views = run(one, range(len(cameras)))
+    _scratch.__dict__.pop("buffers", None)  # this thread's, when it did the work (1 worker)
+    return views
 
 
 def project(view: ViewField, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
