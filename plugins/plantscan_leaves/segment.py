@@ -75,6 +75,11 @@ class CurvatureRegionsParams(StageParams):
                     "crumbs touching a leaf or stem region; more also joins chains of crumbs "
                     "(narrow grass blade tips; on broad leaves the chains are mostly phantom "
                     "hull volume, so 1)")
+    split_curvature_per_mm: float | None = Field(
+        0.06, gt=0,
+        description="a leaf holding two big regions separated by creases sharper than this "
+                    "(1/mm, below concave_curvature_per_mm) is split in two (touching "
+                    "leaves); None: off")
     stem_sheet_ratio: float = Field(
         0.0, ge=0, le=1,
         description="faces of stem regions whose neighbourhood (petiole_scale_mm cells) is "
@@ -298,6 +303,12 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
     leaf_pieces = [r for r in range(n_pieces) if not small[r]]
     for new, r in enumerate(leaf_pieces, start=1):
         out[pieces == r] = new
+    if p.split_curvature_per_mm is not None and leaf_pieces:
+        out, n_split = _split_joined_leaves(out, kf < -p.split_curvature_per_mm, areas,
+                                            topo.face_pairs, p.min_leaf_area_mm2)
+        info["leaves_split"] = n_split
+        leaf_pieces = list(range(int(out.max())))
+    for new in range(1, len(leaf_pieces) + 1):
         kinds[new] = "leaf"
     if (out == STEM_LABEL).any() or not leaf_pieces:
         kinds[STEM_LABEL] = "stem"
@@ -387,6 +398,51 @@ def _sheets_of_stem(labels: np.ndarray, sheet_face: np.ndarray, leaf_face: np.nd
     labels = labels.copy()
     labels[back] = target[comp[back]]
     return labels, back
+
+
+def _split_joined_leaves(labels: np.ndarray, crease: np.ndarray, areas: np.ndarray,
+                         pairs: np.ndarray, min_area: float) -> tuple[np.ndarray, int]:
+    """Leaves that hold two or more big regions at a finer crease threshold, split.
+
+    Two leaves that touch in the hull (a drooping leaf lying on one below it) may meet
+    along a crease shallower than ``concave_curvature_per_mm``; a lower threshold
+    everywhere would cut leaves' own edges off (creases of phantom volume).  Within
+    each leaf, the connected non-``crease`` faces with ``min_area`` mm² on one side are
+    seeds; a leaf with two or more is regrown from them (faces reached by none stay
+    with the biggest).  Returns labels 0 (stem), 1..n and the number of leaves split.
+    """
+    nf = len(labels)
+    same = labels[pairs[:, 0]] == labels[pairs[:, 1]]
+    inner = pairs[same & (labels[pairs[:, 0]] > 0)]
+    seeds = _regions_of(nf, inner, (labels > 0) & ~crease)
+    if not (seeds >= 0).any():
+        return labels, 0
+    n_seeds = int(seeds.max()) + 1
+    seed_area = np.bincount(seeds[seeds >= 0], areas[seeds >= 0], n_seeds) / 2.0
+    seed_label = np.zeros(n_seeds, np.int64)
+    seed_label[seeds[seeds >= 0]] = labels[seeds >= 0]
+    big = seed_area >= min_area
+    n_big = np.bincount(seed_label[big], minlength=int(labels.max()) + 1)
+    split = n_big >= 2
+    if not split.any():
+        return labels, 0
+    in_split = split[labels]
+    init = np.where(in_split & (seeds >= 0) & big[np.maximum(seeds, 0)], seeds, -1)
+    grown = _grow(init, inner[in_split[inner[:, 0]]])
+    # faces of a split leaf no seed reaches (cut off by creases) join its biggest seed
+    biggest = np.full(len(split), -1)
+    order = np.argsort(seed_area)  # ascending: the biggest seed of a label is written last
+    biggest[seed_label[order[big[order]]]] = order[big[order]]
+    lost = in_split & (grown < 0)
+    grown[lost] = biggest[labels[lost]]
+    # renumber: unsplit leaves keep one id each, each seed of a split leaf gets its own
+    key = np.where(in_split, n_seeds + labels.max() + 1 + grown, labels)
+    key[labels == 0] = 0
+    _, new = np.unique(key, return_inverse=True)
+    out = new.reshape(labels.shape).astype(np.int32)
+    if (labels > 0).all():  # no stem at all: ids start at 1 anyway
+        out += 1
+    return out, int(split.sum())
 
 
 def _merge_crumbs(labels: np.ndarray, crumbs: np.ndarray, pairs: np.ndarray, nlab: int,

@@ -181,3 +181,25 @@ def test_crumb_chains_join_with_more_rounds():
     crumbs = np.array([False, True, True])
     assert _merge_crumbs(labels, crumbs, pairs, 3).tolist() == [0, 0, 2]
     assert _merge_crumbs(labels, crumbs, pairs, 3, rounds=2).tolist() == [0, 0, 0]
+
+
+def test_leaf_with_two_big_regions_at_the_finer_threshold_is_split():
+    # faces 0..9 of one leaf in a row (face 5 on a shallow crease) and a stem face 10:
+    # both sides of the crease hold 250 mm² on one side, more than the 150 mm² of a leaf
+    from plantscan_leaves.segment import _split_joined_leaves
+
+    labels = np.array([1] * 10 + [0])
+    pairs = np.array([[i, i + 1] for i in range(10)])
+    areas = np.full(11, 100.0)
+    crease = np.zeros(11, bool)
+    crease[5] = True
+    out, n_split = _split_joined_leaves(labels, crease, areas, pairs, 150.0)
+    assert n_split == 1
+    assert out[10] == 0  # the stem stays stem
+    assert len(set(out[:5])) == 1 and len(set(out[6:10])) == 1 and out[0] != out[9]
+    assert set(out[:10]) == {1, 2}  # leaves numbered from 1
+    # a small region beyond the crease is not a leaf of its own: no split
+    crease[:] = False
+    crease[8] = True
+    out, n_split = _split_joined_leaves(labels, crease, areas, pairs, 150.0)
+    assert n_split == 0 and np.array_equal(out, labels)
