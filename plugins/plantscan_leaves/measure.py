@@ -663,7 +663,9 @@ def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = No
         info["warnings"].append(msg)
     stem_labels = [k for k, kind in labelled.kinds.items() if kind == "stem"]
     stem_faces = np.isin(labelled.face_labels, stem_labels)
-    stem_vertices = np.unique(mesh.faces[stem_faces])
+    used = np.zeros(len(mesh.vertices), bool)
+    used[mesh.faces[stem_faces].ravel()] = True  # a mask, not np.unique: no sort
+    stem_vertices = np.flatnonzero(used)
     tree = None
     if len(stem_vertices):
         from scipy.spatial import cKDTree
