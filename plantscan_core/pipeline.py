@@ -17,7 +17,7 @@ import resource
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -93,20 +93,26 @@ def read_mask(path: Path) -> np.ndarray:
 AUTO_REDUCE_MIN_LONG_SIDE_PX = 2400
 
 
-def resolve_reduce(reduce: int | str, image_path: Path) -> int:
-    """``segment.reduce`` as a number; "auto" from the size in ``image_path``'s header."""
+def resolve_reduce(reduce: int | str, image_paths: Sequence[Path]) -> int:
+    """``segment.reduce`` as a number; "auto" from the size in the first readable header.
+
+    A file whose header cannot be read is skipped here: decoding it in the
+    segment stage names it (and the stage) properly.  No readable header: 1.
+    """
     if reduce != "auto":
         return int(reduce)
     from PIL import Image, UnidentifiedImageError
 
-    try:
-        with Image.open(image_path) as im:  # reads the header only
-            long_side = max(im.size)
-    except (OSError, UnidentifiedImageError) as exc:
-        raise DataError(f"{image_path}: cannot read the image size ({exc})") from exc
-    for r in (8, 4, 2):
-        if long_side / r >= AUTO_REDUCE_MIN_LONG_SIDE_PX:
-            return r
+    for path in image_paths:
+        try:
+            with Image.open(path) as im:  # reads the header only
+                long_side = max(im.size)
+        except (OSError, UnidentifiedImageError):
+            continue
+        for r in (8, 4, 2):
+            if long_side / r >= AUTO_REDUCE_MIN_LONG_SIDE_PX:
+                return r
+        return 1
     return 1
 
 
@@ -280,7 +286,7 @@ class Run:
                        views_fingerprint(self.scan, [backgrounds[k] for k in used_bg])])
         self.info["input_hashes"]["plant_views"] = inputs
         reduce = self.reduce = resolve_reduce(self.recipe.segment.reduce,
-                                              self.scan.path_of(views[0]))
+                                              [self.scan.path_of(v) for v in views[:8]])
         self.info["segment_reduce"] = reduce
         inputs = _sha([inputs, {"reduce": reduce}])
         mask_dir = self.run_dir / MASKS_DIR

@@ -10,7 +10,7 @@ import pytest
 
 from plantscan_core import iostats
 from plantscan_core.data import Calibration, Volume
-from plantscan_core.errors import DataError, StageError
+from plantscan_core.errors import StageError
 from plantscan_core.hookspecs import hookimpl
 from plantscan_core.pipeline import process, read_mask, resolve_reduce
 from plantscan_core.recipe import validate_recipe
@@ -185,15 +185,20 @@ def test_auto_reduce_keeps_the_long_side_at_least_2400_px(tmp_path, size, expect
 
     path = tmp_path / "img.jpg"
     Image.new("L", size).save(path)  # header is what counts; a black JPEG is small
-    assert resolve_reduce("auto", path) == expected
-    assert resolve_reduce(2, path) == 2  # a number is used as given
+    assert resolve_reduce("auto", [path]) == expected
+    assert resolve_reduce(2, [path]) == 2  # a number is used as given
 
 
-def test_auto_reduce_names_an_unreadable_image(tmp_path):
-    path = tmp_path / "broken.jpg"
-    path.write_bytes(b"not a jpeg")
-    with pytest.raises(DataError, match="broken.jpg"):
-        resolve_reduce("auto", path)
+def test_auto_reduce_skips_an_unreadable_header(tmp_path):
+    # The segment stage decodes the broken file and names it; the size comes from the next.
+    from PIL import Image
+
+    broken = tmp_path / "broken.jpg"
+    broken.write_bytes(b"not a jpeg")
+    good = tmp_path / "good.jpg"
+    Image.new("L", (5184, 3456)).save(good)
+    assert resolve_reduce("auto", [broken, good]) == 2
+    assert resolve_reduce("auto", [broken]) == 1
 
 
 def test_stage_failure_is_wrapped_and_earlier_results_are_kept(tiny_scan, manager, tmp_path):
