@@ -40,8 +40,9 @@ CELL_OFF, CELL_EDGE, CELL_OUT, CELL_IN, CELL_AMB = 0, 1, 2, 3, 4
 _SD_STEP = np.float32(SD_STEP)
 # Points per chunk of the view-major loops (neighbours in the octree's order).
 CHUNK = 2048
-# Parent cells per chunk of the sibling-group kernels.
-GROUP_CHUNK = 256
+# Parent cells per chunk of the sibling-group kernels (1024: 12 % fewer ns per voxel test
+# than 256 on the benchmark plant, single-threaded; 64 and 4096 are slower).
+GROUP_CHUNK = 1024
 
 
 def supported(views: Sequence[ViewField]) -> bool:
