@@ -38,6 +38,9 @@ _NPARAM = 30
 CELL_OFF, CELL_EDGE, CELL_OUT, CELL_IN, CELL_AMB = 0, 1, 2, 3, 4
 # Fixed-point step of the distance tables (px), a compile-time constant of the kernels.
 _SD_STEP = np.float32(SD_STEP)
+# Parents per batch of ``classify_group``: its scratch lists (8 per parent, each as long as
+# the parent's) exist for one batch at a time, not for the whole level (2.2 GB at 1024^3).
+GROUP_BATCH = 1 << 16
 # Points per chunk of the view-major loops (neighbours in the octree's order).
 CHUNK = 2048
 # Parent cells per chunk of the sibling-group kernels (1024: 12 % fewer ns per voxel test
@@ -869,14 +872,53 @@ def classify_group(packed, tree: Tree, centres: np.ndarray, valid: np.ndarray, h
     split) and the ``Tree`` of the children to split.
     """
     params, tables = packed
-    scratch_off = _offsets(np.repeat(np.diff(tree.start), 8))
-    decision, c_out, c_in, c_off, c_amb, c_neg, amb, tests = _classify_group(
-        np.ascontiguousarray(centres, dtype=np.float64), valid, tree.start, tree.views,
-        tree.n_out, tree.n_in, tree.n_off, scratch_off, float(half_size), float(voxel_size),
-        params, tables, int(k), float(slack), int(min_seen), float(lipschitz), GROUP_CHUNK)
-    if stats is not None:
-        stats.cell_view_tests += int(tests)
-    return decision, _split_tree(decision, c_out, c_in, c_off, c_amb, c_neg, amb, scratch_off)
+    centres = np.ascontiguousarray(centres, dtype=np.float64)
+    n_par = len(centres)
+    decision = np.empty(n_par * 8, dtype=np.int8)
+    parts = []
+    for b0 in range(0, max(n_par, 1), GROUP_BATCH):
+        b1 = min(n_par, b0 + GROUP_BATCH)
+        sub = _sub_tree(tree, b0, b1)
+        scratch_off = _offsets(np.repeat(np.diff(sub.start), 8))
+        d, c_out, c_in, c_off, c_amb, c_neg, amb, tests = _classify_group(
+            centres[b0:b1], valid[8 * b0:8 * b1], sub.start, sub.views, sub.n_out, sub.n_in,
+            sub.n_off, scratch_off, float(half_size), float(voxel_size), params, tables, int(k),
+            float(slack), int(min_seen), float(lipschitz), GROUP_CHUNK)
+        decision[8 * b0:8 * b1] = d
+        parts.append(_split_tree(d, c_out, c_in, c_off, c_amb, c_neg, amb, scratch_off))
+        if stats is not None:
+            stats.cell_view_tests += int(tests)
+    return decision, _concat_trees(parts)
+
+
+def _sub_tree(tree: Tree, a: int, b: int) -> Tree:
+    """Cells ``a:b`` of ``tree`` (views shared, not copied)."""
+    sub = Tree.__new__(Tree)
+    sub.start = tree.start[a:b + 1] - tree.start[a]
+    sub.views = tree.views[tree.start[a]:tree.start[b]]
+    sub.n_out, sub.n_in, sub.n_off = tree.n_out[a:b], tree.n_in[a:b], tree.n_off[a:b]
+    return sub
+
+
+def _concat_trees(parts: list[Tree]) -> Tree:
+    """One ``Tree`` of the cells of ``parts`` in order; each part is freed once copied."""
+    if len(parts) == 1:
+        return parts[0]
+    out = Tree.__new__(Tree)
+    out.start = _offsets(np.concatenate([np.diff(p.start) for p in parts]))
+    out.n_out = np.concatenate([p.n_out for p in parts])
+    out.n_in = np.concatenate([p.n_in for p in parts])
+    out.n_off = np.concatenate([p.n_off for p in parts])
+    # np.empty maps pages as they are written, so the copy and the parts do not add up.
+    out.views = np.empty(int(out.start[-1]), dtype=np.int16)
+    pos = 0
+    parts.reverse()
+    while parts:
+        views = parts.pop().views
+        out.views[pos:pos + len(views)] = views
+        pos += len(views)
+        del views
+    return out
 
 
 def voxel_group(packed, tree: Tree, centres: np.ndarray, valid: np.ndarray, voxel_size: float,

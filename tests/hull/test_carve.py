@@ -282,3 +282,19 @@ def test_tables_in_one_buffer_never_copied(rig, sphere_sils):
     params, tables = kernels.pack(vf[::-3])
     assert tables is buf
     assert params.shape[0] == len(vf[::-3])
+
+
+@pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="the batches are the compiled path's")
+def test_sibling_batches_change_nothing(rig, mixed_sils, monkeypatch):
+    # classify_group works through the parents in batches (memory: one batch's scratch
+    # lists at a time); tiny batches must give the same field and the same work.
+    cal, _ = rig
+    vf = prepare_views(list(mixed_sils), cal)
+    grid = Grid.from_box((-60, -60, -50), (60, 60, 70), 40)
+    whole, s_whole = carve_octree(vf, grid, 3, top_cell=16, backend="numba")
+    monkeypatch.setattr(kernels, "GROUP_BATCH", 3)
+    batched, s_batched = carve_octree(vf, grid, 3, top_cell=16, backend="numba")
+    assert s_whole.cells_per_level[2] > 3 * 8  # several batches at the last split level
+    assert np.array_equal(whole, batched)
+    assert s_batched.cell_view_tests == s_whole.cell_view_tests
+    assert s_batched.voxel_view_tests == s_whole.voxel_view_tests
