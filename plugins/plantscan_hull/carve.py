@@ -433,22 +433,30 @@ def _carve_tree(kern: _Kernels, grid: Grid, k: int, top_cell: int, keep_thin: bo
         t_level = time.perf_counter()
         if size == 1 or not len(split):
             return _done(phi, stats, t0)
+        centres = grid.centres(split + (size - 1) / 2.0)
+        if size == 2:
+            break
         cells = _children(split, size)
         valid = np.all(cells < shape, axis=1)  # the top level is padded
-        centres = grid.centres(split + (size - 1) / 2.0)
         size //= 2
-        if size == 1:
-            break
         stats.cells_per_level[size] = int(valid.sum())
         decision, tree = kernels.classify_group(
             kern._packed, tree, centres, valid, size * s / 2.0, s, k, CELL_SLACK_PX,
             kern.min_seen, DISTANCE_LIPSCHITZ, stats)
+    # The voxels of the split 2-voxel cells: which are inside the grid, without their
+    # (P * 8, 3) indices (child ch is at corner + (ch >> 2, ch >> 1 & 1, ch & 1)).
+    room = split + 1 < shape  # (P, 3): the upper child fits along each axis
+    valid = np.ones((len(split), 8), dtype=bool)
+    for ch in range(8):
+        for axis, bit in enumerate((4, 2, 1)):
+            if ch & bit:
+                valid[:, ch] &= room[:, axis]
+    valid = valid.ravel()
     stats.cells_per_level[1] = stats.fine_voxels = int(valid.sum())
     values = kernels.voxel_group(kern._packed, tree, centres, valid, s, k, kern.min_seen, stats)
-    cells, values = np.ascontiguousarray(cells[valid]), values[valid]
-    kernels._scatter(phi, cells, values)
-    stats.rescued_voxels = int(kernels._rescue_band(phi, cells, values, np.float32(thin_value),
-                                                    keep_thin))
+    del tree  # the views lists of the last level
+    stats.rescued_voxels = int(kernels._scatter_fine(
+        phi, np.ascontiguousarray(split), values, valid, np.float32(thin_value), keep_thin))
     stats.seconds_per_level[1] = time.perf_counter() - t_level
     return _done(phi, stats, t0)
 

@@ -442,35 +442,51 @@ if HAVE_NUMBA:
                         phi[a, b, e] = value
 
     @njit(cache=True)  # serial: cheap, and parallel compiles slowly
-    def _scatter(phi, idx, values):
-        for i in range(idx.shape[0]):
-            phi[idx[i, 0], idx[i, 1], idx[i, 2]] = values[i]
-
-    @njit(cache=True)
-    def _rescue_band(phi, idx, values, thin_value, keep_thin):
-        # Only voxels computed at the fine level can hold a value in (-0.5, 0]:
-        # decided cells hold exactly -1 or +1.  A candidate with no 6-neighbour
-        # inside (before any rescue) gets ``thin_value``; exact zeros -> -1e-3.
+    def _scatter_fine(phi, cells, values, valid, thin_value, keep_thin):
+        # The fine voxels are the 8 children of the split 2-voxel cells with corners
+        # ``cells`` (P, 3) (order of ``carve._children``; never materialised: 0.7 GB of
+        # int64 indices at 1024^3).  Writes their ``values`` (P * 8,) where ``valid``,
+        # then the thin-part rescue: only fine voxels can hold a value in (-0.5, 0]
+        # (decided cells hold exactly -1 or +1); a candidate with no 6-neighbour inside
+        # (before any rescue) gets ``thin_value``; exact zeros -> -1e-3.  Returns the
+        # number rescued.
         nx, ny, nz = phi.shape
-        rescue = np.zeros(idx.shape[0], dtype=np.bool_)
-        for i in range(idx.shape[0]):
-            val = values[i]
-            if not (val > -0.5 and val <= 0.0):
-                continue
-            a, b, c = idx[i, 0], idx[i, 1], idx[i, 2]
-            near = ((a > 0 and phi[a - 1, b, c] > 0) or (a + 1 < nx and phi[a + 1, b, c] > 0)
-                    or (b > 0 and phi[a, b - 1, c] > 0) or (b + 1 < ny and phi[a, b + 1, c] > 0)
-                    or (c > 0 and phi[a, b, c - 1] > 0) or (c + 1 < nz and phi[a, b, c + 1] > 0))
-            rescue[i] = keep_thin and not near
-        n = 0
-        for i in range(idx.shape[0]):
-            if rescue[i]:
-                phi[idx[i, 0], idx[i, 1], idx[i, 2]] = thin_value
-                n += 1
-            elif phi[idx[i, 0], idx[i, 1], idx[i, 2]] == 0:
-                phi[idx[i, 0], idx[i, 1], idx[i, 2]] = -1e-3
-        return n
-
+        n = cells.shape[0]
+        for p in range(n):
+            for ch in range(8):
+                if valid[p * 8 + ch]:
+                    phi[cells[p, 0] + (ch >> 2), cells[p, 1] + ((ch >> 1) & 1),
+                        cells[p, 2] + (ch & 1)] = values[p * 8 + ch]
+        rescue = np.zeros(n * 8, dtype=np.bool_)
+        for p in range(n):
+            for ch in range(8):
+                val = values[p * 8 + ch]
+                if not (valid[p * 8 + ch] and val > -0.5 and val <= 0.0):
+                    continue
+                a = cells[p, 0] + (ch >> 2)
+                b = cells[p, 1] + ((ch >> 1) & 1)
+                c = cells[p, 2] + (ch & 1)
+                near = ((a > 0 and phi[a - 1, b, c] > 0)
+                        or (a + 1 < nx and phi[a + 1, b, c] > 0)
+                        or (b > 0 and phi[a, b - 1, c] > 0)
+                        or (b + 1 < ny and phi[a, b + 1, c] > 0)
+                        or (c > 0 and phi[a, b, c - 1] > 0)
+                        or (c + 1 < nz and phi[a, b, c + 1] > 0))
+                rescue[p * 8 + ch] = keep_thin and not near
+        count = 0
+        for p in range(n):
+            for ch in range(8):
+                if not valid[p * 8 + ch]:
+                    continue
+                a = cells[p, 0] + (ch >> 2)
+                b = cells[p, 1] + ((ch >> 1) & 1)
+                c = cells[p, 2] + (ch & 1)
+                if rescue[p * 8 + ch]:
+                    phi[a, b, c] = thin_value
+                    count += 1
+                elif phi[a, b, c] == 0:
+                    phi[a, b, c] = -1e-3
+        return count
 
     # ------------------------------------------------------------------ groups of 8 siblings
     # The 8 children of a split cell share their parent's list of ambiguous views:
