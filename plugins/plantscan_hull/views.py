@@ -210,8 +210,6 @@ def _checked_region(sil: Silhouette, camera: Camera
 
     Returns ``box`` (4,) float64 ``u_min, v_min, u_max, v_max`` px, and
     ``(u0, v0, u1, v1)``: the box plus ``ROI_MARGIN_PX``, within the image.
-    A mask that is not bool is converted for the check only (no copy of 360
-    masks is held while the tables are built).
 
     Raises
     ------
@@ -220,24 +218,25 @@ def _checked_region(sil: Silhouette, camera: Camera
         mask is empty or all foreground (each names the view).
     """
     label = view_label(sil)
-    mask = np.asarray(sil.mask)
-    if mask.ndim != 2:
-        raise DataError(f"{label}: mask must be a 2D (H, W) array, got shape {mask.shape}")
-    mask = np.ascontiguousarray(mask, dtype=bool)
-    h, w = mask.shape
+    # A Silhouette holds its mask cropped to the plant's box: the checks and the box come
+    # from the crop, never from a full-size copy of the mask.
+    crop = sil.crop
+    if crop.ndim != 2:
+        raise DataError(f"{label}: mask must be a 2D (H, W) array, got shape {crop.shape}")
+    h, w = sil.shape
     model = camera.model
     if (model.width and model.width != w) or (model.height and model.height != h):
         raise DataError(
             f"{label}: mask is {w}x{h} px but the calibration's camera {sil.view.camera!r} "
             f"images are {model.width}x{model.height} px (masks do not match the calibration)"
         )
-    # Bounding box of the non-zero pixels in one pass (numpy's any(axis=0) is strided).
-    u_min, v_min, bw, bh = cv2.boundingRect(mask.view(np.uint8))
-    if bw == 0:
+    if crop.size == 0:
         raise DataError(f"{label}: silhouette is empty (no plant pixel); check the segmentation")
-    if bw == w and bh == h and mask.all():
+    bh, bw = crop.shape
+    if bw == w and bh == h and crop.all():
         raise DataError(f"{label}: silhouette is all foreground; check the segmentation "
                         "(a background plate may be missing)")
+    u_min, v_min = sil.u0, sil.v0
     u_max, v_max = u_min + bw - 1, v_min + bh - 1
     roi = (max(0, u_min - ROI_MARGIN_PX), max(0, v_min - ROI_MARGIN_PX),
            min(w, u_max + ROI_MARGIN_PX + 1), min(h, v_max + ROI_MARGIN_PX + 1))
@@ -247,9 +246,11 @@ def _checked_region(sil: Silhouette, camera: Camera
 def _view_field(sil: Silhouette, camera: Camera, box: np.ndarray,
                 roi: tuple[int, int, int, int], out: np.ndarray | None) -> ViewField:
     u0, v0, u1, v1 = roi
-    mask = np.asarray(sil.mask)
-    sd = signed_distance_table(mask[v0:v1, u0:u1].astype(bool, copy=False), out)
-    h, w = mask.shape
+    region = np.zeros((v1 - v0, u1 - u0), bool)  # the crop placed in its table's region
+    ch, cw = sil.crop.shape
+    region[sil.v0 - v0:sil.v0 - v0 + ch, sil.u0 - u0:sil.u0 - u0 + cw] = sil.crop
+    sd = signed_distance_table(region, out)
+    h, w = sil.shape
     return ViewField(camera=camera, sd=sd, u0=u0, v0=v0, box=box, width=w, height=h,
                      gain=projection_gain(camera.model), label=view_label(sil))
 
