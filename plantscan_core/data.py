@@ -491,6 +491,15 @@ plain = _plain
 
 
 # --------------------------------------------------------------------------- silhouettes
+def mask_box(mask: np.ndarray) -> tuple[slice, slice] | None:
+    """Rows and columns of a 2D mask's bounding box; None when it is empty."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    if rows.size == 0:
+        return None
+    cols = np.flatnonzero(mask.any(axis=0))
+    return slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1)
+
+
 class Silhouette:
     """A plant mask of one view, held cropped to the plant's bounding box.
 
@@ -522,13 +531,12 @@ class Silhouette:
             # Kept as is so consumers can name the bad view (their checks see the shape).
             self.crop, self.u0, self.v0 = m, 0, 0
             return
-        rows = np.flatnonzero(m.any(axis=1))
-        if rows.size == 0:
+        box = mask_box(m)
+        if box is None:
             self.crop, self.u0, self.v0 = np.zeros((0, 0), bool), 0, 0
             return
-        cols = np.flatnonzero(m.any(axis=0))
-        self.u0, self.v0 = int(cols[0]), int(rows[0])
-        self.crop = m[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1].copy()
+        self.v0, self.u0 = int(box[0].start), int(box[1].start)
+        self.crop = m[box].copy()
 
     @property
     def mask(self) -> np.ndarray:

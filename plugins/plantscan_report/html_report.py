@@ -272,11 +272,12 @@ def _silhouette_section(run: RunResult, count: int, reduce: int) -> str:
     for i in picks:
         sil = items[i]
         view = sil.view
+        h, w = sil.shape
         caption = (f"view {view.index} · {view.camera} · tilt {view.tilt_deg:g}° · "
-                   f"{view.angle_deg:g}° · {100 * sil.mask.mean():.1f}% plant")
+                   f"{view.angle_deg:g}° · {100 * sil.area / (h * w):.1f}% plant")
         try:
-            image = run.scan.read_image(view, reduce=_decode_reduce(sil.mask.shape[1], reduce))
-            b64 = _thumbnail_b64(image, sil.mask)
+            image = run.scan.read_image(view, reduce=_decode_reduce(w, reduce))
+            b64 = _thumbnail_b64(image, sil.mask)  # the full mask, built once per thumbnail
             figures.append(f'<figure><img alt="{_esc(view.file)}" '
                            f'src="data:image/jpeg;base64,{b64}"><figcaption>{_esc(caption)}'
                            "</figcaption></figure>")

@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 from pydantic import Field
 
-from plantscan_core.data import ViewRecord
+from plantscan_core.data import ViewRecord, mask_box
 from plantscan_core.errors import DataError
 from plantscan_core.stages import Segmenter, StageParams
 from plantscan_segment.lab_reference import (
@@ -42,7 +42,6 @@ from plantscan_segment.lab_reference import (
     hole_px,
     lab_shadow_mask_reference,
     lab_shadow_score,
-    mask_box,
     normalised_rgb,
     remove_small_blobs,
 )

@@ -12,6 +12,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from plantscan_core.data import mask_box
+
 # Ratios of L use L + 1: an 8-bit L of 0 (pure black) must not divide by zero, and
 # one DN of offset changes a ratio of mid-grey pixels by < 1 %.
 L_OFFSET = 1.0
@@ -131,15 +133,6 @@ def remove_small_blobs(mask: np.ndarray, min_px: int) -> np.ndarray:
     keep = stats[:, cv2.CC_STAT_AREA] >= min_px
     keep[0] = False
     return keep[labels]
-
-
-def mask_box(mask: np.ndarray) -> tuple[slice, slice] | None:
-    """Rows and columns of a mask's bounding box; None when it is empty."""
-    rows = np.flatnonzero(mask.any(axis=1))
-    if rows.size == 0:
-        return None
-    cols = np.flatnonzero(mask.any(axis=0))
-    return slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1)
 
 
 def hole_px(shape: tuple[int, ...], fraction: float) -> int:
