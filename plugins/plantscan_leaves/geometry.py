@@ -182,19 +182,6 @@ def taubin(vertices: np.ndarray, op: sparse.csr_matrix, steps: int,
     return v
 
 
-def edge_graph(vertices: np.ndarray, edges: np.ndarray, mask: np.ndarray | None = None
-               ) -> sparse.csr_matrix:
-    """Symmetric sparse graph of mesh edges weighted by their length (mm)."""
-    e = edges if mask is None else edges[mask]
-    w = row_norm(vertices[e[:, 0]] - vertices[e[:, 1]])
-    w = np.maximum(w, 1e-9)  # scipy drops explicit zeros
-    nv = len(vertices)
-    rows = np.concatenate([e[:, 0], e[:, 1]])
-    cols = np.concatenate([e[:, 1], e[:, 0]])
-    g = sparse.csr_matrix((np.concatenate([w, w]), (rows, cols)), shape=(nv, nv))
-    return g
-
-
 def polyline_length(points: np.ndarray) -> float:
     if len(points) < 2:
         return 0.0
