@@ -483,11 +483,21 @@ def _iso_line_lengths(v: np.ndarray, f: np.ndarray, topo: geo.MeshTopology, valu
     chains: list[float] = []
     raw_links = geo.row_norm(pts[links[:, 0]] - pts[links[:, 1]])
     for chain, closed in _chains(links, len(pts), raw_links):
+        # smoothing removes the zig-zag but also shrinks the curve by sigma^2/2 of its
+        # curvature: that length is added back (geometry.smoothing_shrinkage), with the
+        # curvature of the line smoothed twice as much (a wiggle of wavelength l left by
+        # sigma is damped as exp(-2 pi^2 sigma^2 / l^2), by 2 sigma four times as hard
+        # in the exponent; the outline's own curvature barely changes)
         if closed:
-            chains.append(geo.polyline_length(_closed_smooth(pts[chain], sigma)))
+            loop = pts[chain]
+            chains.append(geo.polyline_length(_closed_smooth(loop, sigma))
+                          + geo.smoothing_shrinkage(_closed_smooth(loop, 2.0 * sigma), sigma,
+                                                    closed=True, curve_sigma_mm=2.0 * sigma))
             continue
         poly = pts[chain]
-        length = geo.polyline_length(geo.smooth_polyline(poly, sigma))
+        length = (geo.polyline_length(geo.smooth_polyline(poly, sigma))
+                  + geo.smoothing_shrinkage(geo.smooth_polyline(poly, 2.0 * sigma), sigma,
+                                            curve_sigma_mm=2.0 * sigma))
         chord = float(np.linalg.norm(poly[-1] - poly[0]))
         if on_border[chain[0]] and on_border[chain[-1]] and chord < 0.5 * length:
             # an outline broken where the leaf was cut from the stem: close it by the chord

@@ -42,3 +42,36 @@ def test_smoothing_a_vanishing_polyline_neither_explodes_nor_moves_it():
     assert polyline_length(smooth_polyline(tiny, 1.0)) <= polyline_length(tiny)
     coincident = np.zeros((4, 3))
     assert np.array_equal(smooth_polyline(coincident, 1.0), coincident)
+
+
+@pytest.mark.parametrize("a, b, sigma", [(30.0, 30.0, 5.0), (60.0, 30.0, 5.0), (60.0, 30.0, 2.0)])
+def test_smoothing_shrinkage_gives_back_what_smoothing_took(a, b, sigma):
+    from plantscan_leaves.geometry import polyline_length, smooth_polyline, smoothing_shrinkage
+
+    s = np.linspace(0.0, 2.0 * np.pi, 3000, endpoint=False)
+    loop = np.stack([a * np.cos(s), b * np.sin(s), 0.0 * s], axis=1)
+    closed = np.concatenate([loop, loop[:1]])
+
+    def smoothed(sig):
+        sm = smooth_polyline(closed, sig, closed=True)
+        return np.concatenate([sm, sm[:1]])
+
+    truth = ph.ellipse_perimeter(a, b)
+    raw = polyline_length(smoothed(sigma))
+    fixed = raw + smoothing_shrinkage(smoothed(2.0 * sigma), sigma, closed=True,
+                                      curve_sigma_mm=2.0 * sigma)
+    # the outline smoothing of leaf-geometry loses 0.15-1.4 % of these ellipses (radius of
+    # curvature 15-30 mm vs sigma 2-5 mm); the circle model gives it back to 0.1 % (the
+    # curvature read at 2 sigma is a little low at the ellipse's tips)
+    assert raw < truth * (1 - 0.001)
+    assert abs(fixed / truth - 1.0) < 0.001
+
+
+def test_smoothing_shrinkage_ignores_specks():
+    from plantscan_leaves.geometry import smooth_polyline, smoothing_shrinkage
+
+    # a loop far smaller than sigma is a speck smoothing is meant to remove, not a circle
+    speck = np.random.default_rng(0).normal(0.0, 0.3, (6, 3))
+    sm = smooth_polyline(np.concatenate([speck, speck[:1]]), 10.0, closed=True)
+    assert smoothing_shrinkage(np.concatenate([sm, sm[:1]]), 5.0, closed=True,
+                               curve_sigma_mm=10.0) == 0.0
