@@ -245,9 +245,46 @@ def test_view_decimation_keeps_the_shape():
     from plantscan_core.data import Mesh
 
     sphere = Mesh.from_open3d(o3d.geometry.TriangleMesh.create_sphere(50.0, resolution=60))
-    small = _decimate(sphere, 1000)
-    assert len(sphere.faces) > 5000 and len(small.faces) <= 1000
+    small, groups = _decimate(sphere, 1000)
+    assert len(sphere.faces) > 5000 and len(small.faces) <= 1000 and len(groups) == len(small.faces)
     assert small.area() == pytest.approx(sphere.area(), rel=0.02)
+
+
+@pytest.mark.parametrize("cell", [3.0, 7.3])
+def test_vertex_clustering_is_open3ds(cell):
+    """One group: the same vertices and faces as Open3D's simplify_vertex_clustering."""
+    import open3d as o3d
+    from plantscan_report.html_report import cluster_vertices
+
+    sphere = o3d.geometry.TriangleMesh.create_sphere(50.0, resolution=60)
+    v, f, _ = cluster_vertices(np.asarray(sphere.vertices), np.asarray(sphere.triangles),
+                               np.zeros(len(sphere.triangles), int), cell)
+    ref = sphere.simplify_vertex_clustering(voxel_size=cell)
+    rv, rf = np.asarray(ref.vertices), np.asarray(ref.triangles)
+
+    def face_set(vertices, faces):  # faces as sets of rounded corner positions
+        return sorted(tuple(sorted(map(tuple, np.round(vertices[t], 6)))) for t in faces)
+
+    assert len(v) == len(rv) and len(f) == len(rf)
+    assert face_set(v, f) == face_set(rv, rf)
+
+
+def test_vertex_clustering_keeps_groups_apart():
+    """Two groups (leaf halves of a sphere) sharing their seam: no clustered vertex is used
+    by both, and each keeps its area within 3 % (a coarse grid on a smooth surface)."""
+    import open3d as o3d
+    from plantscan_report.html_report import cluster_vertices
+
+    from plantscan_core.data import Mesh
+
+    sphere = Mesh.from_open3d(o3d.geometry.TriangleMesh.create_sphere(50.0, resolution=60))
+    groups = (sphere.vertices[sphere.faces].mean(axis=1)[:, 0] > 0).astype(int) + 4
+    v, f, g = cluster_vertices(sphere.vertices, sphere.faces, groups, 4.0)
+    assert set(g.tolist()) == {4, 5} and len(f) < len(sphere.faces) / 2
+    assert not set(f[g == 4].ravel().tolist()) & set(f[g == 5].ravel().tolist())
+    for label in (4, 5):
+        before = Mesh(sphere.vertices, sphere.faces[groups == label]).area()
+        assert Mesh(v, f[g == label]).area() == pytest.approx(before, rel=0.03)
 
 
 def test_plotly_bundle_cannot_close_the_script_element():
