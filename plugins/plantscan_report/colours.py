@@ -88,11 +88,20 @@ def split_by_face_colour(mesh: Mesh, colours: np.ndarray) -> tuple[Mesh, np.ndar
     # Colours to one integer key each (16 bits per channel: palette colours differ far
     # more than 1/65535); a 1-D unique is ~10x faster than np.unique(axis=0) on 1 M rows.
     q = np.round(np.clip(colours, 0.0, 1.0) * 65535).astype(np.int64)
-    _, colour_id = np.unique((q[:, 0] << 32) | (q[:, 1] << 16) | q[:, 2], return_inverse=True)
-    colour_id = colour_id.reshape(-1)
-    keys = mesh.faces.astype(np.int64) * (int(colour_id.max()) + 1) + colour_id[:, None]
-    unique_keys, inverse = np.unique(keys.reshape(-1), return_inverse=True)
+    key = (q[:, 0] << 32) | (q[:, 1] << 16) | q[:, 2]
+    # A stable sort runs through the long runs of one colour (faces come leaf by leaf,
+    # 3x faster than np.unique's quicksort); then a few distinct values to look up.
+    ordered = np.sort(key, kind="stable")
+    distinct = ordered[np.r_[True, ordered[1:] != ordered[:-1]]]
+    colour_id = np.searchsorted(distinct, key)
     n_colours = int(colour_id.max()) + 1
+    keys = (mesh.faces.astype(np.int64) * n_colours + colour_id[:, None]).reshape(-1)
+    # The keys are dense (< V x colours): number the used ones by a table, not a sort.
+    used = np.zeros(len(mesh.vertices) * n_colours, bool)
+    used[keys] = True
+    unique_keys = np.flatnonzero(used)
+    number = np.cumsum(used) - 1
+    inverse = number[keys]
     vertices = mesh.vertices[unique_keys // n_colours]
     vertex_colours = np.empty((len(unique_keys), 3))
     vertex_colours[inverse] = np.repeat(colours, 3, axis=0)
