@@ -7,6 +7,8 @@
     python benchmarks/leaves.py --hull SCAN [--resolution 512]
         # visual hull of a virtual scan from its exact masks and cameras (ground_truth/),
         # built once with the committed hull stages and cached under /tmp
+    python benchmarks/leaves.py --plate SCAN [--plate-k 3 6] [--plate-thickness 0.5 2]
+        # an analytic elliptical plate through the real hull chain (SCAN's cameras)
 
 Meshes:
 
@@ -17,6 +19,13 @@ Meshes:
   ``offset`` (see ``phantoms.voxelise_mesh``); errors are reported against that.
 * ``--run``: any ``mesh.npz`` (e.g. a visual hull of a virtual scan) with
   the scan's ``ground_truth/``.
+* ``--plate``: a flat elliptical plate (semi-axes 60 x 30 mm, ``--plate-thickness``
+  mm thick) placed like a leaf, its masks rendered exactly (a pixel is in when its
+  centre is) in every plant view of SCAN (its exact cameras), carved by
+  ``octree-hull`` (``--plate-k``, voxel ``--plate-voxel``) and meshed by
+  ``marching-cubes``: the hull chain on a leaf of analytic truth.  Reports the
+  trait errors and the **rim inset** (how far inside the true outline the hull
+  surface is, from rays cast in the plate's plane towards its rim).
 
 Methods:
 
@@ -39,6 +48,7 @@ import json
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 from plantscan_leaves.evaluate import match_leaves, trait_errors
 from plantscan_leaves.geometry import face_adjacency_operator, topology
@@ -119,6 +129,78 @@ def exact_mask_hull(scan_dir: Path, resolution: int) -> Path:
     return out
 
 
+def plate_hull_run(scan_dir: Path, thickness: float, voxel: float, k: int,
+                   a: float = 60.0, b: float = 30.0, incl_deg: float = 25.0) -> dict:
+    """An analytic plate through masks -> octree-hull -> marching-cubes -> leaf-geometry."""
+    import math
+
+    import open3d as o3d
+    from plantscan_hull.stages import MarchingCubesMesher, OctreeHull
+    from plantscan_leaves.phantoms import EllipseLeaf
+
+    from plantscan_core.data import (
+        Calibration,
+        Silhouette,
+        Silhouettes,
+        rotation_about_axis,
+    )
+    from plantscan_core.scanfolder import ScanFolder
+
+    scan = ScanFolder.open(scan_dir)
+    cal = Calibration.load(scan_dir / "ground_truth" / "calibration.yaml")
+    # placed like a dicot leaf: 25 deg up from horizontal, rolled 10 deg, at leaf height
+    rot = (rotation_about_axis((0, 0, 1), 30.0) @ rotation_about_axis((0, 1, 0), -incl_deg)
+           @ rotation_about_axis((1, 0, 0), 10.0))
+    centre = np.array([40.0, 10.0, 230.0])
+    s = np.linspace(0.0, 2.0 * np.pi, 720, endpoint=False)
+    ring = np.stack([a * np.cos(s), b * np.sin(s), np.zeros_like(s)], axis=1)
+    solid = np.concatenate([ring + [0, 0, thickness / 2], ring - [0, 0, thickness / 2]])
+    solid = solid @ rot.T + centre
+    sils = []
+    for view in (v for v in scan.views if v.role == "plant"):
+        cam = cal.camera_for_view(view)
+        poly = cv2.convexHull(cam.project(solid).astype(np.float32))[:, 0].astype(float)
+        mask = np.zeros((cam.model.height, cam.model.width), bool)
+        u0, v0 = np.maximum(np.floor(poly.min(axis=0)).astype(int), 0)
+        u1, v1 = np.ceil(poly.max(axis=0)).astype(int)
+        uu, vv = np.meshgrid(np.arange(u0, u1 + 1), np.arange(v0, v1 + 1))
+        e0, e1 = poly, np.roll(poly, -1, axis=0)
+        side = ((e1[:, 0] - e0[:, 0])[:, None, None] * (vv - e0[:, 1, None, None])
+                - (e1[:, 1] - e0[:, 1])[:, None, None] * (uu - e0[:, 0, None, None]))
+        # a pixel is in the mask when its centre is in the (convex) projected plate
+        inside = np.all(side >= 0, axis=0) | np.all(side <= 0, axis=0)
+        mask[v0:v1 + 1, u0:u1 + 1] = inside[: mask.shape[0] - v0, : mask.shape[1] - u0]
+        sils.append(Silhouette(view, mask))
+    lo, hi = solid.min(axis=0) - 6.0, solid.max(axis=0) + 6.0
+    hull = OctreeHull(OctreeHull.Params(resolution=int(math.ceil((hi - lo).max() / voxel)),
+                                        bbox=[*lo, *hi], floor_z_mm=None, k=k))
+    volume = hull.reconstruct(Silhouettes(sils), cal)
+    mesh = MarchingCubesMesher(MarchingCubesMesher.Params(pot="none")).mesh(volume)
+    labelled = LabelledMesh(mesh, np.ones(len(mesh.faces), np.int64), {1: "leaf"})
+    measured = measure_plant(labelled)[0].leaves[0]
+    truth = EllipseLeaf(a, b)
+    # rim inset: rays in the plate's mid-plane from 3 mm outside towards each rim point (the
+    # nearest hit over 11 heights across the plate's thickness +-0.5 mm)
+    rim = (ring @ rot.T) + centre
+    out = np.stack([np.cos(s) / a, np.sin(s) / b, np.zeros_like(s)], axis=1)
+    out = (out / np.linalg.norm(out, axis=1)[:, None]) @ rot.T
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(mesh.vertices.astype(np.float32)),
+                        o3d.core.Tensor(mesh.faces.astype(np.uint32)))
+    hit = np.full(len(rim), np.inf)
+    for dz in np.linspace(-0.5, 0.5, 11):
+        origin = rim + 3.0 * out + dz * rot[:, 2]
+        rays = np.concatenate([origin, -out], axis=1).astype(np.float32)
+        hit = np.minimum(hit, scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy())
+    inset = hit[np.isfinite(hit)] - 3.0
+    rel = {name: getattr(measured, f) / getattr(truth, f) - 1.0
+           for name, f in [("length", "length_mm"), ("width", "width_mm"),
+                           ("area", "area_mm2"), ("perimeter", "perimeter_mm")]}
+    return {"thickness_mm": thickness, "voxel_mm": volume.voxel_size, "k": k,
+            "rim_inset_mm": float(np.mean(inset)), "faces": len(mesh.faces),
+            **{f"err_{n}": v for n, v in rel.items()}}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--run", type=Path, help="run folder with mesh.npz")
@@ -129,6 +211,12 @@ def main() -> None:
     ap.add_argument("--cache", type=Path, default=Path("/tmp/plantscan_leaves_bench.npz"))
     ap.add_argument("--hull", type=Path, help="virtual scan folder: mesh its exact-mask hull")
     ap.add_argument("--resolution", type=int, default=512, help="--hull: grid resolution")
+    ap.add_argument("--plate", type=Path, help="virtual scan folder: its cameras see a plate")
+    ap.add_argument("--plate-k", type=int, nargs="+", default=[3], help="--plate: hull k")
+    ap.add_argument("--plate-thickness", type=float, nargs="+", default=[0.5, 2.0],
+                    help="--plate: plate thickness, mm")
+    ap.add_argument("--plate-voxel", type=float, nargs="+", default=[1.0],
+                    help="--plate: voxel size, mm")
     ap.add_argument("--recipe", type=Path,
                     help="take segment_mesh/measure params from this recipe (else defaults)")
     ap.add_argument("--segment-params", type=json.loads, default=None,
@@ -141,6 +229,18 @@ def main() -> None:
     ap.add_argument("--json", type=Path, help="write the results here too")
     args = ap.parse_args()
 
+    if args.plate:
+        print("| plate thickness mm | voxel mm | k | rim inset mm | ε length | ε width | ε area "
+              "| ε perimeter |\n|---|---|---|---|---|---|---|---|")
+        for t in args.plate_thickness:
+            for vox in args.plate_voxel:
+                for k in args.plate_k:
+                    r = plate_hull_run(args.plate, t, vox, k)
+                    print(f"| {t:g} | {r['voxel_mm']:.2f} | {k} | {r['rim_inset_mm']:+.2f} | "
+                          + " | ".join(f"{100 * r[f'err_{n}']:+.2f} %"
+                                       for n in ("length", "width", "area", "perimeter"))
+                          + " |", flush=True)
+        return
     if args.hull:
         args.run = exact_mask_hull(args.hull, args.resolution)
         args.truth = args.hull / "ground_truth"
