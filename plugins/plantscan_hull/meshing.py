@@ -88,7 +88,7 @@ def _block(field: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
 
 
 def marching_cubes(field: np.ndarray, origin: np.ndarray, voxel_size: float,
-                   block: int = MC_BLOCK) -> Mesh:
+                   block: int = MC_BLOCK, thin_rims: bool = False) -> Mesh:
     """Closed surface of ``field > 0`` (0 level, linear interpolation between voxels).
 
     scikit-image's marching cubes runs on the blocks of ``block``
@@ -142,12 +142,65 @@ def marching_cubes(field: np.ndarray, origin: np.ndarray, voxel_size: float,
     inner = (frac > 1e-6).sum(axis=1) != 1
     key[inner] = -1 - np.flatnonzero(inner)
     _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
-    verts = verts[first] * voxel_size + (np.asarray(origin, dtype=float) - voxel_size)
+    verts = verts[first]
+    if thin_rims:
+        verts = _thin_rims(verts, field)
+    verts = verts * voxel_size + (np.asarray(origin, dtype=float) - voxel_size)
     faces = inverse.reshape(-1)[faces]
     mesh = Mesh(verts, faces)
     if signed_volume(mesh) < 0:
         mesh = Mesh(mesh.vertices, mesh.faces[:, ::-1].copy())
     return mesh
+
+
+def _thin_rims(verts: np.ndarray, field: np.ndarray) -> np.ndarray:
+    """Move vertices on grid edges leaving a one-voxel-thick part out to its rim.
+
+    ``verts`` are padded-grid coordinates (voxel index + 1) of vertices on grid
+    edges.  Along an edge from an inside voxel A to an outside one B, a
+    1-Lipschitz field puts the surface at least ``f_A`` from A and at least
+    ``|f_B|`` from B; linear interpolation picks ``f_A / (f_A - f_B)``.  Where
+    A is a slab one voxel thick (its two neighbours across some other axis are
+    outside) its value is capped by the slab's half thickness, not by the
+    distance to the rim along the edge, so the interpolated rim falls short;
+    the far end ``1 - |f_B|`` is B's own distance (from the views that see
+    the rim) and is used instead.  Vertices only move outwards within the
+    edge, so the mesh's topology is unchanged.
+    """
+    low = np.floor(verts).astype(np.int64)
+    frac = verts - low
+    axis = np.argmax(frac, axis=1)
+    on_edge = (frac > 1e-6).sum(axis=1) == 1
+    shape = np.array(field.shape)
+
+    def value(idx):  # field at padded-grid points, -1 outside the grid
+        vox = idx - 1
+        ok = np.all((vox >= 0) & (vox < shape), axis=1)
+        out = np.full(len(idx), -1.0, np.float32)
+        out[ok] = field[vox[ok, 0], vox[ok, 1], vox[ok, 2]]
+        return out
+
+    step = np.eye(3, dtype=np.int64)[axis]
+    f0, f1 = value(low), value(low + step)
+    a_is_low = f0 > 0
+    a = np.where(a_is_low[:, None], low, low + step)
+    f_b = np.where(a_is_low, f1, f0)
+    thin = np.zeros(len(verts), bool)
+    for other in range(3):
+        across = np.zeros(3, np.int64)
+        across[other] = 1
+        thin |= (axis != other) & (value(a + across) <= 0) & (value(a - across) <= 0)
+    # Distance of the rim from A along the edge, and its upper bound from B.
+    t = np.where(a_is_low, frac[np.arange(len(verts)), axis],
+                 1 - frac[np.arange(len(verts)), axis])
+    far = 1.0 + f_b  # f_b in (-1, 0]
+    move = on_edge & thin & (f_b > -1) & (far > t)
+    t_new = np.where(move, far - LEVEL_GAP, t)
+    out = verts.copy()
+    rows = np.flatnonzero(move)
+    out[rows, axis[rows]] = np.where(a_is_low[rows], low[rows, axis[rows]] + t_new[rows],
+                                     low[rows, axis[rows]] + 1 - t_new[rows])
+    return out
 
 
 def signed_volume(mesh: Mesh) -> float:
@@ -176,7 +229,8 @@ def topology_report(mesh: Mesh) -> dict:
     a, b = (np.concatenate([f[:, 0], f[:, 1], f[:, 2]]).astype(np.int64),
             np.concatenate([f[:, 1], f[:, 2], f[:, 0]]).astype(np.int64))
     # One sorted int64 key per directed edge: the undirected edge, then its direction.
-    keys = np.sort((np.minimum(a, b) * n + np.maximum(a, b)) * 2 + (a < b))
+    # Stable (radix/tim) sort: marching-cubes order is nearly sorted, 2x faster than quicksort.
+    keys = np.sort((np.minimum(a, b) * n + np.maximum(a, b)) * 2 + (a < b), kind="stable")
     edge_starts = np.flatnonzero(np.diff(keys >> 1, prepend=-1))
     counts = np.diff(np.append(edge_starts, keys.size))
     dstarts = np.flatnonzero(np.diff(keys, prepend=-1))

@@ -165,6 +165,10 @@ class MarchingCubesMesher(Mesher):
                                    "rim is known to a voxel)")
         min_component_voxels: int = Field(
             8, ge=0, description="inside components smaller than this are dropped (mask specks)")
+        thin_rims: bool = Field(
+            False, description="put the rim of one-voxel-thick parts (leaf slabs) where the "
+                               "outside field says, not where linear interpolation from the "
+                               "thickness-capped inside value does (docs/reconstruction.md)")
         smooth_iterations: int = Field(0, ge=0, description="pymeshlab Taubin smoothing steps")
         target_faces: int | None = Field(None, ge=100,
                                          description="pymeshlab quadric decimation target")
@@ -182,7 +186,7 @@ class MarchingCubesMesher(Mesher):
         field, removed = remove_cylinders(volume, cylinders, margin)
         field, dropped = drop_small_components(field, p.min_component_voxels,
                                                in_place=field is not volume.field)
-        mesh = marching_cubes(field, volume.origin, volume.voxel_size)
+        mesh = marching_cubes(field, volume.origin, volume.voxel_size, thin_rims=p.thin_rims)
         mesh = postprocess(mesh, p.smooth_iterations, p.target_faces)
         report = {"pot": [c.model_dump() for c in cylinders], "pot_mode": p.pot
                   if isinstance(p.pot, str) else "given", "pot_margin_mm": margin,

@@ -86,6 +86,47 @@ def test_blocked_marching_cubes_equals_one_block(potted_volume):
     assert signed_volume(small) == pytest.approx(signed_volume(one), rel=1e-6)
 
 
+def _thin_slab_field(half_x: float, half_y: float, half_t: float) -> np.ndarray:
+    """Field (voxels, clamped) of a flat slab centred in a 40 x 30 x 9 grid of 1 mm voxels:
+    inside, the distance to its nearest face; outside, minus the distance to the slab."""
+    idx = np.indices((40, 30, 9)).astype(float)
+    x, y, z = idx[0] - 19.5, idx[1] - 14.5, idx[2] - 4
+    out = np.stack([np.abs(x) - half_x, np.abs(y) - half_y, np.abs(z) - half_t])
+    inside = -out.max(axis=0)
+    outside = -np.sqrt((np.clip(out, 0, None) ** 2).sum(axis=0))
+    return np.clip(np.where(inside > 0, inside, outside), -1, 1).astype(np.float32)
+
+
+@pytest.mark.parametrize("half_x, plain_short", [(10.0, 2 * (0.5 - 0.25 / 0.75)),
+                                                  (10.3, 2 * (0.8 - 0.25 / 0.45)),
+                                                  (9.8, 2 * (0.3 - 0.25 / 0.95))])
+def test_thin_rims_put_a_thin_slabs_outline_in_place(half_x, plain_short):
+    """A 0.5 mm leaf slab is one voxel thick: its inside values (0.25) are the half
+    thickness, so linear interpolation pulls the outline in (a third of a voxel per side
+    at a mid-voxel rim); ``thin_rims`` puts it where the outside field says, within 0.01
+    voxel (LEVEL_GAP and float32), keeping the mesh watertight."""
+    field = _thin_slab_field(half_x, 8.0, 0.25)
+    plain = marching_cubes(field, np.zeros(3), 1.0)
+    snapped = marching_cubes(field, np.zeros(3), 1.0, thin_rims=True)
+    true_extent = 2 * half_x
+    # Voxel centres sit at half-integers: the linear rim is short by the computed amount.
+    assert np.ptp(plain.vertices[:, 0]) == pytest.approx(true_extent - plain_short, abs=0.01)
+    assert np.ptp(snapped.vertices[:, 0]) == pytest.approx(true_extent, abs=0.01)
+    assert np.ptp(snapped.vertices[:, 1]) == pytest.approx(16.0, abs=0.01)
+    # Across the slab nothing moves: still 0.5 mm thick.
+    assert np.ptp(snapped.vertices[:, 2]) == pytest.approx(0.5, abs=0.01)
+    assert topology_report(snapped)["watertight"]
+    assert len(snapped.faces) == len(plain.faces)
+
+
+def test_thin_rims_leave_thick_parts_alone():
+    """A slab 4 voxels thick has exact distances inside: no vertex moves."""
+    field = _thin_slab_field(10.5, 8.5, 2.0)
+    plain = marching_cubes(field, np.zeros(3), 1.0)
+    snapped = marching_cubes(field, np.zeros(3), 1.0, thin_rims=True)
+    np.testing.assert_array_equal(plain.vertices, snapped.vertices)
+
+
 def test_small_components_are_dropped():
     from plantscan_hull.meshing import drop_small_components
 
