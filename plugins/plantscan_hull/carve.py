@@ -28,6 +28,7 @@ import numpy as np
 
 from plantscan_hull.views import (
     DISTANCE_LIPSCHITZ,
+    SD_STEP,
     ViewField,
     project,
     sample_bilinear,
@@ -38,6 +39,11 @@ from plantscan_hull.views import (
 # the projected centre (<= 0.71 px away), a voxel's value interpolates pixels
 # <= 0.71 px from its projection, and the pixel distances are 1-Lipschitz.
 CELL_SLACK_PX = 1.5
+# Largest projected radius (px) of a cell's voxel centres at which the cell test reads
+# its centre bilinearly: below it, lip * sqrt(2) * r + SD_STEP < lip * r + CELL_SLACK_PX
+# (``classify_cells``; in practice the 2- and 4-voxel cells).  Any value gives the same
+# field (both margins are valid); 0 reads the nearest pixel always (as before session 4).
+CELL_BILINEAR_MAX_PX = (CELL_SLACK_PX - SD_STEP) / (DISTANCE_LIPSCHITZ * (math.sqrt(2.0) - 1.0))
 # Views processed between two compactions of the still-undecided points.
 COMPACT_EVERY = 8
 
@@ -164,6 +170,18 @@ def voxel_field(views: Sequence[ViewField], points: np.ndarray, voxel_size: floa
 
 
 # --------------------------------------------------------------------------- octree cells
+def centre_radius(half_size: float, voxel_size: float) -> float:
+    """Radius (mm) of the ball around a cell's centre holding its voxel centres.
+
+    The field lives at voxel centres only, so a cell test must bound those, not
+    the whole cube: a cell of ``n`` voxels a side has its outermost voxel
+    centres ``(n - 1) / 2`` voxels from its centre on each axis.  For the
+    2-voxel cells this is half the cube's half-diagonal (which the tests used
+    before session 4), so fewer views are left ambiguous (same field).
+    """
+    return (half_size - 0.5 * voxel_size) * math.sqrt(3.0)
+
+
 def classify_cells(views: Sequence[ViewField], centres: np.ndarray, half_size: float,
                    voxel_size: float, k: int, stats: CarveStats | None = None,
                    min_seen: int = 0) -> np.ndarray:
@@ -179,13 +197,22 @@ def classify_cells(views: Sequence[ViewField], centres: np.ndarray, half_size: f
     images).  So the clamped field of
     every voxel of a decided cell is exactly what ``voxel_field`` would give.
 
+    ``r`` bounds the projected distance from the centre to the cell's voxel
+    centres (``centre_radius``).  ``slack`` covers reading the nearest pixel
+    at the centre and interpolating at the voxels.  When the footprint is
+    small (``r`` < 3.5 px) and inside the table, the centre is read
+    bilinearly instead: the table's steps between neighbouring pixels are
+    <= 1 px, so its bilinear interpolant changes by at most
+    ``|du| + |dv| <= sqrt(2) r`` between two points, plus one table step for
+    the rounding of the two readings: margin ``1.02 sqrt(2) r + SD_STEP``.
+
     Parameters
     ----------
     centres : (M, 3) float64 array, mm
     half_size : float, mm (half the cell's side)
     """
     m = len(centres)
-    rho = half_size * math.sqrt(3.0)
+    rho = centre_radius(half_size, voxel_size)
     n_out = np.zeros(m, dtype=np.int32)
     n_amb = np.zeros(m, dtype=np.int32)
     n_on = np.zeros(m, dtype=np.int32)
@@ -213,6 +240,17 @@ def classify_cells(views: Sequence[ViewField], centres: np.ndarray, half_size: f
         off_image = (z + rho <= 0) | (finite & ((u + r < lo_u) | (u - r > hi_u)
                                                | (v + r < lo_v) | (v - r > hi_v)))
         sd = sample_nearest(view, uv)
+        # Small footprints: the bilinear value at the centre bounds the voxels' within
+        # lip * sqrt(2) * r + one table step (see the docstring), tighter than the
+        # nearest pixel's lip * r + slack when r < 3.5 px.
+        tight = DISTANCE_LIPSCHITZ * math.sqrt(2.0) * r + SD_STEP
+        h, w = view.sd.shape
+        lu, lv = u - view.u0, v - view.v0
+        use = (finite & (r < CELL_BILINEAR_MAX_PX) & (lu - r >= -0.5)
+               & (lu + r <= w - 0.5) & (lv - r >= -0.5) & (lv + r <= h - 0.5))
+        if use.any():
+            sd[use] = sample_bilinear(view, uv[use])
+            margin[use] = tight[use] + voxel_size * inv[use]
         out = on_image & (sd < -margin)
         inside = on_image & (sd > margin)
         amb = ~(out | inside | off_image)
@@ -277,7 +315,7 @@ class _Kernels:
         if self._packed is not None:
             return self._kernels.classify_cells(self._packed, centres, half_size, voxel_size, k,
                                                 CELL_SLACK_PX, stats, self.min_seen,
-                                                DISTANCE_LIPSCHITZ)
+                                                DISTANCE_LIPSCHITZ, CELL_BILINEAR_MAX_PX)
         return classify_cells(self.views, centres, half_size, voxel_size, k, stats,
                               self.min_seen)
 
@@ -422,7 +460,7 @@ def _carve_tree(kern: _Kernels, grid: Grid, k: int, top_cell: int, keep_thin: bo
     decision, tree = kernels.classify_tree(
         kern._packed, kernels.Tree(len(kern.views)), np.zeros(len(cells), dtype=np.int64),
         grid.centres(cells + (size - 1) / 2.0), size * s / 2.0, s, k, CELL_SLACK_PX,
-        kern.min_seen, DISTANCE_LIPSCHITZ, stats)
+        kern.min_seen, DISTANCE_LIPSCHITZ, stats, CELL_BILINEAR_MAX_PX)
     while True:
         kernels._fill_cells(phi, np.ascontiguousarray(cells[decision == 1]), size,
                             np.float32(1.0))
@@ -442,7 +480,7 @@ def _carve_tree(kern: _Kernels, grid: Grid, k: int, top_cell: int, keep_thin: bo
         stats.cells_per_level[size] = int(valid.sum())
         decision, tree = kernels.classify_group(
             kern._packed, tree, centres, valid, size * s / 2.0, s, k, CELL_SLACK_PX,
-            kern.min_seen, DISTANCE_LIPSCHITZ, stats)
+            kern.min_seen, DISTANCE_LIPSCHITZ, stats, CELL_BILINEAR_MAX_PX)
     # The voxels of the split 2-voxel cells: which are inside the grid, without their
     # (P * 8, 3) indices (child ch is at corner + (ch >> 2, ch >> 1 & 1, ch & 1)).
     room = split + 1 < shape  # (P, 3): the upper child fits along each axis

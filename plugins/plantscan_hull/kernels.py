@@ -38,6 +38,7 @@ _NPARAM = 30
 CELL_OFF, CELL_EDGE, CELL_OUT, CELL_IN, CELL_AMB = 0, 1, 2, 3, 4
 # Fixed-point step of the distance tables (px), a compile-time constant of the kernels.
 _SD_STEP = np.float32(SD_STEP)
+_SQRT2 = float(np.sqrt(2.0))
 # Parents per batch of ``classify_group``: its scratch lists (8 per parent, each as long as
 # the parent's) exist for one batch at a time, not for the whole level (2.2 GB at 1024^3).
 GROUP_BATCH = 1 << 16
@@ -204,8 +205,8 @@ if HAVE_NUMBA:
         return np.float32(tables[vr.off + iv * w + iu]) * _SD_STEP
 
     @njit(cache=True, inline="always")
-    def _cell_test(vr, tables, xc, yc, zc, rho, voxel_size, lip, slack):
-        # A cell (bounding ball radius rho mm, centre xc, yc, zc in the camera frame) in
+    def _cell_test(vr, tables, xc, yc, zc, rho, voxel_size, lip, slack, bil_r):
+        # A cell (voxel centres within rho mm of its centre xc, yc, zc, camera frame) in
         # one view: CELL_OFF its footprint is off the image (not seen), CELL_EDGE partly
         # off (or the camera within reach), CELL_OUT / CELL_IN every voxel of it beyond
         # the clamp outside / inside, CELL_AMB on the image and undecided.  See
@@ -222,8 +223,18 @@ if HAVE_NUMBA:
             return CELL_OFF
         if not (u - r >= -0.5 and u + r <= vr.u_hi and v - r >= -0.5 and v + r <= vr.v_hi):
             return CELL_EDGE
-        margin = lip * r + voxel_size * inv + slack
-        sd = _nearest_row(vr, tables, u, v)
+        # Small footprints (the 2- and often 4-voxel cells): the bilinear value at the
+        # centre is within lip * sqrt(2) * r + one table step of the voxels' (see
+        # ``carve.classify_cells``), tighter than the nearest pixel's lip * r + slack.
+        lu = u - vr.u0
+        lv = v - vr.v0
+        if (r < bil_r and lu - r >= -0.5
+                and lu + r <= vr.tw - 0.5 and lv - r >= -0.5 and lv + r <= vr.th - 0.5):
+            margin = lip * _SQRT2 * r + _SD_STEP + voxel_size * inv
+            sd = _bilinear_row(vr, tables, u, v)
+        else:
+            margin = lip * r + voxel_size * inv + slack
+            sd = _nearest_row(vr, tables, u, v)
         if sd < -margin:
             return CELL_OUT
         if sd > margin:
@@ -301,10 +312,10 @@ if HAVE_NUMBA:
 
     @njit(cache=True, parallel=True)
     def _classify(centres, half_size, voxel_size, params, tables, k, slack, min_seen, lip,
-                  chunk):
+                  bil_r, chunk):
         m_all = centres.shape[0]
         nv = params.shape[0]
-        rho = half_size * np.sqrt(3.0)
+        rho = (half_size - 0.5 * voxel_size) * np.sqrt(3.0)  # voxel centres: see carve
         nchunks = (m_all + chunk - 1) // chunk
         decision = np.empty(m_all, dtype=np.int8)
         tests = np.zeros(nchunks, dtype=np.int64)
@@ -325,7 +336,7 @@ if HAVE_NUMBA:
                     i = a + ii
                     count += 1
                     xc, yc, zc = _cam(vr, centres[i, 0], centres[i, 1], centres[i, 2])
-                    res = _cell_test(vr, tables, xc, yc, zc, rho, voxel_size, lip, slack)
+                    res = _cell_test(vr, tables, xc, yc, zc, rho, voxel_size, lip, slack, bil_r)
                     if res == CELL_OFF:
                         n_off[ii] += 1
                     elif res == CELL_EDGE:
@@ -356,10 +367,11 @@ if HAVE_NUMBA:
 
     @njit(cache=True, parallel=True)
     def _classify_tree(centres, parent, p_start, p_views, p_out, p_in, p_offc, scratch_off,
-                       half_size, voxel_size, params, tables, k, slack, min_seen, lip, chunk):
+                       half_size, voxel_size, params, tables, k, slack, min_seen, lip, bil_r,
+                       chunk):
         m_all = centres.shape[0]
         nv = params.shape[0]
-        rho = half_size * np.sqrt(3.0)
+        rho = (half_size - 0.5 * voxel_size) * np.sqrt(3.0)  # voxel centres: see carve
         max_off = nv - min_seen
         decision = np.empty(m_all, dtype=np.int8)
         c_out = np.empty(m_all, dtype=np.int32)
@@ -390,7 +402,7 @@ if HAVE_NUMBA:
                     count += 1
                     vr = _row(params, j)
                     xc, yc, zc = _cam(vr, x, y, z)
-                    res = _cell_test(vr, tables, xc, yc, zc, rho, voxel_size, lip, slack)
+                    res = _cell_test(vr, tables, xc, yc, zc, rho, voxel_size, lip, slack, bil_r)
                     if res == CELL_OFF:
                         n_off += 1
                     elif res == CELL_OUT:
@@ -498,13 +510,13 @@ if HAVE_NUMBA:
     @njit(cache=True)
     def _classify_range(lo, hi, centres, valid, p_start, p_views, p_out, p_in, p_offc,
                         scratch_off, half_size, voxel_size, params, tables, k, slack, min_seen,
-                        lip, decision, c_out, c_in, c_off, c_amb, c_neg, amb):
+                        lip, bil_r, decision, c_out, c_in, c_off, c_amb, c_neg, amb):
         # Serial body of ``_classify_group`` for parents lo..hi, view-major: for each
         # view (lists are in the global view order) the parents of the chunk whose list
         # holds it, so one view's table is read for neighbouring cells in a row (the
         # reads stay in cache; cell-major order reads a different table every test).
         nv = params.shape[0]
-        rho = half_size * np.sqrt(3.0)
+        rho = (half_size - 0.5 * voxel_size) * np.sqrt(3.0)  # voxel centres: see carve
         max_off = nv - min_seen
         n = (hi - lo) * 8
         count = 0
@@ -540,7 +552,7 @@ if HAVE_NUMBA:
                         continue
                     count += 1
                     res = _cell_test(vr, tables, xc0 + offs[ch, 0], yc0 + offs[ch, 1],
-                                     zc0 + offs[ch, 2], rho, voxel_size, lip, slack)
+                                     zc0 + offs[ch, 2], rho, voxel_size, lip, slack, bil_r)
                     if res == CELL_OFF:
                         n_off[f] += 1
                     elif res == CELL_OUT:
@@ -575,7 +587,8 @@ if HAVE_NUMBA:
 
     @njit(cache=True, parallel=True)
     def _classify_group(centres, valid, p_start, p_views, p_out, p_in, p_offc, scratch_off,
-                        half_size, voxel_size, params, tables, k, slack, min_seen, lip, chunk):
+                        half_size, voxel_size, params, tables, k, slack, min_seen, lip, bil_r,
+                       chunk):
         # centres: (P, 3) parents' centres; children have half-side ``half_size``.
         n_par = centres.shape[0]
         decision = np.zeros(n_par * 8, dtype=np.int8)
@@ -591,7 +604,7 @@ if HAVE_NUMBA:
             tests[c] = _classify_range(
                 c * chunk, min(n_par, (c + 1) * chunk), centres, valid, p_start, p_views, p_out,
                 p_in, p_offc, scratch_off, half_size, voxel_size, params, tables, k, slack,
-                min_seen, lip, decision, c_out, c_in, c_off, c_amb, c_neg, amb)
+                min_seen, lip, bil_r, decision, c_out, c_in, c_off, c_amb, c_neg, amb)
         return decision, c_out, c_in, c_off, c_amb, c_neg, amb, tests.sum()
 
     @njit(cache=True)
@@ -811,12 +824,13 @@ def voxel_field(packed, points: np.ndarray, voxel_size: float, k: int, stats=Non
 
 def classify_cells(packed, centres: np.ndarray, half_size: float, voxel_size: float, k: int,
                    slack: float, stats=None, min_seen: int = 0, lipschitz: float = 1.0,
-                   ) -> np.ndarray:
+                   bilinear_px: float = 0.0) -> np.ndarray:
     """Compiled ``carve.classify_cells``."""
     params, tables = packed
     decision, tests = _classify(np.ascontiguousarray(centres, dtype=np.float64),
                                 float(half_size), float(voxel_size), params, tables, int(k),
-                                float(slack), int(min_seen), float(lipschitz), CHUNK)
+                                float(slack), int(min_seen), float(lipschitz),
+                                float(bilinear_px), CHUNK)
     if stats is not None:
         stats.cell_view_tests += int(tests)
     return decision
@@ -861,7 +875,7 @@ def _split_tree(decision, c_out, c_in, c_off, c_amb, c_neg, amb, scratch_off) ->
 
 def classify_tree(packed, tree: Tree, parent: np.ndarray, centres: np.ndarray, half_size: float,
                   voxel_size: float, k: int, slack: float, min_seen: int, lipschitz: float,
-                  stats=None) -> tuple[np.ndarray, Tree]:
+                  stats=None, bilinear_px: float = 0.0) -> tuple[np.ndarray, Tree]:
     """Decide cells testing only their parent's ambiguous views.
 
     Returns the decision (0 removed, 1 full, 2 split) and the ``Tree`` of the
@@ -872,7 +886,8 @@ def classify_tree(packed, tree: Tree, parent: np.ndarray, centres: np.ndarray, h
     decision, c_out, c_in, c_off, c_amb, c_neg, amb, tests = _classify_tree(
         np.ascontiguousarray(centres, dtype=np.float64), parent, tree.start, tree.views,
         tree.n_out, tree.n_in, tree.n_off, scratch_off, float(half_size), float(voxel_size),
-        params, tables, int(k), float(slack), int(min_seen), float(lipschitz), CHUNK)
+        params, tables, int(k), float(slack), int(min_seen), float(lipschitz),
+        float(bilinear_px), CHUNK)
     if stats is not None:
         stats.cell_view_tests += int(tests)
     return decision, _split_tree(decision, c_out, c_in, c_off, c_amb, c_neg, amb, scratch_off)
@@ -880,7 +895,7 @@ def classify_tree(packed, tree: Tree, parent: np.ndarray, centres: np.ndarray, h
 
 def classify_group(packed, tree: Tree, centres: np.ndarray, valid: np.ndarray, half_size: float,
                    voxel_size: float, k: int, slack: float, min_seen: int, lipschitz: float,
-                   stats=None) -> tuple[np.ndarray, Tree]:
+                   stats=None, bilinear_px: float = 0.0) -> tuple[np.ndarray, Tree]:
     """Decide the 8 children of every split cell (``centres`` (P, 3): the parents').
 
     Children are ordered as ``carve._children``; ``valid`` (P * 8,) bool marks
@@ -899,7 +914,8 @@ def classify_group(packed, tree: Tree, centres: np.ndarray, valid: np.ndarray, h
         d, c_out, c_in, c_off, c_amb, c_neg, amb, tests = _classify_group(
             centres[b0:b1], valid[8 * b0:8 * b1], sub.start, sub.views, sub.n_out, sub.n_in,
             sub.n_off, scratch_off, float(half_size), float(voxel_size), params, tables, int(k),
-            float(slack), int(min_seen), float(lipschitz), GROUP_CHUNK)
+            float(slack), int(min_seen), float(lipschitz), float(bilinear_px),
+            GROUP_CHUNK)
         decision[8 * b0:8 * b1] = d
         parts.append(_split_tree(d, c_out, c_in, c_off, c_amb, c_neg, amb, scratch_off))
         if stats is not None:

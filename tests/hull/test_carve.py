@@ -298,3 +298,31 @@ def test_sibling_batches_change_nothing(rig, mixed_sils, monkeypatch):
     assert np.array_equal(whole, batched)
     assert s_batched.cell_view_tests == s_whole.cell_view_tests
     assert s_batched.voxel_view_tests == s_whole.voxel_view_tests
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_tighter_cell_tests_do_less_work_for_the_same_field(rig, mixed_sils, backend,
+                                                            monkeypatch):
+    # Session 4: a cell test bounds the cell's voxel centres ((n - 1) / 2 voxels from its
+    # centre on each axis, not the cube's corners) and, for small footprints, reads its
+    # centre bilinearly (margin 1.02 sqrt(2) r + 1/32 px instead of 1.02 r + 1.5 px).
+    # Both tighten a conservative bound: the field stays exactly the dense one, and
+    # fewer views are left ambiguous, so fewer cells are split and fewer voxels tested.
+    import math
+
+    from plantscan_hull import carve
+
+    cal, _ = rig
+    vf = prepare_views(list(mixed_sils), cal)
+    grid = Grid.from_box((-60, -60, -50), (60, 60, 70), 64)
+    dense, _ = carve_dense(vf, grid, 3, backend=backend)
+    now, s_now = carve_octree(vf, grid, 3, top_cell=16, backend=backend)
+    monkeypatch.setattr(carve, "CELL_BILINEAR_MAX_PX", 0.0)
+    if backend == "numpy":  # the compiled kernels compute the radius inline
+        monkeypatch.setattr(carve, "centre_radius", lambda half, s: half * math.sqrt(3.0))
+    before, s_before = carve_octree(vf, grid, 3, top_cell=16, backend=backend)
+    assert np.array_equal(now, dense)
+    assert np.array_equal(before, dense)
+    assert s_now.cell_view_tests < s_before.cell_view_tests
+    assert s_now.voxel_view_tests < s_before.voxel_view_tests
+    assert s_now.fine_voxels < s_before.fine_voxels
