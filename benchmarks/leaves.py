@@ -107,9 +107,10 @@ def grown(truth: Traits, offset: float) -> Traits:
                               t.perimeter_mm + 2 * np.pi * offset) for t in truth.leaves])
 
 
-def exact_mask_hull(scan_dir: Path, resolution: int) -> Path:
+def exact_mask_hull(scan_dir: Path, resolution: int, thin_rims: bool = False) -> Path:
     """Octree hull + marching cubes of a virtual scan's exact masks and cameras (cached)."""
-    out = Path("/tmp") / f"plantscan_leaves_hull_{scan_dir.resolve().name}_{resolution}"
+    out = Path("/tmp") / (f"plantscan_leaves_hull_{scan_dir.resolve().name}_{resolution}"
+                          + ("_thin_rims" if thin_rims else ""))
     if (out / "mesh.npz").exists():
         return out
     from plantscan_hull.stages import MarchingCubesMesher, OctreeHull
@@ -125,12 +126,14 @@ def exact_mask_hull(scan_dir: Path, resolution: int) -> Path:
     volume = OctreeHull(OctreeHull.Params(resolution=resolution)).reconstruct(
         sils, Calibration.load(gt / "calibration.yaml"))
     out.mkdir(parents=True, exist_ok=True)
-    MarchingCubesMesher().mesh(volume).save(out / "mesh.npz")
+    MarchingCubesMesher(MarchingCubesMesher.Params(thin_rims=thin_rims)).mesh(volume).save(
+        out / "mesh.npz")
     return out
 
 
 def plate_hull_run(scan_dir: Path, thickness: float, voxel: float, k: int,
-                   a: float = 60.0, b: float = 30.0, incl_deg: float = 25.0) -> dict:
+                   a: float = 60.0, b: float = 30.0, incl_deg: float = 25.0,
+                   thin_rims: bool = False) -> dict:
     """An analytic plate through masks -> octree-hull -> marching-cubes -> leaf-geometry."""
     import math
 
@@ -175,7 +178,8 @@ def plate_hull_run(scan_dir: Path, thickness: float, voxel: float, k: int,
     hull = OctreeHull(OctreeHull.Params(resolution=int(math.ceil((hi - lo).max() / voxel)),
                                         bbox=[*lo, *hi], floor_z_mm=None, k=k))
     volume = hull.reconstruct(Silhouettes(sils), cal)
-    mesh = MarchingCubesMesher(MarchingCubesMesher.Params(pot="none")).mesh(volume)
+    mesher = MarchingCubesMesher(MarchingCubesMesher.Params(pot="none", thin_rims=thin_rims))
+    mesh = mesher.mesh(volume)
     labelled = LabelledMesh(mesh, np.ones(len(mesh.faces), np.int64), {1: "leaf"})
     measured = measure_plant(labelled)[0].leaves[0]
     truth = EllipseLeaf(a, b)
@@ -197,6 +201,7 @@ def plate_hull_run(scan_dir: Path, thickness: float, voxel: float, k: int,
            for name, f in [("length", "length_mm"), ("width", "width_mm"),
                            ("area", "area_mm2"), ("perimeter", "perimeter_mm")]}
     return {"thickness_mm": thickness, "voxel_mm": volume.voxel_size, "k": k,
+            "thin_rims": thin_rims,
             "rim_inset_mm": float(np.mean(inset)), "faces": len(mesh.faces),
             **{f"err_{n}": v for n, v in rel.items()}}
 
@@ -211,6 +216,8 @@ def main() -> None:
     ap.add_argument("--cache", type=Path, default=Path("/tmp/plantscan_leaves_bench.npz"))
     ap.add_argument("--hull", type=Path, help="virtual scan folder: mesh its exact-mask hull")
     ap.add_argument("--resolution", type=int, default=512, help="--hull: grid resolution")
+    ap.add_argument("--thin-rims", action="store_true",
+                    help="--hull, --plate: mesh with marching-cubes' thin_rims")
     ap.add_argument("--plate", type=Path, help="virtual scan folder: its cameras see a plate")
     ap.add_argument("--plate-k", type=int, nargs="+", default=[3], help="--plate: hull k")
     ap.add_argument("--plate-thickness", type=float, nargs="+", default=[0.5, 2.0],
@@ -235,14 +242,14 @@ def main() -> None:
         for t in args.plate_thickness:
             for vox in args.plate_voxel:
                 for k in args.plate_k:
-                    r = plate_hull_run(args.plate, t, vox, k)
+                    r = plate_hull_run(args.plate, t, vox, k, thin_rims=args.thin_rims)
                     print(f"| {t:g} | {r['voxel_mm']:.2f} | {k} | {r['rim_inset_mm']:+.2f} | "
                           + " | ".join(f"{100 * r[f'err_{n}']:+.2f} %"
                                        for n in ("length", "width", "area", "perimeter"))
                           + " |", flush=True)
         return
     if args.hull:
-        args.run = exact_mask_hull(args.hull, args.resolution)
+        args.run = exact_mask_hull(args.hull, args.resolution, args.thin_rims)
         args.truth = args.hull / "ground_truth"
     if args.run:
         mesh = Mesh.load(args.run / "mesh.npz")
