@@ -472,7 +472,14 @@ def _carve_tree(kern: _Kernels, grid: Grid, k: int, top_cell: int, keep_thin: bo
         if size == 1 or not len(split):
             return _done(phi, stats, t0)
         centres = grid.centres(split + (size - 1) / 2.0)
-        if size == 2:
+        if size == 2:  # top_cell == 2: the voxels of the split cells, in one go
+            valid = _fine_valid(split, shape)
+            stats.cells_per_level[1] = stats.fine_voxels = int(valid.sum())
+            values = kernels.voxel_group(kern._packed, tree, centres, valid, s, k,
+                                         kern.min_seen, stats)
+            del tree
+            return _scatter(phi, split, values, valid, keep_thin, thin_value, stats, t_level, t0)
+        if size == 4:
             break
         cells = _children(split, size)
         valid = np.all(cells < shape, axis=1)  # the top level is padded
@@ -481,18 +488,71 @@ def _carve_tree(kern: _Kernels, grid: Grid, k: int, top_cell: int, keep_thin: bo
         decision, tree = kernels.classify_group(
             kern._packed, tree, centres, valid, size * s / 2.0, s, k, CELL_SLACK_PX,
             kern.min_seen, DISTANCE_LIPSCHITZ, stats, CELL_BILINEAR_MAX_PX)
-    # The voxels of the split 2-voxel cells: which are inside the grid, without their
-    # (P * 8, 3) indices (child ch is at corner + (ch >> 2, ch >> 1 & 1, ch & 1)).
+    # The split 4-voxel cells: their children (2-voxel cells) are classified and the
+    # voxels of the split ones carved batch by batch, so the view lists of the last split
+    # level exist for one batch at a time (the whole level's: 1.6-2.1 GB at 1024^3).
+    # Same tests in the same order within each chunk of parents: same field and counts.
+    splits, values, valids = [], [], []
+    n_cells = n_split = n_listed = 0
+    t_cells = t_voxels = 0.0
+    for b0 in range(0, len(split), kernels.GROUP_BATCH):
+        b1 = min(len(split), b0 + kernels.GROUP_BATCH)
+        t1 = time.perf_counter()
+        cells = _children(split[b0:b1], 4)
+        valid = np.all(cells < shape, axis=1)
+        n_cells += int(valid.sum())
+        decision, sub = kernels.classify_group(
+            kern._packed, kernels._sub_tree(tree, b0, b1), centres[b0:b1], valid, s, s, k,
+            CELL_SLACK_PX, kern.min_seen, DISTANCE_LIPSCHITZ, stats, CELL_BILINEAR_MAX_PX)
+        kernels._fill_cells(phi, np.ascontiguousarray(cells[decision == 1]), 2,
+                            np.float32(1.0))
+        fine = cells[decision == 2]
+        n_split += len(fine)
+        n_listed += int(sub.start[-1])
+        t2 = time.perf_counter()
+        t_cells += t2 - t1
+        if len(fine):
+            fine_valid = _fine_valid(fine, shape)
+            values.append(kernels.voxel_group(kern._packed, sub, grid.centres(fine + 0.5),
+                                              fine_valid, s, k, kern.min_seen, stats))
+            splits.append(fine)
+            valids.append(fine_valid)
+        del sub
+        t_voxels += time.perf_counter() - t2
+    del tree
+    stats.cells_per_level[2] = n_cells
+    stats.split_views_per_level[2] = n_listed / n_split if n_split else 0.0
+    stats.seconds_per_level[2] = t_cells
+    if not n_split:
+        return _done(phi, stats, t0)
+    split = np.concatenate(splits)
+    valid = np.concatenate(valids)
+    stats.cells_per_level[1] = stats.fine_voxels = int(valid.sum())
+    return _scatter(phi, split, np.concatenate(values), valid, keep_thin, thin_value, stats,
+                    time.perf_counter() - t_voxels, t0)
+
+
+def _fine_valid(split: np.ndarray, shape: np.ndarray) -> np.ndarray:
+    """(P * 8,) bool: which voxels of the 2-voxel cells with corners ``split`` are in the grid.
+
+    Without their (P * 8, 3) indices: child ``ch`` is at corner + (ch >> 2, ch >> 1 & 1,
+    ch & 1).
+    """
     room = split + 1 < shape  # (P, 3): the upper child fits along each axis
     valid = np.ones((len(split), 8), dtype=bool)
     for ch in range(8):
         for axis, bit in enumerate((4, 2, 1)):
             if ch & bit:
                 valid[:, ch] &= room[:, axis]
-    valid = valid.ravel()
-    stats.cells_per_level[1] = stats.fine_voxels = int(valid.sum())
-    values = kernels.voxel_group(kern._packed, tree, centres, valid, s, k, kern.min_seen, stats)
-    del tree  # the views lists of the last level
+    return valid.ravel()
+
+
+def _scatter(phi: np.ndarray, split: np.ndarray, values: np.ndarray, valid: np.ndarray,
+             keep_thin: bool, thin_value: float, stats: CarveStats, t_level: float,
+             t0: float) -> tuple[np.ndarray, CarveStats]:
+    """Writes the fine voxels' values (and the thin-part rescue) into ``phi``."""
+    from plantscan_hull import kernels
+
     stats.rescued_voxels = int(kernels._scatter_fine(
         phi, np.ascontiguousarray(split), values, valid, np.float32(thin_value), keep_thin))
     stats.seconds_per_level[1] = time.perf_counter() - t_level
