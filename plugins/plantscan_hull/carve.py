@@ -230,7 +230,10 @@ def classify_cells(views: Sequence[ViewField], centres: np.ndarray, half_size: f
         with np.errstate(divide="ignore", invalid="ignore"):
             inv = np.where(near > 0, view.gain / near, np.inf)
         r = rho * inv
-        margin = DISTANCE_LIPSCHITZ * r + voxel_size * inv + CELL_SLACK_PX
+        # One voxel in px at the nearest depth (the field is sd * z / (f * voxel)).
+        with np.errstate(divide="ignore", invalid="ignore"):
+            one_voxel = np.where(near > 0, voxel_size * view.focal / near, np.inf)
+        margin = DISTANCE_LIPSCHITZ * r + one_voxel + CELL_SLACK_PX
         u = np.nan_to_num(uv[:, 0], nan=-1e9)
         v = np.nan_to_num(uv[:, 1], nan=-1e9)
         lo_u, hi_u = -0.5, view.width - 0.5
@@ -250,7 +253,7 @@ def classify_cells(views: Sequence[ViewField], centres: np.ndarray, half_size: f
                & (lu + r <= w - 0.5) & (lv - r >= -0.5) & (lv + r <= h - 0.5))
         if use.any():
             sd[use] = sample_bilinear(view, uv[use])
-            margin[use] = tight[use] + voxel_size * inv[use]
+            margin[use] = tight[use] + one_voxel[use]
         out = on_image & (sd < -margin)
         inside = on_image & (sd > margin)
         amb = ~(out | inside | off_image)

@@ -223,6 +223,9 @@ if HAVE_NUMBA:
             return CELL_OFF
         if not (u - r >= -0.5 and u + r <= vr.u_hi and v - r >= -0.5 and v + r <= vr.v_hi):
             return CELL_EDGE
+        # One voxel in px at the nearest depth: the field is d = sd * z / (f * voxel),
+        # so |sd| > f * voxel / near puts every voxel beyond the +-1 clamp.
+        one_voxel = voxel_size * vr.f / near
         # Small footprints (the 2- and often 4-voxel cells): the bilinear value at the
         # centre is within lip * sqrt(2) * r + one table step of the voxels' (see
         # ``carve.classify_cells``), tighter than the nearest pixel's lip * r + slack.
@@ -230,10 +233,10 @@ if HAVE_NUMBA:
         lv = v - vr.v0
         if (r < bil_r and lu - r >= -0.5
                 and lu + r <= vr.tw - 0.5 and lv - r >= -0.5 and lv + r <= vr.th - 0.5):
-            margin = lip * _SQRT2 * r + _SD_STEP + voxel_size * inv
+            margin = lip * _SQRT2 * r + _SD_STEP + one_voxel
             sd = _bilinear_row(vr, tables, u, v)
         else:
-            margin = lip * r + voxel_size * inv + slack
+            margin = lip * r + one_voxel + slack
             sd = _nearest_row(vr, tables, u, v)
         if sd < -margin:
             return CELL_OUT
