@@ -228,7 +228,7 @@ def smoothing_shrinkage(points: np.ndarray, sigma_mm: float, closed: bool = Fals
     # feature of the smoothing scale, the zig-zag or a speck smoothing is meant to remove:
     # nothing is given back there (the inverse is ill-posed: a speck would grow into a
     # circle of radius ~s_c)
-    bent = turn * s_c * math.exp(-0.5) < ds
+    bent = (turn > 1e-12) & (turn * s_c * math.exp(-0.5) < ds)  # straight: nothing lost
     y = ds[bent] / turn[bent] / s_c  # radius on the curve smoothed by s_c, over s_c
     # solve ln x - 1 / (2 x^2) = ln y for x = R / s_c (increasing in x: Newton converges)
     x = np.maximum(y, 1.0)

@@ -75,3 +75,12 @@ def test_smoothing_shrinkage_ignores_specks():
     sm = smooth_polyline(np.concatenate([speck, speck[:1]]), 10.0, closed=True)
     assert smoothing_shrinkage(np.concatenate([sm, sm[:1]]), 5.0, closed=True,
                                curve_sigma_mm=10.0) == 0.0
+
+
+def test_smoothing_shrinkage_of_a_straight_line_is_zero():
+    from plantscan_leaves.geometry import smoothing_shrinkage
+
+    # exactly collinear samples turn by 0: nothing lost, and no division by that 0
+    line = np.stack([np.linspace(0.0, 50.0, 200), np.zeros(200), np.zeros(200)], axis=1)
+    with np.errstate(all="raise"):
+        assert smoothing_shrinkage(line, 5.0, curve_sigma_mm=10.0) == 0.0
