@@ -137,13 +137,18 @@ def run_case(folder: Path, case: str, res: int, k: int) -> dict:
            "prep_ms_per_view": 1000 * prep / len(views),
            "prep_cpu_ms_per_view": 1000 * prep_cpu / len(views), "bbox_s": box,
            "grid": list(grid.shape)}
-    if case == "octree":
+    if case in ("octree", "carve"):
         _ = carve_octree(views, Grid.from_box(lo, hi, 16), k, 16, backend="numba")  # JIT warm-up
         t0, c0 = time.perf_counter(), time.process_time()
         phi, st = carve_octree(views, grid, k, 32, backend="numba", min_seen=min_seen)
         out.update(carve_s=time.perf_counter() - t0, carve_cpu_s=time.process_time() - c0,
                    voxel_view_tests=st.voxel_view_tests,
-                   cell_view_tests=st.cell_view_tests, inside=int((phi > 0).sum()))
+                   cell_view_tests=st.cell_view_tests, inside=int((phi > 0).sum()),
+                   fine_voxels=st.fine_voxels,
+                   seconds_per_level={str(a): round(b, 2)
+                                      for a, b in st.seconds_per_level.items()})
+        out["peak_rss_carve_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    if case == "octree":
         t0, c0 = time.perf_counter(), time.process_time()
         from plantscan_hull.stages import MarchingCubesMesher
 
@@ -363,6 +368,8 @@ def main() -> int:
     ap.add_argument("--baseline", default="",
                     help="git revision whose plantscan_hull is also run (octree at the "
                          "largest --res), e.g. 2459b3ff: before/after in the same run")
+    ap.add_argument("--carve-only", action="store_true",
+                    help="octree cases without mesh and pot (bounding box, tables, carve)")
     ap.add_argument("--write", action="store_true", help="write docs/benchmarks/hull.md")
     ap.add_argument("--run-masks", type=Path,
                     help="a processing run folder (masks/, calibration.yaml): memory case")
@@ -386,7 +393,8 @@ def main() -> int:
         print(json.dumps(run_case(folder, case, int(res), args.k)))
         return 0
     rows = []
-    cases = [("octree", r) for r in args.res.split(",") if r] + \
+    octree = "carve" if args.carve_only else "octree"
+    cases = [(octree, r) for r in args.res.split(",") if r] + \
             [("dense", r) for r in args.dense_res.split(",") if r] + \
             [("open3d", r) for r in args.open3d_res.split(",") if r]
     base_dir = None
@@ -395,7 +403,7 @@ def main() -> int:
         cases.insert(0, ("baseline", max(args.res.split(","), key=int)))
     for case, res in cases:
         cmd = [sys.executable, __file__, "--views", str(args.views), "--size", args.size,
-               "--k", str(args.k), "--case", f"{'octree' if case == 'baseline' else case}:{res}"]
+               "--k", str(args.k), "--case", f"{octree if case == 'baseline' else case}:{res}"]
         if case == "baseline":
             cmd += ["--plugins", str(base_dir)]
         proc = subprocess.run(cmd, capture_output=True, text=True)
