@@ -6,7 +6,7 @@ import json
 import logging
 import math
 import time
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import Field, field_validator
@@ -30,12 +30,29 @@ log = logging.getLogger(__name__)
 POT_FILE = "pot_fit.json"
 
 
+# k = "auto": mask errors (mixed edge pixels, shade speckle) hit each view independently, so
+# the views that wrongly carve a rim point grow with the number of views, and a fixed k lets
+# them notch the leaf outlines of large scans; measured on the 18 MP virtual scans
+# (docs/reconstruction.md): 360 views best at k 8-10, 72 views at k 3.
+K_AUTO_FRACTION = 0.025
+K_AUTO_MIN = 3
+
+
+def resolve_k(k: int | str, n_views: int) -> int:
+    """The k a hull of ``n_views`` silhouettes carves with (``k`` an int, or "auto")."""
+    if k == "auto":
+        return max(K_AUTO_MIN, round(K_AUTO_FRACTION * n_views))
+    return int(k)
+
+
 class HullParams(StageParams):
     """Parameters shared by the hull reconstructors."""
 
     resolution: int = Field(256, ge=8, le=1024,
                             description="voxels along the longest side of the bounding box")
-    k: int = Field(3, ge=0, description="a voxel is removed only if outside in more than k views")
+    k: Annotated[int, Field(ge=0)] | Literal["auto"] = Field(
+        "auto", description="a voxel is removed only if outside in more than k views; 'auto': "
+        f"{K_AUTO_FRACTION:g} of the views, at least {K_AUTO_MIN} (docs/reconstruction.md)")
     bbox_margin_mm: float = Field(5.0, ge=0, description="margin added around the found box")
     bbox: list[float] | None = Field(
         None, description="fixed box [xmin, ymin, zmin, xmax, ymax, zmax] mm (turntable frame); "
@@ -79,18 +96,19 @@ class _HullBase(Reconstructor):
         p = self.params
         if len(silhouettes) == 0:
             raise DataError("reconstruct: no plant silhouette to carve from")
-        if len(silhouettes) <= p.k:
+        self.k = k = resolve_k(p.k, len(silhouettes))
+        if len(silhouettes) <= k:
             raise DataError(
                 f"reconstruct: {len(silhouettes)} silhouettes cannot carve anything with "
-                f"k={p.k} (a voxel must be outside in more than k views); lower "
+                f"k={k} (a voxel must be outside in more than k views); lower "
                 "reconstruct.params.k")
         t0 = time.perf_counter()
         views = prepare_views(list(silhouettes), calibration)
         t_prep = time.perf_counter() - t0
-        self.min_seen = max(p.k + 1, math.ceil(p.min_seen_fraction * len(views)))
+        self.min_seen = max(k + 1, math.ceil(p.min_seen_fraction * len(views)))
         info: dict = {"min_views_seen": self.min_seen}
         if p.bbox is None:
-            lo, hi, box_info = auto_box(views, p.k, p.bbox_margin_mm,
+            lo, hi, box_info = auto_box(views, k, p.bbox_margin_mm,
                                         coarse=min(128, p.resolution), backend=p.backend,
                                         min_seen=self.min_seen, floor_z=p.floor_z_mm)
             info.update(box_info)
@@ -113,7 +131,7 @@ class _HullBase(Reconstructor):
         out = stats.as_dict()
         out.update({"views": n_views, "prep_seconds": t_prep, "bbox_seconds": t_box,
                     "grid_shape": list(grid.shape), "voxel_size_mm": grid.voxel_size,
-                    "bbox_mm": [grid.lo.tolist(), grid.hi.tolist()], "k": p.k, **info})
+                    "bbox_mm": [grid.lo.tolist(), grid.hi.tolist()], "k": k, **info})
         return Volume(phi, grid.origin, grid.voxel_size, out)
 
 
@@ -135,7 +153,7 @@ class OctreeHull(_HullBase):
 
     def _carve(self, views, grid):
         p = self.params
-        return carve_octree(views, grid, p.k, p.top_cell, p.keep_thin, p.thin_value,
+        return carve_octree(views, grid, self.k, p.top_cell, p.keep_thin, p.thin_value,
                             backend=p.backend, min_seen=self.min_seen)
 
 
@@ -147,7 +165,7 @@ class DenseHull(_HullBase):
 
     def _carve(self, views, grid):
         p = self.params
-        return carve_dense(views, grid, p.k, p.keep_thin, p.thin_value, backend=p.backend,
+        return carve_dense(views, grid, self.k, p.keep_thin, p.thin_value, backend=p.backend,
                            min_seen=self.min_seen)
 
 

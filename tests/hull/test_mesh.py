@@ -302,11 +302,25 @@ def test_too_few_views_for_k(rig, potted):
         OctreeHull(OctreeHull.Params(k=3)).reconstruct(Silhouettes(list(potted)[:3]), cal)
 
 
+def test_auto_k_grows_with_the_views(rig, potted):
+    """k "auto": 2.5 % of the views, at least 3 (the 72-view protocol keeps the seed's 3,
+    360 views carve with 9); the hull records the k it used."""
+    from plantscan_hull.stages import resolve_k
+
+    assert [resolve_k("auto", n) for n in (4, 72, 360)] == [3, 3, 9]
+    assert resolve_k(5, 360) == 5
+    cal, _ = rig
+    volume = OctreeHull(OctreeHull.Params(resolution=32)).reconstruct(potted, cal)
+    assert volume.stats["k"] == resolve_k("auto", len(potted)) == 3
+
+
 def test_bad_params_are_rejected():
     from pydantic import ValidationError
 
     with pytest.raises(ValidationError):
         OctreeHull.Params(top_cell=24)
+    with pytest.raises(ValidationError):
+        OctreeHull.Params(k=-1)
     with pytest.raises(ValidationError):
         OctreeHull.Params(bbox=[0, 0, 0, -1, 1, 1])
     with pytest.raises(ValidationError):
