@@ -259,8 +259,8 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
     # the crest on the leaf as it is (an outline open at the stem cut is closed by its chord),
     # the two sides' border on the capped slab
     vertex_side = np.einsum("ij,ij->i", geo.vertex_normals(v, f[leaf]), vert_axis)
-    rim_length, outline_kind = _outline_length(v, f, topo, f[leaf], leaf_topo, vertex_side,
-                                               face_side, fa, outline_sigma)
+    rim_length, outline_kind, outline_lines = _outline_length(
+        v, f, topo, f[leaf], leaf_topo, vertex_side, face_side, fa, outline_sigma)
     perimeter = rim_length
 
     # mean slab thickness: enclosed volume over planform area (exact for a flat slab; an
@@ -343,6 +343,24 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
     np.maximum.at(u_max, station, lateral)
     np.minimum.at(u_min, station, lateral)
     extent = np.where(np.isfinite(u_max) & np.isfinite(u_min), u_max - u_min, 0.0)
+    # where the outline passes a station, its lateral extent is the one used: the crest
+    # nodes at a station's extremes sit on the peaks of the rough rim's zig-zag (+0.3…+2 mm
+    # on 512^3 dicot hulls), the outline smoothed at the zig-zag's scale (two mean edges:
+    # a marching-cubes rim zig-zags over a few voxels) does not, and at leaf-scale
+    # curvature (radius >= 30 mm) that smoothing moves it by < 0.03 mm
+    pieces = [geo.smooth_polyline(line, 2.0 * edge_mm) for line in outline_lines
+              if len(line) > 2]
+    if pieces:
+        op = np.concatenate(pieces)
+        _, ko = cKDTree(mid_pts).query(op)
+        lat_o = np.einsum("ij,ij->i", op - mid_pts[ko], unit_across[ko])
+        st_o = np.minimum((ko * nbins) // len(mid_pts), nbins - 1)
+        o_max = np.full(nbins, -np.inf)
+        o_min = np.full(nbins, np.inf)
+        np.maximum.at(o_max, st_o, lat_o)
+        np.minimum.at(o_min, st_o, lat_o)
+        seen = np.isfinite(o_max) & np.isfinite(o_min) & (o_max > 0) & (o_min < 0)
+        extent = np.where(seen, o_max - o_min, extent)
     width = 0.0
     for st in np.argsort(-extent)[: p.width_stations]:
         if extent[st] <= 0:
@@ -407,8 +425,9 @@ def _largest_piece(nf: int, pairs: np.ndarray, member: np.ndarray, area: np.ndar
 def _outline_length(v: np.ndarray, f: np.ndarray, topo: geo.MeshTopology | None,
                     leaf_faces: np.ndarray,
                     leaf_topo: geo.MeshTopology, vertex_side: np.ndarray, face_side: np.ndarray,
-                    area: np.ndarray, sigma: float) -> tuple[float, str]:
-    """Length (mm) of the rim crest of a slab, smoothed by ``sigma`` mm, and how it was traced.
+                    area: np.ndarray, sigma: float) -> tuple[float, str, list[np.ndarray]]:
+    """Length (mm) of the rim crest of a slab, smoothed by ``sigma`` mm, how it was traced,
+    and its raw pieces (each ``(P, 3)`` mm, in order along the line).
 
     ``v, f, topo`` is the capped slab (``topo`` None: not built yet),
     ``leaf_faces, leaf_topo`` the leaf's own faces (the first ones of
@@ -430,34 +449,38 @@ def _outline_length(v: np.ndarray, f: np.ndarray, topo: geo.MeshTopology | None,
     border = float(geo.row_norm(v[e[:, 0]] - v[e[:, 1]]).sum())
     # a cut at the base is closed well by its chord (the leaf as it is); a leaf with a long
     # open border (holed by the segmentation) is traced on its capped slab
-    crest = _iso_line_lengths(v, leaf_faces, leaf_topo, vertex_side, sigma)
+    lines: list[np.ndarray] = []
+    crest = _iso_line_lengths(v, leaf_faces, leaf_topo, vertex_side, sigma, lines)
     total = sum(crest)
     clean = total > 0 and max(crest) >= CLEAN_OUTLINE_SHARE * total
     if clean and border <= CUT_BORDER_SHARE * max(crest):
-        return max(crest), "crest"
+        return max(crest), "crest", [lines[int(np.argmax(crest))]]
     if len(f) > len(leaf_faces):
         topo = topo if topo is not None else geo.topology(f)
-        crest = _iso_line_lengths(v, f, topo, vertex_side, sigma)
+        lines = []
+        crest = _iso_line_lengths(v, f, topo, vertex_side, sigma, lines)
         total = sum(crest)
         if total > 0 and max(crest) >= CLEAN_OUTLINE_SHARE * total:
-            return max(crest), "crest"
+            return max(crest), "crest", [lines[int(np.argmax(crest))]]
     elif clean:
-        return max(crest), "crest"
+        return max(crest), "crest", [lines[int(np.argmax(crest))]]
     topo = topo if topo is not None else leaf_topo
     side_a = face_side > 0
     if nf == 0 or not side_a.any() or side_a.all():
-        return max(crest, default=0.0), "crest"
+        return (max(crest, default=0.0), "crest",
+                [lines[int(np.argmax(crest))]] if crest else [])
     a_main = _largest_piece(nf, topo.face_pairs, side_a, area)
     b_main = _largest_piece(nf, topo.face_pairs, ~a_main, area)
     face_val = np.where(b_main, -area, area)
     val = sum(np.bincount(f[:, k], face_val, len(v)) for k in range(3))
-    pieces = _iso_line_lengths(v, f, topo, val, sigma)
+    lines = []
+    pieces = _iso_line_lengths(v, f, topo, val, sigma, lines)
     # one loop in principle; a pinch where the two sides touch at a vertex may split it
-    return float(sum(pieces)), "sides"
+    return float(sum(pieces)), "sides", lines
 
 
 def _iso_line_lengths(v: np.ndarray, f: np.ndarray, topo: geo.MeshTopology, value: np.ndarray,
-                      sigma: float) -> list[float]:
+                      sigma: float, lines: list[np.ndarray] | None = None) -> list[float]:
     """Lengths (mm) of the pieces of the zero iso-line of the vertex field ``value``.
 
     Crossing points sit on mesh edges; each face with a sign change links two
@@ -483,6 +506,8 @@ def _iso_line_lengths(v: np.ndarray, f: np.ndarray, topo: geo.MeshTopology, valu
     chains: list[float] = []
     raw_links = geo.row_norm(pts[links[:, 0]] - pts[links[:, 1]])
     for chain, closed in _chains(links, len(pts), raw_links):
+        if lines is not None:  # the raw line of each piece, in step with the lengths
+            lines.append(pts[chain])
         # smoothing removes the zig-zag but also shrinks the curve by sigma^2/2 of its
         # curvature: that length is added back (geometry.smoothing_shrinkage), with the
         # curvature of the line smoothed twice as much (a wiggle of wavelength l left by
