@@ -46,6 +46,14 @@ CELL_SLACK_PX = 1.5
 CELL_BILINEAR_MAX_PX = (CELL_SLACK_PX - SD_STEP) / (DISTANCE_LIPSCHITZ * (math.sqrt(2.0) - 1.0))
 # Views processed between two compactions of the still-undecided points.
 COMPACT_EVERY = 8
+# Branch and bound at the fine voxels (numba path): the table read at each split
+# 2-voxel cell's centre bounds its 8 voxels' values from below; a view that cannot
+# change a voxel's clamped (k+1)-th smallest value is not read for it.  Same field,
+# 25-38 % fewer voxel reads, but measured slower on the benchmark machine (512^3:
+# 44 vs 38 s CPU; 256^3: 8.6-9.2 vs 7.7-8.3 s): the centre reads and the
+# unpredictable skip branch cost more than the reads they save.  Off by default;
+# see docs/benchmarks/hull.md (session 4).
+VOXEL_BOUNDS = False
 
 
 @dataclass
@@ -94,6 +102,9 @@ class CarveStats:
 
     voxel_view_tests: int = 0
     cell_view_tests: int = 0
+    # Voxel-view pairs skipped because a bound from the cell's centre showed the view
+    # cannot change the voxel's value (numba path, ``VOXEL_BOUNDS``).
+    voxel_view_bounded: int = 0
     cells_per_level: dict[int, int] = field(default_factory=dict)
     # Mean number of views the split cells of a level left ambiguous (numba path).
     split_views_per_level: dict[int, float] = field(default_factory=dict)
@@ -106,6 +117,7 @@ class CarveStats:
     def as_dict(self) -> dict:
         return {"voxel_view_tests": self.voxel_view_tests,
                 "cell_view_tests": self.cell_view_tests,
+                "voxel_view_bounded": self.voxel_view_bounded,
                 "cells_per_level": {str(k): v for k, v in self.cells_per_level.items()},
                 "split_views_per_level": {str(k): round(v, 1)
                                           for k, v in self.split_views_per_level.items()},
@@ -479,7 +491,7 @@ def _carve_tree(kern: _Kernels, grid: Grid, k: int, top_cell: int, keep_thin: bo
             valid = _fine_valid(split, shape)
             stats.cells_per_level[1] = stats.fine_voxels = int(valid.sum())
             values = kernels.voxel_group(kern._packed, tree, centres, valid, s, k,
-                                         kern.min_seen, stats)
+                                         kern.min_seen, stats, _bound_lipschitz())
             del tree
             return _scatter(phi, split, values, valid, keep_thin, thin_value, stats, t_level, t0)
         if size == 4:
@@ -517,7 +529,8 @@ def _carve_tree(kern: _Kernels, grid: Grid, k: int, top_cell: int, keep_thin: bo
         if len(fine):
             fine_valid = _fine_valid(fine, shape)
             values.append(kernels.voxel_group(kern._packed, sub, grid.centres(fine + 0.5),
-                                              fine_valid, s, k, kern.min_seen, stats))
+                                              fine_valid, s, k, kern.min_seen, stats,
+                                              _bound_lipschitz()))
             splits.append(fine)
             valids.append(fine_valid)
         del sub
@@ -533,6 +546,11 @@ def _carve_tree(kern: _Kernels, grid: Grid, k: int, top_cell: int, keep_thin: bo
     stats.cells_per_level[1] = stats.fine_voxels = int(valid.sum())
     return _scatter(phi, split, np.concatenate(values), valid, keep_thin, thin_value, stats,
                     time.perf_counter() - t_voxels, t0)
+
+
+def _bound_lipschitz() -> float:
+    """The tables' Lipschitz constant for the fine voxels' bounds; 0 turns them off."""
+    return DISTANCE_LIPSCHITZ if VOXEL_BOUNDS else 0.0
 
 
 def _fine_valid(split: np.ndarray, shape: np.ndarray) -> np.ndarray:

@@ -610,15 +610,45 @@ if HAVE_NUMBA:
                 min_seen, lip, bil_r, decision, c_out, c_in, c_off, c_amb, c_neg, amb)
         return decision, c_out, c_in, c_off, c_amb, c_neg, amb, tests.sum()
 
+    @njit(cache=True, inline="always")
+    def _centre_bound(vr, tables, xc, yc, zc, lip):
+        # (u, v, sd - slack) at the projection of a parent's centre (camera frame), or
+        # sd = -inf when it does not read the table (behind the camera, beyond the table:
+        # the box bound there is not Lipschitz with the table) or lip <= 0.  slack: one
+        # table step for the rounding of two readings and 1e-3 px for float rounding.
+        if lip <= 0.0 or zc <= 0.0:
+            return 0.0, 0.0, -np.inf
+        u, v = _pixel(vr, xc, yc, zc)
+        lu = u - vr.u0
+        lv = v - vr.v0
+        if not (lu >= -0.5 and lu <= vr.tw - 0.5 and lv >= -0.5 and lv <= vr.th - 0.5):
+            return u, v, -np.inf
+        return u, v, _bilinear_row(vr, tables, u, v) - _SD_STEP - 1e-3
+
+    @njit(cache=True, inline="always")
+    def _voxel_bound(vr, u, v, zc, uc, vc, sdc, lip, fs):
+        # Lower bound (voxels) of the field value of a voxel seen at (u, v), depth zc, from
+        # the table read at its parent's centre (``_centre_bound``): the table's steps
+        # between neighbouring pixels are <= 1 px (< lip), so its bilinear interpolant
+        # changes by at most lip (|du| + |dv|) between the two projections.  -inf when
+        # the voxel does not read the table (then it is tested).
+        lu = u - vr.u0
+        lv = v - vr.v0
+        if not (lu >= -0.5 and lu <= vr.tw - 0.5 and lv >= -0.5 and lv <= vr.th - 0.5):
+            return -np.inf
+        return (sdc - lip * (abs(u - uc) + abs(v - vc))) * (zc / fs)
+
     @njit(cache=True)
     def _voxel_range(lo, hi, centres, valid, p_start, p_views, p_out, p_in, voxel_size, params,
-                     tables, k, min_seen, out):
+                     tables, k, min_seen, lip, out):
         # Serial body of ``_voxel_group`` for parents lo..hi, view-major as
         # ``_classify_range``.
         h = 0.5 * voxel_size
         nv = params.shape[0]
         n = (hi - lo) * 8
         count = 0
+        centre = 0
+        bounded = 0
         kept = np.empty((n, k + 1), dtype=np.float32)
         mx = np.empty(n, dtype=np.float32)
         seen = np.empty(n, dtype=np.int32)
@@ -659,16 +689,30 @@ if HAVE_NUMBA:
                 if not _takes_view(cursor, i - lo, p_start, p_views, i, j) or alive[i - lo] == 0:
                     continue
                 xc0, yc0, zc0 = _cam(vr, centres[i, 0], centres[i, 1], centres[i, 2])
+                # Branch and bound: the table read bilinearly at the parent's centre bounds
+                # each voxel's value from below (``_centre_bound``); a voxel whose bound is
+                # at or above its current (k+1)-th smallest value (or the +1 clamp) cannot
+                # be changed by this view: it is counted as seen and its read skipped.
+                uc, vc, sdc = _centre_bound(vr, tables, xc0, yc0, zc0, lip)
+                centre += sdc > -np.inf
                 for ch in range(8):
                     f = (i - lo) * 8 + ch
                     if not live[f]:
                         continue
-                    count += 1
-                    on, d = _voxel_test(vr, tables, xc0 + offs[ch, 0], yc0 + offs[ch, 1],
-                                        zc0 + offs[ch, 2], fs)
-                    if not on:
-                        continue
+                    zc = zc0 + offs[ch, 2]
+                    u, v = _pixel(vr, xc0 + offs[ch, 0], yc0 + offs[ch, 1], zc)
+                    if not (zc > 0 and u >= -0.5 and u <= vr.u_hi and v >= -0.5
+                            and v <= vr.v_hi):
+                        count += 1
+                        continue  # not seen
                     seen[f] += 1
+                    if (sdc > -np.inf and _voxel_bound(vr, u, v, zc, uc, vc, sdc, lip, fs)
+                            >= min(mx[f], np.float32(1.0))):
+                        bounded += 1
+                        continue
+                    count += 1
+                    # As ``_voxel_test``.
+                    d = np.float32(_bilinear_row(vr, tables, u, v) * (zc / fs))
                     if d < mx[f]:
                         mx[f] = _keep_smallest(kept, f, k, d)
                         if mx[f] <= -1.0:
@@ -685,21 +729,25 @@ if HAVE_NUMBA:
                 if seen[f] < min_seen and m > -1.0:
                     val = np.float32(-1.0)
                 out[i * 8 + ch] = val
-        return count
+        return count, centre, bounded
 
     @njit(cache=True, parallel=True)
     def _voxel_group(centres, valid, p_start, p_views, p_out, p_in, voxel_size, params, tables,
-                     k, min_seen, chunk):
+                     k, min_seen, lip, chunk):
         # centres: (P, 3) centres of split 2-voxel cells; out: (P * 8,) voxel values.
+        # lip <= 0: no bounds (every voxel of every listed view read).
         n_par = centres.shape[0]
         nchunks = (n_par + chunk - 1) // chunk
         out = np.full(n_par * 8, np.float32(-1.0))
-        tests = np.zeros(nchunks, dtype=np.int64)
+        tests = np.zeros((nchunks, 3), dtype=np.int64)
         for c in prange(nchunks):
-            tests[c] = _voxel_range(c * chunk, min(n_par, (c + 1) * chunk), centres, valid,
-                                    p_start, p_views, p_out, p_in, voxel_size, params, tables,
-                                    k, min_seen, out)
-        return out, tests.sum()
+            a, b, e = _voxel_range(c * chunk, min(n_par, (c + 1) * chunk), centres, valid,
+                                   p_start, p_views, p_out, p_in, voxel_size, params, tables,
+                                   k, min_seen, lip, out)
+            tests[c, 0] = a
+            tests[c, 1] = b
+            tests[c, 2] = e
+        return out, tests[:, 0].sum(), tests[:, 1].sum(), tests[:, 2].sum()
 
 
     # ------------------------------------------------------------------ mesh topology
@@ -957,14 +1005,22 @@ def _concat_trees(parts: list[Tree]) -> Tree:
 
 
 def voxel_group(packed, tree: Tree, centres: np.ndarray, valid: np.ndarray, voxel_size: float,
-                k: int, min_seen: int, stats=None) -> np.ndarray:
-    """Clamped field of the 8 voxels of every split 2-voxel cell (``centres``: the cells')."""
+                k: int, min_seen: int, stats=None, bound_lipschitz: float = 0.0) -> np.ndarray:
+    """Clamped field of the 8 voxels of every split 2-voxel cell (``centres``: the cells').
+
+    ``bound_lipschitz`` > 0 (the tables' Lipschitz constant): a voxel skips a view
+    whose bound from the table at its cell's centre cannot change its value (same
+    field, fewer reads); 0 reads every voxel in every listed view.
+    """
     params, tables = packed
-    out, tests = _voxel_group(np.ascontiguousarray(centres, dtype=np.float64), valid,
-                              tree.start, tree.views, tree.n_out, tree.n_in, float(voxel_size),
-                              params, tables, int(k), int(min_seen), GROUP_CHUNK)
+    out, tests, centre, bounded = _voxel_group(
+        np.ascontiguousarray(centres, dtype=np.float64), valid, tree.start, tree.views,
+        tree.n_out, tree.n_in, float(voxel_size), params, tables, int(k), int(min_seen),
+        float(bound_lipschitz), GROUP_CHUNK)
     if stats is not None:
-        stats.voxel_view_tests += int(tests)
+        # Table reads: at the voxels and at the parents' centres (the bounds).
+        stats.voxel_view_tests += int(tests) + int(centre)
+        stats.voxel_view_bounded += int(bounded)
     return out
 
 
