@@ -98,7 +98,9 @@ def marching_cubes(field: np.ndarray, origin: np.ndarray, voxel_size: float,
     are merged by the grid edge they lie on.  The classic table
     (``method="lorensen"``), not Lewiner's: the clamped field has many exact
     +-1 values, whose tied face tests make scikit-image's Lewiner tables emit
-    duplicate faces (non-manifold edges; scikit-image issue #8109).
+    duplicate faces (non-manifold edges; scikit-image issue #8109).  The
+    table runs on ``-field`` so that inside voxels sharing only an edge stay
+    connected (a thin leaf sheet stepping diagonally is not cut apart).
 
     Parameters
     ----------
@@ -126,6 +128,10 @@ def marching_cubes(field: np.ndarray, origin: np.ndarray, voxel_size: float,
             continue  # no surface in this block
         near = np.abs(sub) < LEVEL_GAP
         sub[near] = np.where(sub[near] > 0, LEVEL_GAP, -LEVEL_GAP)
+        # On -field: the table joins the *lower* side across an ambiguous cube face, so
+        # the inside is then 18-connected (a leaf sheet one voxel thick stays one surface
+        # where it steps diagonally); on +field it would be cut at every such step.
+        np.negative(sub, out=sub)
         v, f, _, _ = sk_marching_cubes(sub, level=0.0, allow_degenerate=True, method="lorensen")
         verts.append(v.astype(np.float64) + lo)
         faces.append(f.astype(np.int64) + count)

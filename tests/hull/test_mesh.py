@@ -119,6 +119,29 @@ def test_thin_rims_put_a_thin_slabs_outline_in_place(half_x, plain_short):
     assert len(snapped.faces) == len(plain.faces)
 
 
+def _mesh_components(mesh) -> int:
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    f = mesh.faces
+    rows, cols = np.concatenate([f[:, 0], f[:, 1]]), np.concatenate([f[:, 1], f[:, 2]])
+    n = len(mesh.vertices)
+    graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
+    return connected_components(graph, directed=False)[0]
+
+
+def test_a_sheet_stepping_diagonally_stays_one_surface():
+    """A one-voxel leaf sheet whose voxels step diagonally (sharing only an edge) must mesh
+    as one closed surface, not a piece per step: the leaf stages cannot join pieces that
+    the mesh cut apart (wheat blades fell apart into thousands of pieces)."""
+    field = -np.ones((12, 12, 5), np.float32)
+    for i in range(1, 11):  # a staircase in x-y, one voxel thick, three voxels tall
+        field[i, i, 1:4] = 0.3
+    mesh = marching_cubes(field, np.zeros(3), 1.0)
+    assert _mesh_components(mesh) == 1
+    assert topology_report(mesh)["watertight"] and topology_report(mesh)["manifold"]
+
+
 def test_thin_rims_leave_thick_parts_alone():
     """A slab 4 voxels thick has exact distances inside: no vertex moves."""
     field = _thin_slab_field(10.5, 8.5, 2.0)
