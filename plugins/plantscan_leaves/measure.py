@@ -25,11 +25,12 @@ those of its **mid-surface**, measured without building it:
   of its zig-zag along the mesh, averaged over the two sides (a bent slab's
   inner side is shorter and its outer side longer than the mid-surface, by
   the same amount to first order).
-* **width**: crest points are binned in stations along the smoothed midrib;
-  at the stations of largest lateral extent (across the midrib, in the local
-  leaf plane) the same two-side shortest path runs from the left rim to the
-  right rim.  The width is the largest such path, or the lateral extent
-  where the path is implausible (shorter than it, or > 1.25 x longer).
+* **width**: the outline (lightly smoothed) and the crest points are binned in
+  stations along the smoothed midrib; at the stations of largest lateral
+  extent (across the midrib, in the local leaf plane; the outline's where it
+  crosses the station) the same two-side shortest path runs from the left rim
+  to the right rim.  The width is the largest such path, or the lateral
+  extent where the path is implausible (shorter than it, or > 1.25 x longer).
 
 Paths over a side run from crest to crest over the rounded rim, a little
 longer than the mid-surface would be (``(pi/2 - 1) r`` per end for a
