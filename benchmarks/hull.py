@@ -248,7 +248,7 @@ class _RssProbe:
             self.peaks[phase] = r
 
 
-def run_masks_case(run: Path, scan: Path, res: int, reduce: int) -> dict:
+def run_masks_case(run: Path, scan: Path, res: int, reduce: int, k: int) -> dict:
     """``octree-hull`` on a run's masks, as the pipeline calls it, with RSS per phase."""
     from concurrent.futures import ThreadPoolExecutor
 
@@ -293,13 +293,14 @@ def run_masks_case(run: Path, scan: Path, res: int, reduce: int) -> dict:
 
     hull_stages.prepare_views, hull_stages.carve_octree = timed_prepare, timed_carve
     t0, c0 = time.perf_counter(), time.process_time()
-    vol = OctreeHull(OctreeHull.Params(resolution=res)).reconstruct(sils, cal)
+    # k given: the stage's default changed in session 4 (k 'auto'), the baseline's is 3.
+    vol = OctreeHull(OctreeHull.Params(resolution=res, k=k)).reconstruct(sils, cal)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     probe.mark("returned")
     probe.stop = True
     st = vol.stats
     h, w = sils[0].shape
-    return {"case": "run masks", "res": res, "views": len(sils), "size": f"{w}x{h}",
+    return {"case": "run masks", "res": res, "k": k, "views": len(sils), "size": f"{w}x{h}",
             "wall_s": wall, "cpu_s": cpu, "prep_s": st["prep_seconds"],
             "bbox_s": st["bbox_seconds"], "carve_s": st["carve_seconds"],
             "masks_mb": base, "tables_mb": tables.get("mb", float("nan")),
@@ -318,7 +319,8 @@ def run_masks_main(args) -> int:
     for label, plugins in plugin_dirs:
         for res in [r for r in args.res.split(",") if r]:
             cmd = [sys.executable, __file__, "--run-masks", str(args.run_masks), "--scan",
-                   str(args.scan), "--reduce", str(args.reduce), "--case", f"masks:{res}"]
+                   str(args.scan), "--reduce", str(args.reduce), "--k", str(args.k),
+                   "--case", f"masks:{res}"]
             if plugins:
                 cmd += ["--plugins", str(plugins)]
             proc = subprocess.run(cmd, capture_output=True, text=True)
@@ -381,7 +383,8 @@ def main() -> int:
             if args.plugins:
                 sys.path.insert(0, args.plugins)
             res = int(args.case.split(":")[1])
-            print(json.dumps(run_masks_case(args.run_masks, args.scan, res, args.reduce)))
+            print(json.dumps(run_masks_case(args.run_masks, args.scan, res, args.reduce,
+                                            args.k)))
             return 0
         return run_masks_main(args)
     size = tuple(int(x) for x in args.size.split("x"))
