@@ -49,8 +49,8 @@ COMPACT_EVERY = 8
 # Branch and bound at the fine voxels (numba path): the table read at each split
 # 2-voxel cell's centre bounds its 8 voxels' values from below; a view that cannot
 # change a voxel's clamped (k+1)-th smallest value is not read for it.  Same field,
-# 25-38 % fewer voxel reads, but measured slower on the benchmark machine (512^3:
-# 44 vs 38 s CPU; 256^3: 8.6-9.2 vs 7.7-8.3 s): the centre reads and the
+# 27-38 % of the voxel reads skipped, but measured slower on the benchmark machine
+# (512^3: 41 vs 36 s CPU; 256^3: 7.9-9.9 vs 7.7-8.3 s): the centre reads and the
 # unpredictable skip branch cost more than the reads they save.  Off by default;
 # see docs/benchmarks/hull.md (session 4).
 VOXEL_BOUNDS = False
