@@ -417,7 +417,7 @@ def carve_octree(views: Sequence[ViewField], grid: Grid, k: int, top_cell: int =
     stats = CarveStats()
     kern = _Kernels(views, backend, min_seen)
     stats.backend = kern.name
-    if kern.name == "numba":
+    if kern.name == "numba" and top_cell > 1:  # top_cell 1 is the dense grid (below)
         return _carve_tree(kern, grid, k, top_cell, keep_thin, thin_value, stats, t0)
     shape = np.array(grid.shape)
     s = grid.voxel_size

@@ -349,3 +349,19 @@ def test_voxel_bounds_skip_reads_without_changing_the_field(rig, mixed_sils, mon
     assert s_plain.voxel_view_bounded == 0 < s_bounded.voxel_view_bounded
     assert s_bounded.voxel_view_tests < s_plain.voxel_view_tests
     assert s_bounded.cell_view_tests == s_plain.cell_view_tests
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_octree_equals_dense_for_every_top_cell(rig, mixed_sils, backend):
+    # An odd grid (37 voxels: padded top cells, partial 2-voxel cells) and every top
+    # cell size, down to 1 (the dense grid) and 2 and 4 (the last levels' batches start
+    # at once): no tolerance.  top_cell 1 on the compiled path used to leave every
+    # voxel at -1 (found in session 4).
+    cal, _ = rig
+    vf = prepare_views(list(mixed_sils), cal)
+    grid = Grid.from_box((-60, -60, -50), (60, 60, 70), 37)
+    dense, _ = carve_dense(vf, grid, 3, backend=backend)
+    assert (dense > 0).sum() > 100
+    for top in (1, 2, 4, 32):
+        octree, _ = carve_octree(vf, grid, 3, top_cell=top, backend=backend)
+        assert np.array_equal(octree, dense), top
