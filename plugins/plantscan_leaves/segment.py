@@ -18,7 +18,10 @@ never sharply concave.  So (after Paproki et al. 2012, simplified):
 5. each region is a leaf or stem: stem pieces are tubes (their normals
    turn all round an axis that is also their long axis), leaves are
    everything else with at least ``min_leaf_area_mm2`` (one side); smaller
-   non-tube pieces join the neighbour they share most edges with.
+   non-tube pieces join the neighbour they share most edges with;
+6. tube-like parts of leaves go to the stem: petioles touching it (at
+   ``petiole_scale_mm``) and stretches of main stem grown into a leaf (at
+   ``stem_scale_mm``).
 """
 
 from __future__ import annotations
@@ -69,6 +72,14 @@ class CurvatureRegionsParams(StageParams):
         description="faces whose neighbourhood's normals spread this much around one axis "
                     "(2nd/1st eigenvalue) are tube-like; tube-like parts of a leaf touching "
                     "the stem are stem (petioles); 1 disables")
+    stem_scale_mm: float | None = Field(
+        3.0, gt=0,
+        description="cell size of a second tube test, at the main stem's scale (its diameter "
+                    "/ 3), mm: connected parts of a leaf region that are tube-like at this "
+                    "scale, hold min_leaf_area_mm2 of surface and are a tube along their long "
+                    "axis are stem grown into the leaf (a stem thicker than a petiole is only "
+                    "patchily tube-like at petiole_scale_mm); None: off (grasses: sheaths and "
+                    "blade bases around the stem are tubes at this scale)")
     crumb_merge_rounds: int = Field(
         1, ge=1,
         description="rounds of merging small regions into their neighbours: 1 joins only "
@@ -262,6 +273,13 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
     if p.petiole_tube_ratio < 1:
         moved = _petioles_to_stem(spread, topo.face_pairs, leaf_face, stem_face, areas,
                                   p.petiole_tube_ratio, p.min_leaf_area_mm2)
+        if p.stem_scale_mm is not None:
+            # after the petiole test, not before: run against the recovered stem, the petiole
+            # test cuts further into blade bases the hull has fattened into rods
+            stem_in_leaf = _stems_in_leaves(topo.face_pairs, leaf_face, centroids, normals,
+                                            areas, p)
+            info["stem_faces_from_leaves"] = int(np.count_nonzero(stem_in_leaf & ~moved))
+            moved |= stem_in_leaf
     info["petiole_faces"] = int(np.count_nonzero(moved))
     stem_face |= moved
     leaf_face &= ~moved
@@ -344,6 +362,34 @@ def _petioles_to_stem(spread: np.ndarray, pairs: np.ndarray, leaf_face: np.ndarr
     touch[comp[b[(comp[b] >= 0) & stem_face[a]]]] = True
     big = np.bincount(comp[comp >= 0], areas[comp >= 0], len(touch)) >= min_area
     return (comp >= 0) & (touch | big)[np.maximum(comp, 0)]
+
+
+def _stems_in_leaves(pairs: np.ndarray, leaf_face: np.ndarray, centroids: np.ndarray,
+                     normals: np.ndarray, areas: np.ndarray, p: CurvatureRegionsParams
+                     ) -> np.ndarray:
+    """Faces of leaf regions that are a stretch of main stem grown into the leaf.
+
+    Where no concave crease parts a petiole from the stem (the petiole leaves
+    the stem at a shallow angle, or hull volume fills the angle), region
+    growing runs from the blade down the petiole into the stem, and the whole
+    region, mostly blade, is judged a leaf.  The petiole test at
+    ``petiole_scale_mm`` sees a stem thicker than its 3-cell block only in
+    patches.  At ``stem_scale_mm`` the stem is tube-like throughout: a
+    connected tube-like part holding ``min_leaf_area_mm2`` of surface that is,
+    as a whole, a tube along its long axis (the stem test of whole regions) is
+    stem, with the petioles it carries.
+    """
+    spread = _neighbourhood_spread(centroids, normals, areas, p.stem_scale_mm)
+    thick = (spread > p.petiole_tube_ratio) & leaf_face
+    if not thick.any():
+        return thick
+    comp = _relabel(_regions_of(len(leaf_face), pairs, thick))
+    ncomp = int(comp.max()) + 1
+    big = np.bincount(comp[thick], areas[thick], ncomp) >= p.min_leaf_area_mm2
+    shape = _region_shape(centroids, normals, areas, np.where(thick, comp, ncomp), ncomp + 1)
+    tube = ((shape["spread"] > p.stem_tube_ratio) & (shape["axis_alignment"] > 0.8)
+            & (shape["elongation"] > p.stem_min_elongation))[:ncomp]
+    return thick & (big & tube)[np.maximum(comp, 0)]
 
 
 def _neighbourhood_spread(centroids: np.ndarray, normals: np.ndarray, areas: np.ndarray,
