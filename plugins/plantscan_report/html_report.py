@@ -192,13 +192,6 @@ def _decimate(mesh: Mesh, target_faces: int,
     return Mesh(v, f), g
 
 
-def _group_mesh(mesh: Mesh, face_groups: np.ndarray, group: int) -> Mesh:
-    """The faces of one group, with only the vertices they use."""
-    faces = mesh.faces[face_groups == group]
-    used, inverse = np.unique(faces, return_inverse=True)
-    return Mesh(mesh.vertices[used], inverse.reshape(-1, 3))
-
-
 def _mesh_traces(run: RunResult, max_faces: int) -> list[Any]:
     """One Mesh3d trace per label (leaf, stem, pot, unassigned) or one for a plain mesh."""
     import plotly.graph_objects as go
@@ -209,12 +202,13 @@ def _mesh_traces(run: RunResult, max_faces: int) -> list[Any]:
         colours = label_colours(labelled)
         # One clustering of the whole mesh, per label: each label keeps its share of the
         # face budget, so small leaves stay visible.
-        small, small_labels = _decimate(labelled.mesh, max_faces, labelled.face_labels)
-        for label in sorted(set(np.unique(small_labels).tolist())):
+        small = LabelledMesh(*_decimate(labelled.mesh, max_faces, labelled.face_labels),
+                             labelled.kinds)
+        for label in np.unique(small.face_labels).tolist():
             kind = labelled.kinds.get(label, "unassigned") if label >= 0 else "unassigned"
             name = f"leaf {label}" if kind == "leaf" else kind
             colour = hex_colour(colours[label]) if label in colours else "#bfbfbf"
-            parts.append((name, _group_mesh(small, small_labels, label), colour))
+            parts.append((name, small.submesh(label), colour))
     elif run.mesh is not None and not run.mesh.is_empty:
         parts.append(("plant", _decimate(run.mesh, max_faces)[0], hex_colour(PLAIN_RGB)))
     traces = []
