@@ -150,7 +150,8 @@ def marching_cubes(field: np.ndarray, origin: np.ndarray, voxel_size: float,
     _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
     verts = verts[first]
     if thin_rims:
-        verts = _thin_rims(verts, field)
+        verts = _thin_rims(verts, low[first].astype(np.int64), axis[first], ~inner[first],
+                           field)
     verts = verts * voxel_size + (np.asarray(origin, dtype=float) - voxel_size)
     faces = inverse.reshape(-1)[faces]
     mesh = Mesh(verts, faces)
@@ -159,13 +160,17 @@ def marching_cubes(field: np.ndarray, origin: np.ndarray, voxel_size: float,
     return mesh
 
 
-def _thin_rims(verts: np.ndarray, field: np.ndarray) -> np.ndarray:
+def _thin_rims(verts: np.ndarray, low: np.ndarray, axis: np.ndarray, on_edge: np.ndarray,
+               field: np.ndarray) -> np.ndarray:
     """Move vertices on grid edges leaving a one-voxel-thick part out to its rim.
 
-    ``verts`` are padded-grid coordinates (voxel index + 1) of vertices on grid
-    edges.  Along an edge from an inside voxel A to an outside one B, a
-    1-Lipschitz field puts the surface at least ``f_A`` from A and at least
-    ``|f_B|`` from B; linear interpolation picks ``f_A / (f_A - f_B)``.  Where
+    ``verts`` are padded-grid coordinates (voxel index + 1); ``low``, ``axis``
+    the lower end and axis of each one's grid edge, ``on_edge`` False for
+    vertices inside a cube (left in place).
+
+    Along an edge from an inside voxel A to an outside one B, a 1-Lipschitz
+    field puts the surface at least ``f_A`` from A and at least ``|f_B|``
+    from B; linear interpolation picks ``f_A / (f_A - f_B)``.  Where
     A is a slab one voxel thick (its two neighbours across some other axis are
     outside) its value is capped by the slab's half thickness, not by the
     distance to the rim along the edge, so the interpolated rim falls short;
@@ -173,10 +178,7 @@ def _thin_rims(verts: np.ndarray, field: np.ndarray) -> np.ndarray:
     the rim) and is used instead.  Vertices only move outwards within the
     edge, so the mesh's topology is unchanged.
     """
-    low = np.floor(verts).astype(np.int64)
     frac = verts - low
-    axis = np.argmax(frac, axis=1)
-    on_edge = (frac > 1e-6).sum(axis=1) == 1
     shape = np.array(field.shape)
 
     def value(idx):  # field at padded-grid points, -1 outside the grid
