@@ -53,15 +53,16 @@ class TaperedCylinder(BaseModel):
             self.z_top_mm - self.z_bottom_mm, 1e-9)
         return self.r_bottom_mm + t * (self.r_top_mm - self.r_bottom_mm)
 
-    def inside_distance(self, points: np.ndarray, margin: float = 0.0) -> np.ndarray:
-        """Approximate signed distance (mm) into the cylinder grown by ``margin``; > 0 inside."""
-        p = np.asarray(points, dtype=float)
-        rho = np.hypot(p[:, 0] - self.centre_xy_mm[0], p[:, 1] - self.centre_xy_mm[1])
-        zc = np.clip(p[:, 2], self.z_bottom_mm, self.z_top_mm)
-        radial = self.radius_at(zc) + margin - rho
-        below = p[:, 2] - (self.z_bottom_mm - margin)
-        above = (self.z_top_mm + margin) - p[:, 2]
-        return np.minimum(radial, np.minimum(below, above))
+    def inside_distance(self, rho: np.ndarray, z: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        """Approximate signed distance (mm) into the cylinder grown by ``margin``; > 0 inside.
+
+        ``rho`` (distance to the axis, mm) and ``z`` (mm) broadcast against each
+        other, so a grid's radial plane and its column of heights are enough.
+        """
+        z = np.asarray(z)
+        radial = self.radius_at(np.clip(z, self.z_bottom_mm, self.z_top_mm)) + margin - rho
+        axial = np.minimum(z - (self.z_bottom_mm - margin), (self.z_top_mm + margin) - z)
+        return np.minimum(radial, axial)
 
 
 @dataclass
@@ -232,12 +233,8 @@ def remove_cylinders(volume: Volume, cylinders: list[TaperedCylinder],
         xs = (origin[0] + np.arange(i_lo, i_hi) * s - cx).astype(np.float32)
         ys = (origin[1] + np.arange(j_lo, j_hi) * s - cy).astype(np.float32)
         rho = np.hypot(xs[:, None], ys[None, :])[:, :, None]
-        zs = origin[2] + np.arange(k_lo, k_hi) * s
-        radius = (cyl.radius_at(np.clip(zs, cyl.z_bottom_mm, cyl.z_top_mm))
-                  + margin_mm).astype(np.float32)
-        axial = np.minimum(zs - (cyl.z_bottom_mm - margin_mm),
-                           (cyl.z_top_mm + margin_mm) - zs).astype(np.float32)
-        d_in = np.minimum(radius - rho, axial) / np.float32(s)
+        zs = (origin[2] + np.arange(k_lo, k_hi) * s).astype(np.float32)
+        d_in = cyl.inside_distance(rho, zs, margin_mm).astype(np.float32) / np.float32(s)
         sub = field[i_lo:i_hi, j_lo:j_hi, k_lo:k_hi]
         cut = np.minimum(sub, -np.clip(d_in, -1.0, 1.0))
         removed += int(np.count_nonzero((sub > 0) & (cut <= 0)))
