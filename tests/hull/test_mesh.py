@@ -86,6 +86,57 @@ def test_blocked_marching_cubes_equals_one_block(potted_volume):
     assert signed_volume(small) == pytest.approx(signed_volume(one), rel=1e-6)
 
 
+def _face_set(faces: np.ndarray) -> set:
+    return {tuple(np.roll(f, -int(np.argmin(f)))) for f in faces}
+
+
+@pytest.mark.parametrize("seam", [7, 8, 15])
+def test_marching_cubes_finds_surface_on_block_seams(seam):
+    # Only blocks holding an inside sample are meshed; a block's samples reach one voxel
+    # back into the previous chunk (its cubes' low corners), so a speck sitting exactly
+    # on that seam (voxel 7 or 15 with blocks of 8) must still be found by both blocks.
+    # The unblocked call is the reference.
+    field = -np.ones((20, 17, 19), np.float32)
+    field[seam, 9, 4] = 0.7
+    field[3:6, seam:seam + 2, 16:18] = 0.4
+    one = marching_cubes(field, np.zeros(3), 1.0, block=1024)
+    small = marching_cubes(field, np.zeros(3), 1.0, block=8)
+    for centre in ([seam, 9, 4], [4, seam + 0.5, 16.5]):  # both specks are meshed
+        assert np.linalg.norm(one.vertices - centre, axis=1).min() < 1.5
+    # Same triangles (block order differs; each rolled to start at its lowest vertex,
+    # keeping its orientation).
+    assert _face_set(small.faces) == _face_set(one.faces)
+    assert np.abs(small.vertices - one.vertices).max() < 1e-5  # float32 block offsets
+    assert topology_report(small)["watertight"]
+
+
+def _edge_counts_reference(faces: np.ndarray) -> tuple[int, int, int]:
+    """Boundary, non-manifold and misoriented edge counts by ``np.unique`` (plain)."""
+    a = faces.reshape(-1)
+    b = np.roll(faces, -1, axis=1).reshape(-1)
+    directed, dcount = np.unique(np.stack([a, b], 1), axis=0, return_counts=True)
+    undirected, ucount = np.unique(np.sort(np.stack([a, b], 1), axis=1), axis=0,
+                                   return_counts=True)
+    return int(np.sum(ucount == 1)), int(np.sum(ucount > 2)), int(np.sum(dcount > 1))
+
+
+def test_topology_report_counts_edges_like_a_plain_count():
+    field = -np.ones((12, 12, 12), np.float32)
+    field[3:9, 3:9, 3:9] = 1.0
+    field[4:6, 4:6, 10] = 0.5
+    mesh = marching_cubes(field, np.zeros(3), 1.0)
+    rng = np.random.default_rng(3)
+    f = mesh.faces
+    cases = [f, f[rng.permutation(len(f))[:-7]],  # holes
+             np.concatenate([f, f[:5], f[5:9, ::-1]]),  # doubled faces, flipped copies
+             rng.integers(0, 30, (200, 3))]  # garbage
+    for faces in cases:
+        rep = topology_report(type(mesh)(mesh.vertices, faces))
+        assert (rep["boundary_edges"], rep["nonmanifold_edges"],
+                rep["misoriented_edges"]) == _edge_counts_reference(faces)
+    assert topology_report(type(mesh)(mesh.vertices, cases[2]))["nonmanifold_edges"] > 0
+
+
 def _thin_slab_field(half_x: float, half_y: float, half_t: float) -> np.ndarray:
     """Field (voxels, clamped) of a flat slab centred in a 40 x 30 x 9 grid of 1 mm voxels:
     inside, the distance to its nearest face; outside, minus the distance to the slab."""
