@@ -26,6 +26,8 @@ pot metrics
 from __future__ import annotations
 
 import json
+import os
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -59,14 +61,18 @@ def truth_views(truth_dir: Path) -> list[tuple[int, Camera, Path]]:
 
 
 def rim_points(points: np.ndarray, views: list[tuple[int, Camera, Path]]) -> np.ndarray:
-    """(N,) bool: points within ``RIM_PX`` of a silhouette boundary in some view."""
-    rim = np.zeros(len(points), dtype=bool)
+    """(N,) bool: points within ``RIM_PX`` of a silhouette boundary in some view.
+
+    Views run on a small thread pool: reading the mask PNG and its distance
+    transform (most of the time, ~0.2 s per 18 MP view) release the GIL.
+    """
     margin = int(np.ceil(RIM_PX)) + 3
-    for _, cam, mask_path in views:
+
+    def near_in(cam: Camera, mask_path: Path) -> np.ndarray:
         mask = _read_mask(mask_path)
         box = mask_box(mask)
         if box is None:
-            continue  # no boundary in this view
+            return np.zeros(0, dtype=np.int64)  # no boundary in this view
         # Only the mask's box (+ a background margin) can be within RIM_PX of its boundary:
         # the chamfer distances there equal the full image's (8x less work at 18 MP).
         r0, c0 = max(box[0].start - margin, 0), max(box[1].start - margin, 0)
@@ -77,10 +83,14 @@ def rim_points(points: np.ndarray, views: list[tuple[int, Camera, Path]]) -> np.
         h, w = sd.shape
         u = np.rint(np.nan_to_num(uv[:, 0], nan=-1)).astype(int) - c0
         v = np.rint(np.nan_to_num(uv[:, 1], nan=-1)).astype(int) - r0
-        ok = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        near = np.zeros(len(points), dtype=bool)
-        near[ok] = np.abs(sd[v[ok], u[ok]]) <= RIM_PX
-        rim |= near
+        ok = np.flatnonzero((u >= 0) & (u < w) & (v >= 0) & (v < h))
+        return ok[np.abs(sd[v[ok], u[ok]]) <= RIM_PX]
+
+    rim = np.zeros(len(points), dtype=bool)
+    workers = max(1, min(4, os.cpu_count() or 1, len(views)))
+    with ThreadPoolExecutor(workers) as pool:
+        for near in pool.map(lambda view: near_in(view[1], view[2]), views):
+            rim[near] = True
     return rim
 
 
