@@ -35,6 +35,11 @@ BOTTOM_SKIP_SLICES = 4
 SLICE_CHUNK = 32
 # A pot narrower than this (voxels) is not told apart from a stem.
 MIN_POT_RADIUS_VOXELS = 3.0
+# A disc-like run narrower than this fraction of the piece below it is the stem rising
+# from the soil, not a pot on a carrier: at 1 mm voxels a 4.7 mm stem is a run of discs
+# (it was cut away from the soil to the lowest leaf on an 18 MP 5-tilt scan).  Pots on
+# carriers stay within ~0.5-2x of each other; stems are < 0.25 of their pot's radius.
+STEM_RADIUS_FRACTION = 0.25
 
 
 class TaperedCylinder(BaseModel):
@@ -168,7 +173,12 @@ def fit_pot(volume: Volume) -> list[TaperedCylinder]:
         return []
     r_eq = np.array([stats[int(kk)].r_eq for kk in run])
     jumps = np.flatnonzero(np.abs(np.diff(r_eq)) > RADIUS_JUMP_VOXELS * s) + 1
-    pieces = [p for p in np.split(np.arange(len(run)), jumps) if len(p) >= 3]
+    pieces = []
+    for p in np.split(np.arange(len(run)), jumps):
+        if pieces and np.median(r_eq[p]) < STEM_RADIUS_FRACTION * r_eq[pieces[-1][-1]]:
+            break  # the pot's rim: the stem rises from here; above it is plant
+        if len(p) >= 3:
+            pieces.append(p)
     if not pieces:
         return []
     cylinders = []

@@ -1,0 +1,66 @@
+"""Automatic pot fit on analytic hull fields: the pot goes, the plant (stem included) stays."""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import pytest
+
+from plantscan_core.data import Volume
+from plantscan_hull.pot import fit_pot, remove_cylinders
+
+VOXEL = 1.0  # mm: the 512^3 hull of an 18 MP scan (where a stem is a run of discs)
+CARRIER = (0.0, 32.0, 60.0, 60.0)  # z bottom, z top, r bottom, r top (mm); overlaps the pot
+POT = (30.0, 150.0, 52.0, 68.0)
+STEM_R = 4.7  # mm: the virtual dicot's stem, 4.7 voxels (> MIN_POT_RADIUS_VOXELS)
+LEAF_Z = 220.0  # the lowest leaf: a flat slab
+
+
+def _cylinder(rho, z, z0, z1, r0, r1):
+    """Inside distance (mm, > 0 inside) of a vertical tapered cylinder; broadcasts."""
+    r = r0 + (z - z0) / (z1 - z0) * (r1 - r0)
+    return np.minimum(r - rho, np.minimum(z - z0, z1 - z))
+
+
+@pytest.fixture(scope="module")
+def potted_plant() -> Volume:
+    xs = np.arange(-80.0, 80.0 + VOXEL, VOXEL)
+    zs = np.arange(-5.0, 300.0, VOXEL)
+    rho = np.hypot(xs[:, None], xs[None, :])[:, :, None]
+    x = xs[:, None, None]
+    z = zs[None, None, :]
+    inside = functools.reduce(np.maximum, [
+        _cylinder(rho, z, *CARRIER),
+        _cylinder(rho, z, *POT),
+        _cylinder(rho, z, POT[1] - 10.0, 290.0, STEM_R, STEM_R),  # from the soil up
+        # a leaf leaving the stem sideways: 2 mm thick, 70 mm long, 30 mm wide
+        functools.reduce(np.minimum, [1.0 - np.abs(z - LEAF_Z), x - 0.0, 70.0 - x,
+                                      15.0 - np.abs(xs[None, :, None])]),
+    ])
+    field = np.clip(inside / VOXEL, -1.0, 1.0).astype(np.float32)
+    return Volume(field, np.array([xs[0], xs[0], zs[0]]), VOXEL)
+
+
+def test_fit_keeps_the_stem_above_the_rim(potted_plant):
+    cyl = fit_pot(potted_plant)
+    # Carrier and pot are found (2 pieces), the stem between the rim and the lowest leaf is
+    # not a third: a stem of 4.7 voxels is a run of discs too, 0.07 of the pot's radius.
+    assert len(cyl) == 2, cyl
+    carrier, pot = cyl
+    # Rim and radii to within a voxel and a half (slices are judged whole voxels).
+    assert pot.z_top_mm == pytest.approx(POT[1], abs=1.5 * VOXEL)
+    assert pot.r_top_mm == pytest.approx(POT[3], abs=1.5 * VOXEL)
+    assert carrier.r_bottom_mm == pytest.approx(CARRIER[2], abs=1.5 * VOXEL)
+
+    field, removed = remove_cylinders(potted_plant, cyl, margin_mm=2.0 * VOXEL)
+    zs = potted_plant.origin[2] + np.arange(field.shape[2]) * VOXEL
+    centre = field.shape[0] // 2
+    stem_column = field[centre, centre, :] > 0
+    above_rim = (zs > POT[1] + 3 * VOXEL) & (zs < LEAF_Z - 2 * VOXEL)
+    # Every slice of the stem from just above the rim (rim + margin + a voxel) to the leaf stays.
+    assert stem_column[above_rim].all()
+    # And the pot is gone: nothing inside below the rim less the margin.
+    below_rim = zs < POT[1] - 2 * VOXEL
+    assert not (field[:, :, below_rim] > 0).any()
+    assert removed > 0
