@@ -226,6 +226,9 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
     # a leaf label may also hold stray crumbs (left by the segmentation): measure its largest
     # connected piece
     main = _largest_piece(len(f), topo.face_pairs, np.ones(len(f), bool), mesh.face_areas())
+    # the other pieces: a blade tip the hull broke off a voxel or two from the blade may be
+    # among them (it extends the length, below)
+    detached = (v0, f[~main]) if not main.all() else None
     if not main.all():
         used, f = np.unique(f[main], return_inverse=True)
         v0, f = v0[used], f.reshape(-1, 3)
@@ -323,6 +326,23 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
         # the segmentation): the shortest path over the whole surface
         length = geo.polyline_length(mid_pts)
 
+    tip_extension_mm = 0.0
+    ext_tip = None
+    if detached is not None:
+        # beyond the tip; beyond the base too when nothing says where the leaf attaches
+        # (with a stem, a piece beyond the base is a crumb between leaf and stem)
+        ends = [(base, tip)] + ([(tip, base)] if base_hint is None else [])
+        for start, end in ends:
+            ext, ext_area, ext_end = _tip_extension(q, g_all, start, end, detached, spacing,
+                                                    sigma)
+            if ext > 0:
+                tip_extension_mm += ext
+                length += ext
+                perimeter += 2.0 * ext  # both edges of the tip
+                area += ext_area
+                if end == tip:
+                    ext_tip = ext_end
+
     # width: crest points binned in stations along the smoothed midrib
     mid_axis = _axes_at(mid_pts, keys, axes, grid, cell)
     tangent = np.gradient(mid_pts, axis=0) if len(mid_pts) > 1 else np.zeros((1, 3))
@@ -378,9 +398,71 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
     base, tip = nodes[base], nodes[tip]
 
     traits = LeafTraits(leaf_id, float(length), float(width), area, perimeter)
-    return LeafMeasurement(traits, thickness, v[base], v[tip], v[midrib_idx],
+    tip_point = v[tip] if ext_tip is None else ext_tip
+    return LeafMeasurement(traits, thickness, v[base], tip_point, v[midrib_idx],
                            {"rim_length_mm": rim_length, "outline": outline_kind,
-                            "border_length_mm": border_length})
+                            "border_length_mm": border_length,
+                            "tip_extension_mm": tip_extension_mm})
+
+
+def _tip_extension(q: np.ndarray, g: sparse.csr_matrix, base: int, tip: int,
+                   detached: tuple[np.ndarray, np.ndarray], spacing: float, sigma: float
+                   ) -> tuple[float, float, np.ndarray]:
+    """How far the leaf's other pieces carry its midrib beyond the measured tip.
+
+    Where a blade's tip is narrower than about a voxel the hull breaks it off (grasses:
+    10-25 mm pieces 0.7-2 mm from the blade); the segmentation gives such a piece to
+    its leaf (``tips_to_leaf``), and here the path graph of the main piece (``q``
+    points, graph ``g`` joining points closer than 3 ``spacing``) is extended by the
+    detached pieces' points, joined the same way.  If the point farthest from ``base``
+    then lies on a detached piece, the leaf is longer by the smoothed path to it less
+    the smoothed path to ``tip``; pieces beside the blade change nothing.
+
+    Returns the extension (mm, 0 if none), the planform area of the detached pieces
+    the path reaches (mm², their surface projected on their own sheet axis, halved: one
+    side) and the new tip point (3,).
+    """
+    from scipy.spatial import cKDTree
+
+    v_all, f_det = detached
+    used = np.unique(f_det)
+    pts = v_all[_downsample(used, v_all, spacing)]
+    n = len(q)
+    allp = np.concatenate([q, pts])
+    radius = 3.0 * spacing
+    # only the new edges (to or among detached points): the main graph is reused
+    pairs = cKDTree(allp).query_pairs(radius, output_type="ndarray")
+    pairs = pairs[pairs[:, 1] >= n]  # i < j, so every new edge has j on a detached piece
+    if not len(pairs):
+        return 0.0, 0.0, q[tip]
+    w = np.maximum(geo.row_norm(allp[pairs[:, 0]] - allp[pairs[:, 1]]), 1e-9)
+    m = len(allp)
+    g_new = sparse.csr_matrix((np.concatenate([w, w]),
+                               (np.concatenate([pairs[:, 0], pairs[:, 1]]),
+                                np.concatenate([pairs[:, 1], pairs[:, 0]]))), shape=(m, m))
+    g_old = sparse.csr_matrix((g.data, g.indices,
+                               np.concatenate([g.indptr, np.full(m - n, g.indptr[-1])])),
+                              shape=(m, m))
+    dist, pred = dijkstra(g_old + g_new, directed=True, indices=base, return_predecessors=True)
+    reach = np.isfinite(dist)
+    far = int(np.argmax(np.where(reach, dist, -1.0)))
+    if far < n:
+        return 0.0, 0.0, q[tip]
+    to_far = geo.polyline_length(geo.smooth_polyline(allp[_path(pred, far)], sigma))
+    to_tip = geo.polyline_length(geo.smooth_polyline(allp[_path(pred, tip)], sigma))
+    ext = to_far - to_tip
+    if ext <= 0:
+        return 0.0, 0.0, q[tip]
+    # area of the detached faces near a reached point
+    reached = allp[n:][reach[n:]]
+    fc = v_all[f_det].mean(axis=1)
+    near = cKDTree(reached).query(fc, distance_upper_bound=spacing)[0] < np.inf
+    fn, fa = geo.face_normals_areas(v_all, f_det[near])
+    # projected on the pieces' own sheet axis (principal axis of their normal tensor), as
+    # the leaf's area is: half the surface would count the rim and the cut faces of a piece
+    # as thick as it is narrow
+    axis = np.linalg.eigh(np.einsum("i,ij,ik->jk", fa, fn, fn))[1][:, 2]
+    return float(ext), 0.5 * float(np.sum(fa * np.abs(fn @ axis))), allp[far]
 
 
 def close_holes(v: np.ndarray, f: np.ndarray, topo: geo.MeshTopology, min_loop_mm: float

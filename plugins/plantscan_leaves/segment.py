@@ -40,6 +40,7 @@ from plantscan_leaves import geometry as geo
 log = logging.getLogger(__name__)
 
 STEM_LABEL = 0
+TIP_GAP_EDGES = 6.0  # a broken-off blade tip within this many mean mesh edges of its blade
 
 
 class CurvatureRegionsParams(StageParams):
@@ -98,6 +99,13 @@ class CurvatureRegionsParams(StageParams):
                     "not stem: they go back to the leaf they touch (grass blades fused with "
                     "their stem in the hull: 0.25); 0 disables (broad leaves: the flat parts of "
                     "their stem regions are phantom hull volume)")
+    tips_to_leaf: bool = Field(
+        False,
+        description="blade tips go to their leaf: tube regions whose only neighbour is one "
+                    "leaf, and small pieces the hull broke off within a few voxels of a leaf "
+                    "(a narrow grass tip is as thick as it is wide in the hull, so its normals "
+                    "turn all round; grasses: true; broad leaves: false, a stem top hanging "
+                    "off a leaf that grabbed the stem below it would go to the leaf)")
     ground_band_mm: float = Field(
         12.0, ge=0,
         description="leaf-like pieces lying entirely this close to the bottom of the mesh are "
@@ -257,6 +265,12 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
     # small non-tube pieces join the region they share most edges with
     if crumbs.any():
         labels = _merge_crumbs(labels, crumbs, topo.face_pairs, nlab, p.crumb_merge_rounds)
+    if p.tips_to_leaf:
+        # a broken-off tip lies within a few voxels of its blade; mesh edges are 0.5-0.8 voxel
+        edge_mm = float(np.mean(geo.row_norm(v[topo.edges[:, 0]] - v[topo.edges[:, 1]])))
+        labels, n_tips = _tips_to_leaves(labels, tube, leafy, topo.face_pairs, nlab,
+                                         centroids, TIP_GAP_EDGES * edge_mm)
+        info["tips_to_leaf"] = n_tips
     leaf_face = leafy[labels]
     stem_face = tube[labels]
     moved = np.zeros(nf, bool)
@@ -306,6 +320,15 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
             np.maximum.at(zmax, np.where(leaf_face, pieces, n_pieces), v[:, 2][f].max(axis=1))
             ground = zmax[:n_pieces] < v[:, 2].min() + p.ground_band_mm
         drop = piece_tube | ground
+        if p.tips_to_leaf:
+            # a small piece that is a mesh component of its own was given to its leaf on
+            # purpose (a broken-off blade tip, tube-like at that size): not a stem piece
+            alone = np.ones(n_pieces + 1, bool)
+            pk = np.where(leaf_face, pieces, n_pieces)
+            diff = pk[a] != pk[b]
+            alone[pk[a][diff]] = False
+            alone[pk[b][diff]] = False
+            drop &= ~(alone[:n_pieces] & small)
         if drop.any():
             info["stem_or_ground_pieces"] = int(drop.sum())
             to_stem = leaf_face & drop[np.maximum(pieces, 0)]
@@ -316,6 +339,8 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
         merged = _merge_crumbs(np.where(leaf_face, pieces, n_pieces), np.append(small, False),
                                topo.face_pairs, n_pieces + 1)
         pieces = np.where(leaf_face, merged, -1)
+        if p.tips_to_leaf:
+            pieces = _strays_to_region(pieces, small, labels, areas)
     out = np.full(nf, STEM_LABEL, np.int32)
     kinds: dict[int, str] = {}
     leaf_pieces = [r for r in range(n_pieces) if not small[r]]
@@ -444,6 +469,165 @@ def _sheets_of_stem(labels: np.ndarray, sheet_face: np.ndarray, leaf_face: np.nd
     labels = labels.copy()
     labels[back] = target[comp[back]]
     return labels, back
+
+
+def _tips_to_leaves(labels: np.ndarray, tube: np.ndarray, leafy: np.ndarray,
+                    pairs: np.ndarray, nlab: int, centroids: np.ndarray, gap: float,
+                    rounds: int = 3) -> tuple[np.ndarray, int]:
+    """Blade tips the tube test called stem, or the hull cut off, given to their leaf.
+
+    A grass blade narrows to its tip over a few centimetres; there the hull's slab is
+    about as thick as it is wide, its normals turn all round its axis, and the crease
+    where the blade bends cuts it off as a region the tube test calls stem.  Where
+    the tip is narrower than about a voxel the hull breaks it off altogether: a
+    separate mesh component a voxel or two from the blade.  A piece is a tip of leaf
+    L when it touches (or lies within ``gap`` mm of) L and nothing else, **at L's far
+    end**: at least half L's greatest distance from the stem, measured over L's
+    surface from the faces L shares with stem regions.  (A stalk's top hanging off
+    the top leaf that wraps it touches that leaf at its base; a leaf touching no stem
+    has no far end, and gets nothing.)  So
+
+    * a tube region whose only neighbour is one leaf, at its far end, joins it;
+      ``rounds`` rounds, so a tip cut into a short chain of tubes joins too;
+    * a non-leaf region with no neighbour at all (its own mesh component) whose
+      nearest leaf face lies within ``gap`` mm and at that leaf's far end joins it.
+
+    ``labels`` (F,) regions < ``nlab`` after the crumb merge; ``tube``/``leafy``
+    (nlab,) region kinds; ``centroids`` (F, 3) mm.  Returns the new labels and the
+    number of regions given to a leaf.
+    """
+    from scipy.sparse.csgraph import dijkstra
+    from scipy.spatial import cKDTree
+
+    labels = labels.copy()
+    tube = tube.copy()
+    nf = len(labels)
+    a, b = pairs[:, 0], pairs[:, 1]
+    la, lb = labels[a], labels[b]
+    # distance from the stem over each leaf's surface (face centroids, shared edges)
+    leaf_face = leafy[labels]
+    inner = leaf_face[a] & leaf_face[b] & (la == lb)
+    w = geo.row_norm(centroids[a[inner]] - centroids[b[inner]])
+    g = sparse.csr_matrix((np.concatenate([w, w]), (np.concatenate([a[inner], b[inner]]),
+                                                    np.concatenate([b[inner], a[inner]]))),
+                          shape=(nf, nf))
+    # the stem the distance starts from: tube regions less the dangling ones (one
+    # neighbour, pruned ``rounds`` times like a tree's leaves: the tips themselves);
+    # each dangling tube remembers the neighbour it hung from
+    cross = la != lb
+    uk = np.unique(np.concatenate([la[cross] * nlab + lb[cross], lb[cross] * nlab + la[cross]]))
+    r_s, r_d = uk // nlab, uk % nlab
+    pruned = np.zeros(nlab, bool)
+    parent = np.full(nlab, -1)
+    for _ in range(rounds):
+        alive = ~pruned[r_s] & ~pruned[r_d]
+        deg = np.bincount(r_s[alive], minlength=nlab)
+        dangling = tube & ~pruned & (deg == 1)
+        if not dangling.any():
+            break
+        hang = alive & dangling[r_s]
+        parent[r_s[hang]] = r_d[hang]
+        pruned |= dangling
+    stem_face = (tube & ~pruned)[labels]
+    src = np.unique(np.concatenate([a[leaf_face[a] & stem_face[b]],
+                                    b[leaf_face[b] & stem_face[a]]]))
+    if not len(src):
+        return labels, 0
+    dist = dijkstra(g, directed=True, indices=src, min_only=True)
+    ok = np.isfinite(dist) & leaf_face
+    far_end = np.zeros(nlab)
+    np.maximum.at(far_end, labels[ok], dist[ok])
+
+    def at_far_end(face: np.ndarray, leaf: np.ndarray) -> np.ndarray:
+        return np.isfinite(dist[face]) & (dist[face] >= 0.5 * far_end[leaf]) & (far_end[leaf] > 0)
+
+    # a chain of dangling tubes hanging from a leaf joins it when it hangs at the far end
+    root = parent.copy()
+    for _ in range(rounds):
+        up = (root >= 0) & pruned[np.maximum(root, 0)]
+        root[up] = parent[root[up]]
+    first = pruned & (parent >= 0) & leafy[np.maximum(parent, 0)]  # hangs from the leaf
+    # every face of the leaf touching a first link must be at the far end
+    to_leaf = first[la] & (lb == parent[la]) | first[lb] & (la == parent[lb])
+    link = np.where(first[la], la, lb)[to_leaf]
+    leaf_side = np.where(first[la], b, a)[to_leaf]
+    bad = np.zeros(nlab, bool)
+    bad[link[~at_far_end(leaf_side, labels[leaf_side])]] = True
+    good_first = first & ~bad
+    ok_chain = pruned & (root >= 0) & leafy[np.maximum(root, 0)]
+    # the link of each chain that touches the leaf: follow parents up to it
+    top = np.arange(nlab)
+    for _ in range(rounds):
+        up = pruned[top] & (parent[top] >= 0) & pruned[np.maximum(parent[top], 0)]
+        top[up] = parent[top[up]]
+    move = ok_chain & good_first[top]
+    target = np.arange(nlab)
+    target[move] = root[move]
+    moved_face = move[labels]
+    labels = target[labels]
+    dist[moved_face] = far_end[labels[moved_face]]  # a joined tip is at its leaf's far end
+    n_moved = int(np.count_nonzero(move))
+    # regions with no neighbour: their own mesh component
+    la, lb = labels[a], labels[b]
+    cross = la != lb
+    has_nbr = np.zeros(nlab, bool)
+    has_nbr[la[cross]] = True
+    has_nbr[lb[cross]] = True
+    present = np.bincount(labels, minlength=nlab) > 0
+    lonely = present & ~has_nbr & ~leafy
+    leaf_face = leafy[labels]
+    if lonely.any() and leaf_face.any():
+        cand = np.flatnonzero(lonely[labels])
+        leaf_idx = np.flatnonzero(leaf_face)
+        d, idx = cKDTree(centroids[leaf_idx]).query(centroids[cand], distance_upper_bound=gap)
+        hit = np.isfinite(d)
+        reg = labels[cand]
+        # each lonely region: its face nearest to any leaf decides
+        order = np.lexsort((d, reg))
+        first = order[np.concatenate([[True], reg[order][1:] != reg[order][:-1]])]
+        first = first[hit[first]]
+        near = leaf_idx[idx[first]]
+        good = at_far_end(near, labels[near])
+        target = np.arange(nlab)
+        target[reg[first[good]]] = labels[near[good]]
+        labels = target[labels]
+        n_moved += int(np.count_nonzero(good))
+    return labels, n_moved
+
+
+def _strays_to_region(pieces: np.ndarray, small: np.ndarray, regions: np.ndarray,
+                      areas: np.ndarray) -> np.ndarray:
+    """Small leaf pieces that no merge reached join the biggest piece of their region.
+
+    ``pieces`` (F,) leaf piece per face (-1 off leaves, P merged into the stem side),
+    ``small`` (P,) pieces below a
+    leaf's area, ``regions`` (F,) the region labels the pieces were cut from.  A piece
+    with no neighbour (a blade tip the hull broke off, given to its leaf by
+    ``_tips_to_leaves``) keeps its leaf instead of falling to the stem.
+    """
+    npc = len(small)
+    on = (pieces >= 0) & (pieces < npc)  # npc: faces merged into the stem side
+    stray = on & small[np.clip(pieces, 0, npc - 1)]
+    if not stray.any():
+        return pieces
+    big_face = on & ~stray
+    if not big_face.any():
+        return pieces
+    nreg = int(regions.max()) + 1
+    # biggest non-small piece of each region
+    key = regions[big_face] * npc + pieces[big_face]
+    uk, inv = np.unique(key, return_inverse=True)
+    area = np.bincount(inv, areas[big_face])
+    reg, pc = uk // npc, uk % npc
+    order = np.lexsort((-area, reg))
+    first = np.concatenate([[True], reg[order][1:] != reg[order][:-1]])
+    best = np.full(nreg, -1)
+    best[reg[order][first]] = pc[order][first]
+    out = pieces.copy()
+    to = best[regions[stray]]
+    idx = np.flatnonzero(stray)
+    out[idx[to >= 0]] = to[to >= 0]
+    return out
 
 
 def _split_joined_leaves(labels: np.ndarray, crease: np.ndarray, areas: np.ndarray,

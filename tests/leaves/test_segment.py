@@ -243,3 +243,34 @@ def test_thick_stem_grown_into_a_leaf_goes_back_to_the_stem():
     petiole_spread = _neighbourhood_spread(centroids, normals, areas, p.petiole_scale_mm)
     tubeish = petiole_spread > p.petiole_tube_ratio
     assert np.sum(areas[tubeish & is_stem]) < 0.6 * np.sum(areas[is_stem])
+
+
+def test_blade_tips_go_to_their_leaf_a_stalk_top_does_not():
+    # faces on a line (x mm): leaf A (x -10..-3), stem (-2, -1), leaf B (0..19) with a
+    # two-face tube region at its far end (x 20, 21: a grass tip the tube test called stem),
+    # a tube hanging off B's base (a stalk top wrapped by the top leaf), and two pieces with
+    # no neighbour: one 2 mm past the tip (broken off by the hull), one 2 mm beside B's base
+    from plantscan_leaves.segment import _tips_to_leaves
+
+    xs = list(range(-10, -2)) + [-2, -1] + list(range(0, 20)) + [20, 21]
+    region = [6] * 8 + [0] * 2 + [1] * 20 + [2] * 2
+    centroids = [(x, 0.0, 0.0) for x in xs] + [(0.0, 2.0, 0.0), (23.0, 0.0, 0.0),
+                                                (1.0, 2.0, 0.0)]
+    region += [3, 4, 5]
+    n_line = len(xs)
+    pairs = [(i, i + 1) for i in range(n_line - 1)] + [(n_line, 10)]  # stalk top -- B's face 0
+    labels = np.array(region)
+    tube = np.array([True, False, True, True, False, False, False])
+    leafy = np.array([False, True, False, False, False, False, True])
+    out, n = _tips_to_leaves(labels, tube, leafy, np.array(pairs), 7, np.array(centroids),
+                             gap=3.0)
+    assert out[n_line - 2:n_line].tolist() == [1, 1]  # the tip tube joined B
+    assert out[n_line + 1] == 1  # the broken-off piece past the tip joined B
+    assert out[n_line] == 3  # the stalk top at B's base stays a tube (stem)
+    assert out[n_line + 2] == 5  # the piece beside B's base is no tip
+    assert out[8:10].tolist() == [0, 0] and n == 2
+    # a piece farther than the gap stays where it was
+    far = np.array(centroids)
+    far[n_line + 1] = (26.0, 0.0, 0.0)
+    out, _ = _tips_to_leaves(labels, tube, leafy, np.array(pairs), 7, far, gap=3.0)
+    assert out[n_line + 1] == 4

@@ -19,7 +19,9 @@ from plantscan_leaves.measure import measure_plant  # noqa: E402
 from plantscan_leaves.segment import CurvatureRegionsParams, segment_leaves  # noqa: E402
 
 # the grass settings of docs/leaves.md (blades fused with their stem, chains of crumbs)
-GRASS = CurvatureRegionsParams(stem_sheet_ratio=0.25, crumb_merge_rounds=20)
+# the grass recipes' segmentation parameters (recipes/wheat.yaml, recipes/sorghum.yaml)
+GRASS = CurvatureRegionsParams(stem_sheet_ratio=0.25, crumb_merge_rounds=20, stem_scale_mm=None,
+                               tips_to_leaf=True)
 
 
 def _run(preset: str, seed: int = 1, params: CurvatureRegionsParams | None = None):
