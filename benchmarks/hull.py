@@ -2,6 +2,8 @@
 
     python benchmarks/hull.py [--views 360] [--size 1500x1000] [--res 128,256,512]
     python benchmarks/hull.py --run-masks RUN --scan SCAN [--baseline REV]   # memory
+    python benchmarks/hull.py --mesh FIELD.npz[,FIELD2.npz] [--baseline REV]   # mesher
+    python benchmarks/hull.py --prep-band   # per-view preparation, banded idea
 
 The second form measures the ``octree-hull`` reconstructor on the masks of a
 processing run (``RUN/masks``, ``RUN/calibration.yaml``, the plant views of
@@ -217,6 +219,172 @@ def prep_full_size(n: int = 24) -> dict:
             "table_mb_per_view": float(np.mean([v.sd.nbytes for v in views]) / 2**20)}
 
 
+def _region_masks(n: int = 8) -> list[np.ndarray]:
+    """The tables' regions of interest (mask box + margin) of ``n`` 3000 x 2000 views."""
+    from plantscan_hull.views import _checked_region
+
+    sils, cal = load_scene(make_scene(24, (3000, 2000)))
+    out = []
+    for s in list(sils)[:n]:
+        _, (u0, v0, u1, v1) = _checked_region(s, cal.camera_for_view(s.view))
+        region = np.zeros((v1 - v0, u1 - u0), bool)
+        ch, cw = s.crop.shape
+        region[s.v0 - v0:s.v0 - v0 + ch, s.u0 - u0:s.u0 - u0 + cw] = s.crop
+        out.append(region)
+    return out
+
+
+def _banded_table(region: np.ndarray, out: np.ndarray, band_px: float) -> np.ndarray:
+    """The banded idea of issue #6 (evaluated, not adopted): the exact 5x5 chamfer of
+    the inverse mask only within ~2 ``band_px`` of the plant, a conservative bound beyond.
+
+    Blocks of 4 x 4 px with a plant pixel seed a coarse chamfer transform ``dc``
+    (block units); ``L = 0.98 (4 dc / 1.02 - 3 sqrt(2))`` px bounds every pixel's
+    distance from below (chamfer within 2 % of Euclidean, 3 sqrt(2) px of offsets within
+    the two blocks), ``U = 1.02 (4 dc / 0.98 + 3 sqrt(2))`` from above.  Pixels with
+    ``L >= 2.083 band + 9.83`` become seeds of the fine transform (its cost follows
+    the nonzero pixels): every pixel with ``L < band`` has ``U <= 1.083 band + 8.83``, so
+    such seeds are more than ``band`` away from it and its value is exact when below
+    ``band``.  Blocks without a plant pixel then take ``min(table, 16 - 32 L)``.
+    """
+    import cv2
+    from plantscan_hull.views import _scratch_buffers
+
+    s = 4
+    h, w = region.shape
+    hp, wp = -(-h // s) * s, -(-w // s) * s
+    padded = _scratch_buffers((hp, wp))[2]  # the tables' per-thread buffers
+    d_in, d_out, _, inv = _scratch_buffers((h, w))  # contiguous (h, w) views of the same
+    padded[h:] = 0
+    padded[:h, w:] = 0
+    np.copyto(padded[:h, :w], region, casting="unsafe")
+    m = padded[:h, :w]
+    words = padded.view(np.uint32)  # one word = 4 pixels of a row
+    coarse = (words[0::4] | words[1::4] | words[2::4] | words[3::4]) != 0
+    dc = cv2.distanceTransform((~coarse).view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
+    lower = np.maximum(0.98 * (s * dc / 1.02 - (s - 1) * np.sqrt(2)), 0)
+    bound = np.where(coarse, 32767, np.clip(np.rint(16 - 32 * lower), -32768, 32767))
+    bound_up = cv2.resize(bound.astype(np.int16), (wp, hp),
+                          interpolation=cv2.INTER_NEAREST)[:h, :w]
+    far = cv2.compare(bound_up, int(np.rint(16 - 32 * (2.083 * band_px + 9.83))),
+                      cv2.CMP_LE)
+    cv2.bitwise_or(m, far, dst=inv)
+    cv2.compare(inv, 0, cv2.CMP_EQ, dst=inv)  # 0 on the plant and on the far seeds
+    cv2.distanceTransform(m, cv2.DIST_L2, cv2.DIST_MASK_5, dst=d_in)
+    cv2.distanceTransform(inv, cv2.DIST_L2, cv2.DIST_MASK_5, dst=d_out)
+    cv2.subtract(d_in, m, dst=d_in, dtype=cv2.CV_32F)
+    cv2.addWeighted(d_in, 32.0, d_out, -32.0, 16.0, dst=out, dtype=cv2.CV_16S)
+    cv2.min(out, bound_up, dst=out)
+    return out
+
+
+def prep_band(band_px: float = 24.0, rounds: int = 3) -> dict:
+    """Per-view table at 3000 x 2000: the tables' own code vs the banded idea, one process.
+
+    Single-threaded, outputs already written once (no first-touch page faults, which
+    ``prepare_views`` pays on its fresh buffer and ``prep_full_size`` measures), best of
+    ``rounds`` alternating rounds.  Also checks the banded table: equal to the exact one
+    wherever the exact one is within ``band_px`` of the outline, closer to 0 (never
+    beyond it) elsewhere, and at least ``band_px - 0.5`` px out there.
+    """
+    import cv2
+    from plantscan_hull.views import signed_distance_table
+
+    regions = _region_masks()
+    outs = [np.empty(r.shape, np.int16) for r in regions]
+    checks = []
+    for r, o in zip(regions, outs, strict=True):
+        exact = signed_distance_table(r).astype(np.int32)
+        banded = _banded_table(r, o, band_px).astype(np.int32)
+        near = exact > -32 * (band_px - 0.5)
+        checks.append(bool(np.array_equal(exact[near], banded[near])
+                           and np.all(banded[~near] >= exact[~near])
+                           and np.all(banded[~near] <= -32 * (band_px - 0.5) + 1)))
+
+    def cpu_ms(fn) -> float:
+        c = time.process_time()
+        for r, o in zip(regions, outs, strict=True):
+            fn(r, o)
+        return 1000 * (time.process_time() - c) / len(regions)
+
+    parts = {"dt_mask": lambda r, o: cv2.distanceTransform(r.view(np.uint8), cv2.DIST_L2, 5),
+             "dt_inverse": lambda r, o: cv2.distanceTransform(r.view(np.uint8) ^ 1,
+                                                              cv2.DIST_L2, 5)}
+    best = {"exact": np.inf, "banded": np.inf, **{k: np.inf for k in parts}}
+    for _ in range(rounds):
+        best["exact"] = min(best["exact"], cpu_ms(lambda r, o: signed_distance_table(r, o)))
+        best["banded"] = min(best["banded"], cpu_ms(lambda r, o: _banded_table(r, o, band_px)))
+        for k, fn in parts.items():
+            best[k] = min(best[k], cpu_ms(fn))
+    return {"band_px": band_px, "views": len(regions), "checks_ok": all(checks),
+            "roi_mp": float(np.mean([r.size for r in regions]) / 1e6),
+            **{f"{k}_cpu_ms": round(v, 2) for k, v in best.items()}}
+
+
+def mesh_case(field_path: Path, repeats: int = 5) -> dict:
+    """``marching-cubes`` (pot auto) on a saved field: best CPU / wall of ``repeats`` runs,
+    JIT warm, and a digest of the mesh (same digest = same mesh to the bit)."""
+    import hashlib
+
+    from plantscan_hull import kernels
+    from plantscan_hull.stages import MarchingCubesMesher
+
+    from plantscan_core.data import Volume
+
+    with np.load(field_path) as z:
+        field = np.ascontiguousarray(z["field"], dtype=np.float32)
+        origin, voxel = np.asarray(z["origin"], float), float(z["voxel_size"])
+    if kernels.HAVE_NUMBA:  # compiled once, loaded from numba's cache: not the mesher's time
+        kernels.component_sizes(np.array([0, 1, 5], np.int64), (4, 4, 4))
+        kernels.nonmanifold_vertices(np.array([[0, 1, 2]], np.int64), 3)
+    mesher = MarchingCubesMesher(MarchingCubesMesher.Params(pot="auto"))
+    walls, cpus = [], []
+    for _ in range(repeats):
+        vol = Volume(field.copy(), origin, voxel)
+        t0, c0 = time.perf_counter(), time.process_time()
+        mesh = mesher.mesh(vol)
+        walls.append(time.perf_counter() - t0)
+        cpus.append(time.process_time() - c0)
+    digest = hashlib.sha1(np.ascontiguousarray(mesh.vertices).tobytes()
+                          + np.ascontiguousarray(mesh.faces, dtype=np.int64).tobytes())
+    return {"field": str(field_path), "grid": list(field.shape), "mesh_s": min(walls),
+            "mesh_cpu_s": min(cpus), "faces": len(mesh.faces), "digest": digest.hexdigest()[:12],
+            "pot": len(mesher.last_report["pot"]),
+            "watertight": mesher.last_report["topology"]["watertight"]}
+
+
+def mesh_main(args) -> int:
+    """Each revision's mesher (``--baseline`` first, then this tree) in its own process,
+    alternating for two rounds, on each field of ``--mesh``."""
+    revisions = [("now", None)]
+    if args.baseline:
+        revisions.insert(0, (args.baseline, _extract(args.baseline)))
+    rows = []
+    for field in args.mesh.split(","):
+        for rnd in (1, 2):
+            for label, plugins in revisions:
+                cmd = [sys.executable, __file__, "--mesh", field, "--case", "mesh"]
+                if plugins:
+                    cmd += ["--plugins", str(plugins)]
+                proc = subprocess.run(cmd, capture_output=True, text=True)
+                if proc.returncode != 0:
+                    print(f"{label} {field}: failed\n{proc.stderr[-2000:]}", file=sys.stderr)
+                    continue
+                row = json.loads(proc.stdout.strip().splitlines()[-1])
+                row.update(revision=label, round=rnd, load=round(os.getloadavg()[0], 1))
+                rows.append(row)
+                print(json.dumps(row), flush=True)
+    print("\n| field | grid | revision | round (load) | mesh + pot s CPU | s wall | faces "
+          "| pot | watertight | mesh digest |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {Path(r['field']).parent.name}/{Path(r['field']).name} | "
+              f"{'x'.join(map(str, r['grid']))} | {r['revision']} | {r['round']} ({r['load']}) "
+              f"| {r['mesh_cpu_s']:.2f} | {r['mesh_s']:.2f} | {r['faces']} | {r['pot']} | "
+              f"{r['watertight']} | {r['digest']} |")
+    return 0
+
+
 # --------------------------------------------------------------------------- run masks
 def _rss_mb() -> float:
     with open("/proc/self/status") as f:
@@ -377,7 +545,21 @@ def main() -> int:
                     help="a processing run folder (masks/, calibration.yaml): memory case")
     ap.add_argument("--scan", type=Path, help="the scan folder of --run-masks (views.jsonl)")
     ap.add_argument("--reduce", type=int, default=2, help="segment.reduce of --run-masks")
+    ap.add_argument("--mesh", help="saved field(s) (.npz with field, origin, voxel_size), "
+                    "comma-separated: the mesher alone, before/after")
+    ap.add_argument("--prep-band", action="store_true",
+                    help="per-view preparation: tables vs the banded idea")
     args = ap.parse_args()
+    if args.mesh:
+        if args.case:
+            if args.plugins:
+                sys.path.insert(0, args.plugins)
+            print(json.dumps(mesh_case(Path(args.mesh))))
+            return 0
+        return mesh_main(args)
+    if args.prep_band:
+        print(json.dumps(prep_band()))
+        return 0
     if args.run_masks:
         if args.case:
             if args.plugins:

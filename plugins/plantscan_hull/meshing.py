@@ -275,11 +275,18 @@ def topology_report(mesh: Mesh) -> dict:
                 "nonmanifold_vertices": 0, "degenerate_faces": 0, "watertight": False,
                 "manifold": False}
     n = np.int64(max(len(mesh.vertices), 1))
-    a, b = (np.concatenate([f[:, 0], f[:, 1], f[:, 2]]).astype(np.int64),
-            np.concatenate([f[:, 1], f[:, 2], f[:, 0]]).astype(np.int64))
+    a = np.ascontiguousarray(f.T, dtype=np.int64).reshape(-1)  # edge (a, b) of each face
+    b = np.roll(a.reshape(3, -1), -1, axis=0).reshape(-1)
     # One sorted int64 key per directed edge: the undirected edge, then its direction.
     # Stable (radix/tim) sort: marching-cubes order is nearly sorted, 2x faster than quicksort.
-    keys = np.sort((np.minimum(a, b) * n + np.maximum(a, b)) * 2 + (a < b), kind="stable")
+    # In place: each 3F-long temporary of a 3 M-face mesh is 76 MB of fresh pages.
+    keys = np.minimum(a, b)
+    keys *= n
+    keys += np.maximum(a, b)
+    keys *= 2
+    keys += a < b
+    del a, b
+    keys.sort(kind="stable")
     # Runs of equal keys counted with boolean masks (no index or count arrays): an
     # undirected edge's run starts where its key changes; it is one face long when the
     # next key differs too, more than two when the next two keys equal it.
