@@ -24,6 +24,7 @@ over the angle, then ICP) and reported as ``frame_alignment``.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
@@ -174,6 +175,7 @@ def evaluate_traits(run_dir: Path, truth_dir: Path) -> dict[str, Any] | None:
         raise DataError(f"{run_dir} / {truth_dir}: cannot read leaves or truth ({exc})") from exc
     m = match_leaves(labelled, tv, tf, tid)
     errs = trait_errors(truth, measured, m["pairs"])
+    plant = plant_errors(run_dir / "plant_traits.json", truth_dir / "plant_traits.json")
     return {
         "traits": {
             "mean_relative_error": errs["mean_relative_error"],
@@ -186,5 +188,29 @@ def evaluate_traits(run_dir: Path, truth_dir: Path) -> dict[str, Any] | None:
             **({"frame_alignment": m["frame_alignment"]} if "frame_alignment" in m else {}),
             "pairs": [{"truth_id": t, "measured_id": mm, "cover": c} for t, mm, c in m["pairs"]],
             "per_leaf": errs["per_leaf"],
+            **({"plant": plant} if plant else {}),
         }
     }
+
+
+PLANT_TRAITS = ("height_mm", "total_leaf_area_mm2", "leaf_count")
+
+
+def plant_errors(measured_path: Path, truth_path: Path) -> dict[str, Any] | None:
+    """Plant-level traits against the truth: measured, truth and relative error of each.
+
+    The truth's height is from the soil; a hull cannot see the soil inside an
+    opaque pot, so the measured height (the mesh's vertical extent) starts at
+    the pot cut, at the rim: expect it short by the soil's depth below the rim.
+    """
+    try:
+        measured = json.loads(measured_path.read_text())
+        truth = json.loads(truth_path.read_text())
+    except (OSError, ValueError):
+        return None
+    out: dict[str, Any] = {}
+    for name in PLANT_TRAITS:
+        if name in measured and name in truth and truth[name]:
+            out[name] = {"measured": measured[name], "truth": truth[name],
+                         "relative_error": (measured[name] - truth[name]) / truth[name]}
+    return out or None
