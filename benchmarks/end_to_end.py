@@ -82,9 +82,14 @@ def run_one(scan: Path, out: Path, overrides: list[str],
         "errors": traits.get("mean_relative_error", {}),
         "leaves": (traits.get("leaves_found"), traits.get("leaves_truth"),
                    traits.get("leaves_merged")),
+        "height_error": traits.get("plant", {}).get("height_mm", {}).get("relative_error"),
         "silhouettes": metrics.get("silhouettes", {}),
         "profile": proc.stdout,
     }
+
+
+def _pct(x):
+    return None if x is None else 100 * x
 
 
 def _fmt(x, nd=1):
@@ -93,7 +98,8 @@ def _fmt(x, nd=1):
 
 def table(scan: Path, results: dict[str, dict]) -> str:
     head = ("| config | " + " | ".join(STAGES) + " | export | process total | command wall "
-            "| CPU | peak RSS MB | leaves (found/truth, merged) | ε L / W / A / P % |")
+            "| CPU | peak RSS MB | leaves (found/truth, merged) | ε L / W / A / P % "
+            "| height % (from the rim) |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for name, r in results.items():
         stages = " | ".join(f"{_fmt(r['stages_wall'][s])} ({_fmt(r['stages_cpu'][s])})"
@@ -104,7 +110,8 @@ def table(scan: Path, results: dict[str, dict]) -> str:
         found, truth, merged = r["leaves"]
         lines.append(f"| {name} | {stages} | {_fmt(r['export_s'])} | {_fmt(r['process_total_s'])} "
                      f"| {_fmt(r['wall_s'])} | {_fmt(r['cpu_s'])} | {_fmt(r['peak_rss_mb'], 0)} "
-                     f"| {found}/{truth}, {merged} | {errs} |")
+                     f"| {found}/{truth}, {merged} | {errs} "
+                     f"| {_fmt(_pct(r.get('height_error')), 1)} |")
     return "\n".join(lines)
 
 
