@@ -363,14 +363,9 @@ def mesh_main(args) -> int:
     for field in args.mesh.split(","):
         for rnd in (1, 2):
             for label, plugins in revisions:
-                cmd = [sys.executable, __file__, "--mesh", field, "--case", "mesh"]
-                if plugins:
-                    cmd += ["--plugins", str(plugins)]
-                proc = subprocess.run(cmd, capture_output=True, text=True)
-                if proc.returncode != 0:
-                    print(f"{label} {field}: failed\n{proc.stderr[-2000:]}", file=sys.stderr)
+                row = _run_child(["--mesh", field, "--case", "mesh"], plugins, f"{label} {field}")
+                if row is None:
                     continue
-                row = json.loads(proc.stdout.strip().splitlines()[-1])
                 row.update(revision=label, round=rnd, load=round(os.getloadavg()[0], 1))
                 rows.append(row)
                 print(json.dumps(row), flush=True)
@@ -486,16 +481,11 @@ def run_masks_main(args) -> int:
         plugin_dirs.insert(0, (args.baseline, _extract(args.baseline)))
     for label, plugins in plugin_dirs:
         for res in [r for r in args.res.split(",") if r]:
-            cmd = [sys.executable, __file__, "--run-masks", str(args.run_masks), "--scan",
-                   str(args.scan), "--reduce", str(args.reduce), "--k", str(args.k),
-                   "--case", f"masks:{res}"]
-            if plugins:
-                cmd += ["--plugins", str(plugins)]
-            proc = subprocess.run(cmd, capture_output=True, text=True)
-            if proc.returncode != 0:
-                print(f"{label} {res}: failed\n{proc.stderr[-2000:]}", file=sys.stderr)
+            row = _run_child(["--run-masks", str(args.run_masks), "--scan", str(args.scan),
+                              "--reduce", str(args.reduce), "--k", str(args.k),
+                              "--case", f"masks:{res}"], plugins, f"{label} {res}")
+            if row is None:
                 continue
-            row = json.loads(proc.stdout.strip().splitlines()[-1])
             row["revision"] = label
             rows.append(row)
             print(json.dumps(row), flush=True)
@@ -513,6 +503,17 @@ def run_masks_main(args) -> int:
               f"{r['cell_view_tests']:.3g} | {r['inside']} | {r['tables_mb']:.0f} | "
               f"{r['masks_mb']:.0f} | {r['peak_rss_mb']:.0f} ({phase}) |")
     return 0
+
+
+def _run_child(args: list[str], plugins: Path | None, label: str) -> dict | None:
+    """This script with ``args`` in a new process (``plugins``: a revision's plugin dir);
+    its last stdout line as JSON, or None (its stderr printed) when it failed."""
+    cmd = [sys.executable, __file__, *args] + (["--plugins", str(plugins)] if plugins else [])
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        print(f"{label}: failed\n{proc.stderr[-2000:]}", file=sys.stderr)
+        return None
+    return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
 def _extract(rev: str) -> Path:

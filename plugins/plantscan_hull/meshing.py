@@ -287,17 +287,22 @@ def topology_report(mesh: Mesh) -> dict:
     keys += a < b
     del a, b
     keys.sort(kind="stable")
-    # Runs of equal keys counted with boolean masks (no index or count arrays): an
-    # undirected edge's run starts where its key changes; it is one face long when the
-    # next key differs too, more than two when the next two keys equal it.
-    same = (keys[1:] >> 1) == (keys[:-1] >> 1)
-    starts = np.concatenate([[True], ~same])
-    nxt = np.concatenate([same, [False]])
-    nxt2 = np.concatenate([same[1:], [False, False]])
-    dsame = keys[1:] == keys[:-1]
-    boundary = int(np.count_nonzero(starts & ~nxt))
-    nonmanifold = int(np.count_nonzero(starts & nxt & nxt2))
-    misoriented = int(np.count_nonzero(dsame & np.concatenate([[True], ~dsame[:-1]])))
+    # Runs of equal keys counted with boolean masks (no index or count arrays): keys i and
+    # i + 1 are the same undirected edge when they differ in the direction bit at most.
+    # A run starts where the edge changes; it is one face long when the next key differs
+    # too, more than two long when the next two keys equal it.
+    step = keys[1:] ^ keys[:-1]
+    same = step < 2
+    dsame = step == 0
+    del step
+    if same.size > 1:
+        boundary = int(np.count_nonzero(~(same[:-1] | same[1:]))) + int(not same[0]) + int(
+            not same[-1])
+        nonmanifold = int(np.count_nonzero(~same[:-2] & same[1:-1] & same[2:])) + int(
+            same[0] and same[1])
+        misoriented = int(np.count_nonzero(dsame[1:] & ~dsame[:-1])) + int(dsame[0])
+    else:  # pragma: no cover - a single face has 3 distinct edges
+        boundary, nonmanifold, misoriented = keys.size, 0, 0
     degenerate = int(np.sum((f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])))
     from plantscan_hull import kernels
 
