@@ -99,6 +99,11 @@ class CurvatureRegionsParams(StageParams):
                     "not stem: they go back to the leaf they touch (grass blades fused with "
                     "their stem in the hull: 0.25); 0 disables (broad leaves: the flat parts of "
                     "their stem regions are phantom hull volume)")
+    petiole_within_leaf: bool = Field(
+        False,
+        description="the petiole test takes tube-like parts of one leaf region at a time "
+                    "(grasses: true; crossing blades' tube-like patches otherwise join into "
+                    "one part that touches the stem somewhere and goes whole)")
     tips_to_leaf: bool = Field(
         False,
         description="blade tips go to their leaf: tube regions whose only neighbour is one "
@@ -286,7 +291,8 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
         stem_face &= ~recovered
     if p.petiole_tube_ratio < 1:
         moved = _petioles_to_stem(spread, topo.face_pairs, leaf_face, stem_face, areas,
-                                  p.petiole_tube_ratio, p.min_leaf_area_mm2)
+                                  p.petiole_tube_ratio, p.min_leaf_area_mm2,
+                                  labels if p.petiole_within_leaf else None)
         if p.stem_scale_mm is not None:
             # after the petiole test, not before: run against the recovered stem, the petiole
             # test cuts further into blade bases the hull has fattened into rods
@@ -365,8 +371,8 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
 
 
 def _petioles_to_stem(spread: np.ndarray, pairs: np.ndarray, leaf_face: np.ndarray,
-                      stem_face: np.ndarray, areas: np.ndarray, ratio: float, min_area: float
-                      ) -> np.ndarray:
+                      stem_face: np.ndarray, areas: np.ndarray, ratio: float, min_area: float,
+                      labels: np.ndarray | None = None) -> np.ndarray:
     """Faces of leaf regions that belong to tubes touching the stem (petioles, stem tops).
 
     A petiole meets its blade without a concave crease (the blade narrows into
@@ -380,7 +386,8 @@ def _petioles_to_stem(spread: np.ndarray, pairs: np.ndarray, leaf_face: np.ndarr
     tube_face = (spread > ratio) & leaf_face
     if not tube_face.any():
         return tube_face
-    comp = _regions_of(len(leaf_face), pairs, tube_face)
+    within = pairs if labels is None else pairs[labels[pairs[:, 0]] == labels[pairs[:, 1]]]
+    comp = _regions_of(len(leaf_face), within, tube_face)  # tube-like parts
     a, b = pairs[:, 0], pairs[:, 1]
     touch = np.zeros(int(comp.max()) + 1, bool)
     touch[comp[a[(comp[a] >= 0) & stem_face[b]]]] = True

@@ -274,3 +274,21 @@ def test_blade_tips_go_to_their_leaf_a_stalk_top_does_not():
     far[n_line + 1] = (26.0, 0.0, 0.0)
     out, _ = _tips_to_leaves(labels, tube, leafy, np.array(pairs), 7, far, gap=3.0)
     assert out[n_line + 1] == 4
+
+
+def test_petiole_test_within_one_leaf():
+    # faces in a row: stem (0), leaf A's tube-like faces (1, 2), leaf B's tube-like faces (3, 4)
+    # touching A's (crossing blades), B's flat face (5). A's tube-like part touches the stem
+    # and is a petiole; B's touches only A. Joined across leaves, B's part went to the stem too.
+    from plantscan_leaves.segment import _petioles_to_stem
+
+    spread = np.array([0.9, 0.9, 0.9, 0.9, 0.9, 0.1])
+    pairs = np.array([[0, 1], [1, 2], [2, 3], [3, 4], [4, 5]])
+    leaf_face = np.array([False, True, True, True, True, True])
+    stem_face = ~leaf_face
+    areas = np.ones(6)
+    labels = np.array([0, 1, 1, 2, 2, 2])
+    across = _petioles_to_stem(spread, pairs, leaf_face, stem_face, areas, 0.45, 100.0)
+    assert across.tolist() == [False, True, True, True, True, False]
+    within = _petioles_to_stem(spread, pairs, leaf_face, stem_face, areas, 0.45, 100.0, labels)
+    assert within.tolist() == [False, True, True, False, False, False]

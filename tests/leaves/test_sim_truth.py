@@ -21,7 +21,7 @@ from plantscan_leaves.segment import CurvatureRegionsParams, segment_leaves  # n
 # the grass settings of docs/leaves.md (blades fused with their stem, chains of crumbs)
 # the grass recipes' segmentation parameters (recipes/wheat.yaml, recipes/sorghum.yaml)
 GRASS = CurvatureRegionsParams(stem_sheet_ratio=0.25, crumb_merge_rounds=20, stem_scale_mm=None,
-                               tips_to_leaf=True)
+                               tips_to_leaf=True, petiole_within_leaf=True)
 
 
 def _run(preset: str, seed: int = 1, params: CurvatureRegionsParams | None = None):
