@@ -8,7 +8,12 @@ from hull_phantoms import Box, Cylinder, Sphere, render, ring_calibration, views
 from plantscan_hull import kernels
 from plantscan_hull.bbox import BoundingBoxError
 from plantscan_hull.carve import Grid, carve_dense, carve_octree
-from plantscan_hull.meshing import marching_cubes, signed_volume, topology_report
+from plantscan_hull.meshing import (
+    inside_indices,
+    marching_cubes,
+    signed_volume,
+    topology_report,
+)
 from plantscan_hull.pot import TaperedCylinder, fit_pot
 from plantscan_hull.stages import DenseHull, MarchingCubesMesher, OctreeHull
 from plantscan_hull.views import prepare_views
@@ -217,6 +222,12 @@ def test_small_components_are_dropped():
 
 
 @pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba not installed")
+@pytest.mark.parametrize("slab", [1, 30, 1 << 23])
+def test_inside_indices_slab_by_slab_equal_flatnonzero(slab):
+    field = np.random.default_rng(4).uniform(-1, 1, (9, 5, 6)).astype(np.float32)
+    assert np.array_equal(inside_indices(field, slab), np.flatnonzero(field > 0))
+
+
 def test_compiled_component_sizes_match_scipy():
     from plantscan_hull.meshing import _component_sizes_scipy
     from scipy import ndimage
