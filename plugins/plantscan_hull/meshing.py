@@ -26,8 +26,8 @@ def inside_indices(field: np.ndarray, slab_voxels: int = 1 << 23) -> np.ndarray:
                            for x in range(0, field.shape[0], step)] or [np.zeros(0, np.int64)])
 
 
-def drop_small_components(field: np.ndarray, min_voxels: int,
-                          in_place: bool = False) -> tuple[np.ndarray, int]:
+def drop_small_components(field: np.ndarray, min_voxels: int, in_place: bool = False,
+                          undo: list | None = None) -> tuple[np.ndarray, int]:
     """Set inside components smaller than ``min_voxels`` (26-connected) to outside.
 
     Works on the inside voxels only (the cost follows the hull, not the grid):
@@ -36,6 +36,8 @@ def drop_small_components(field: np.ndarray, min_voxels: int,
 
     Returns the field (``field`` itself when ``in_place`` or nothing was
     dropped, else a modified copy) and the number of components dropped.
+    With ``in_place`` and ``undo`` (a list), the dropped voxels' flat indices
+    and former values are appended to ``undo`` (see :func:`restore`).
     """
     from plantscan_hull import kernels
 
@@ -54,8 +56,23 @@ def drop_small_components(field: np.ndarray, min_voxels: int,
     # Each component of size s contributes s voxels of size s.
     dropped = int(np.sum(1.0 / sizes[small]).round())
     out = field if in_place else field.copy()
-    out.reshape(-1)[idx[small]] = -1.0
+    flat = out.reshape(-1)
+    if in_place and undo is not None:
+        undo.append((idx[small], flat[idx[small]]))
+    flat[idx[small]] = -1.0
     return out, dropped
+
+
+def restore(field: np.ndarray, undo: list) -> None:
+    """Undo in-place edits of ``field``, last first: ``undo`` holds ``(box, values)``
+    (``box`` a tuple of slices) or ``(flat indices, values)`` pairs."""
+    flat = field.reshape(-1)
+    for where, values in reversed(undo):
+        if isinstance(where, tuple):
+            field[where] = values
+        else:
+            flat[where] = values
+    undo.clear()
 
 
 def _component_sizes_scipy(idx: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:

@@ -208,21 +208,27 @@ def fit_pot(volume: Volume) -> list[TaperedCylinder]:
 
 
 def remove_cylinders(volume: Volume, cylinders: list[TaperedCylinder],
-                     margin_mm: float) -> tuple[np.ndarray, int]:
+                     margin_mm: float, undo: list | None = None) -> tuple[np.ndarray, int]:
     """Field with ``cylinders`` (grown by ``margin_mm``) subtracted; and voxels removed.
 
     ``margin_mm`` is the full margin; callers add a voxel to it because the
-    hull's rim is only known to a voxel.
+    hull's rim is only known to a voxel.  With ``undo`` (a list) the volume's
+    own field is changed in place and each changed sub-box's former values are
+    appended to ``undo`` (``meshing.restore`` puts them back): no copy of the
+    grid (411 MB of fresh pages at 512^3, 0.3-1.2 s of page faults).
 
     Returns
     -------
-    field : (NX, NY, NZ) float32 array, voxels (a new array; the volume's own
-        when ``cylinders`` is empty)
+    field : (NX, NY, NZ) float32 array, voxels (a new array, or the volume's own
+        when ``cylinders`` is empty or ``undo`` is given)
     removed : int, voxels that were inside and are now outside
     """
     if not cylinders:
         return volume.field, 0  # nothing to subtract: no copy of a possibly large grid
-    field = np.array(volume.field, dtype=np.float32, copy=True)
+    if undo is None:
+        field = np.array(volume.field, dtype=np.float32, copy=True)
+    else:
+        field = volume.field
     s = float(volume.voxel_size)
     origin = np.asarray(volume.origin, dtype=float)
     removed = 0
@@ -246,8 +252,11 @@ def remove_cylinders(volume: Volume, cylinders: list[TaperedCylinder],
         rho = np.hypot(xs[:, None], ys[None, :])[:, :, None]
         zs = (origin[2] + np.arange(k_lo, k_hi) * s).astype(np.float32)
         d_in = cyl.inside_distance(rho, zs, margin_mm).astype(np.float32) / np.float32(s)
-        sub = field[i_lo:i_hi, j_lo:j_hi, k_lo:k_hi]
+        box = (slice(i_lo, i_hi), slice(j_lo, j_hi), slice(k_lo, k_hi))
+        sub = field[box]
         cut = np.minimum(sub, -np.clip(d_in, -1.0, 1.0))
         removed += int(np.count_nonzero((sub > 0) & (cut <= 0)))
-        field[i_lo:i_hi, j_lo:j_hi, k_lo:k_hi] = cut
+        if undo is not None:
+            undo.append((box, sub.copy()))
+        field[box] = cut
     return field, removed

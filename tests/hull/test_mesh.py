@@ -308,6 +308,26 @@ def test_auto_pot_fit_survives_speckled_silhouettes(potted_volume):
     assert c.r_top_mm == pytest.approx(POT.r1, abs=1.5 * s + 0.04 * POT.r1)
 
 
+def test_mesher_leaves_the_volume_as_it_was(potted_volume):
+    # Pot and specks are cut in the volume's own field (no copy of the grid) and put
+    # back afterwards: the caller's volume is unchanged, and the mesh is the one the
+    # copying path (taken for a read-only field) gives.
+    field = potted_volume.field.copy()
+    field[0, 0, 0] = 0.5  # a speck in a corner: dropped
+    before = field.copy()
+    pot = [TaperedCylinder(z_bottom_mm=POT.z0, z_top_mm=POT.z1, r_bottom_mm=POT.r0,
+                           r_top_mm=POT.r1)]
+    mesher = MarchingCubesMesher(MarchingCubesMesher.Params(pot=pot))
+    mesh = mesher.mesh(Volume(field, potted_volume.origin, potted_volume.voxel_size))
+    assert np.array_equal(field, before)
+    assert mesher.last_report["pot_voxels_removed"] > 0
+    assert mesher.last_report["components_dropped"] >= 1
+    before.flags.writeable = False
+    copied = mesher.mesh(Volume(before, potted_volume.origin, potted_volume.voxel_size))
+    assert np.array_equal(mesh.vertices, copied.vertices)
+    assert np.array_equal(mesh.faces, copied.faces)
+
+
 def test_given_pot_is_removed(potted_volume):
     pot = [TaperedCylinder(z_bottom_mm=POT.z0, z_top_mm=POT.z1, r_bottom_mm=POT.r0,
                            r_top_mm=POT.r1)]
