@@ -254,6 +254,24 @@ def test_distance_table_is_signed_distance_in_fixed_point():
         assert np.array_equal(table > 0, mask)
 
 
+def test_distance_table_from_a_placed_crop_equals_the_full_mask():
+    # prepare_views writes each silhouette's crop straight into the thread's scratch
+    # mask at its place in the region of interest; the scratch holds the previous view's
+    # mask, so everything outside the crop must be cleared: same table as the full mask.
+    from plantscan_hull.views import signed_distance_table
+
+    rng = np.random.default_rng(5)
+    signed_distance_table(np.ones((70, 90), bool))  # a dirty scratch, larger than below
+    for v, u in [(0, 0), (7, 11), (20, 50)]:
+        crop = rng.random((40, 30)) < 0.4
+        full = np.zeros((60, 80), bool)
+        ch, cw = crop[:60 - v, :80 - u].shape
+        full[v:v + ch, u:u + cw] = crop[:ch, :cw]
+        out = np.empty(full.shape, np.int16)
+        signed_distance_table(crop[:ch, :cw], out, at=(v, u))
+        assert np.array_equal(out, signed_distance_table(full))
+
+
 def test_distance_table_saturates_towards_zero():
     # Beyond the int16 range (1024 px at 1/32 px) values saturate towards 0: a cell
     # test then decides less, never wrongly (|stored| <= |true|, same sign).
