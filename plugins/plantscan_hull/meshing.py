@@ -251,36 +251,39 @@ def _thin_rims(verts: np.ndarray, low: np.ndarray, axis: np.ndarray, on_edge: np
     edge, so the mesh's topology is unchanged.
     """
     frac = verts - low
-    shape = np.array(field.shape)
+    shape = field.shape
     flat = np.ascontiguousarray(field).reshape(-1)
-    strides = np.array([shape[1] * shape[2], shape[2], 1])
 
     def value(idx):  # field at padded-grid points, -1 outside the grid
-        vox = idx - 1
-        ok = np.all((vox >= 0) & (vox < shape), axis=1)
-        # One flat gather: 3-array fancy indexing of the grid is several times slower.
-        return np.where(ok, flat[np.where(ok, vox @ strides, 0)], np.float32(-1.0))
+        # Column by column and one flat gather: reductions over a length-3 axis and
+        # 3-array fancy indexing of the grid are several times slower.
+        x, y, z = idx[:, 0] - 1, idx[:, 1] - 1, idx[:, 2] - 1
+        ok = ((x >= 0) & (x < shape[0]) & (y >= 0) & (y < shape[1]) & (z >= 0)
+              & (z < shape[2]))
+        lin = (x * shape[1] + y) * shape[2] + z
+        return np.where(ok, flat[np.where(ok, lin, 0)], np.float32(-1.0))
 
+    rows = np.arange(len(verts))
     step = np.eye(3, dtype=np.int64)[axis]
     f0, f1 = value(low), value(low + step)
     a_is_low = f0 > 0
-    a = np.where(a_is_low[:, None], low, low + step)
     f_b = np.where(a_is_low, f1, f0)
-    thin = np.zeros(len(verts), bool)
+    # Distance of the rim from A along the edge, and its upper bound from B.
+    t = np.where(a_is_low, frac[rows, axis], 1 - frac[rows, axis])
+    far = 1.0 + f_b  # f_b in (-1, 0]
+    # Only the vertices that would move need the thinness test (6 reads each).
+    cand = np.flatnonzero(on_edge & (f_b > -1) & (far > t))
+    a = np.where(a_is_low[cand, None], low[cand], low[cand] + step[cand])
+    thin = np.zeros(len(cand), bool)
     for other in range(3):
         across = np.zeros(3, np.int64)
         across[other] = 1
-        thin |= (axis != other) & (value(a + across) <= 0) & (value(a - across) <= 0)
-    # Distance of the rim from A along the edge, and its upper bound from B.
-    t = np.where(a_is_low, frac[np.arange(len(verts)), axis],
-                 1 - frac[np.arange(len(verts)), axis])
-    far = 1.0 + f_b  # f_b in (-1, 0]
-    move = on_edge & thin & (f_b > -1) & (far > t)
-    t_new = np.where(move, far - LEVEL_GAP, t)
+        thin |= (axis[cand] != other) & (value(a + across) <= 0) & (value(a - across) <= 0)
+    move = cand[thin]
     out = verts.copy()
-    rows = np.flatnonzero(move)
-    out[rows, axis[rows]] = np.where(a_is_low[rows], low[rows, axis[rows]] + t_new[rows],
-                                     low[rows, axis[rows]] + 1 - t_new[rows])
+    ax = axis[move]
+    t_new = far[move] - LEVEL_GAP
+    out[move, ax] = np.where(a_is_low[move], low[move, ax] + t_new, low[move, ax] + 1 - t_new)
     return out
 
 
