@@ -6,9 +6,9 @@ import functools
 
 import numpy as np
 import pytest
+from plantscan_hull.pot import fit_pot, remove_cylinders
 
 from plantscan_core.data import Volume
-from plantscan_hull.pot import fit_pot, remove_cylinders
 
 VOXEL = 1.0  # mm: the 512^3 hull of an 18 MP scan (where a stem is a run of discs)
 CARRIER = (0.0, 32.0, 60.0, 60.0)  # z bottom, z top, r bottom, r top (mm); overlaps the pot
