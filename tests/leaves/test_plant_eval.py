@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 
 import pytest
-
 from plantscan_leaves.evaluate import plant_errors
 
 
