@@ -539,21 +539,20 @@ def _outline_length(v: np.ndarray, f: np.ndarray, topo: geo.MeshTopology | None,
     total = sum(crest)
     clean = total > 0 and max(crest) >= CLEAN_OUTLINE_SHARE * total
     if clean and border <= CUT_BORDER_SHARE * max(crest):
-        return max(crest), "crest", [lines[int(np.argmax(crest))]]
+        return _longest_crest(crest, lines)
     if len(f) > len(leaf_faces):
         topo = topo if topo is not None else geo.topology(f)
         lines = []
         crest = _iso_line_lengths(v, f, topo, vertex_side, sigma, lines)
         total = sum(crest)
         if total > 0 and max(crest) >= CLEAN_OUTLINE_SHARE * total:
-            return max(crest), "crest", [lines[int(np.argmax(crest))]]
+            return _longest_crest(crest, lines)
     elif clean:
-        return max(crest), "crest", [lines[int(np.argmax(crest))]]
+        return _longest_crest(crest, lines)
     topo = topo if topo is not None else leaf_topo
     side_a = face_side > 0
     if nf == 0 or not side_a.any() or side_a.all():
-        return (max(crest, default=0.0), "crest",
-                [lines[int(np.argmax(crest))]] if crest else [])
+        return _longest_crest(crest, lines) if crest else (0.0, "crest", [])
     a_main = _largest_piece(nf, topo.face_pairs, side_a, area)
     b_main = _largest_piece(nf, topo.face_pairs, ~a_main, area)
     face_val = np.where(b_main, -area, area)
@@ -562,6 +561,13 @@ def _outline_length(v: np.ndarray, f: np.ndarray, topo: geo.MeshTopology | None,
     pieces = _iso_line_lengths(v, f, topo, val, sigma, lines)
     # one loop in principle; a pinch where the two sides touch at a vertex may split it
     return float(sum(pieces)), "sides", lines
+
+
+def _longest_crest(crest: list[float], lines: list[np.ndarray]
+                   ) -> tuple[float, str, list[np.ndarray]]:
+    """``_outline_length``'s answer from the longest crest piece (``lines`` in step)."""
+    i = int(np.argmax(crest))
+    return crest[i], "crest", [lines[i]]
 
 
 def _iso_line_lengths(v: np.ndarray, f: np.ndarray, topo: geo.MeshTopology, value: np.ndarray,
