@@ -26,8 +26,6 @@ pot metrics
 from __future__ import annotations
 
 import json
-import os
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +33,7 @@ import numpy as np
 import yaml
 
 from plantscan_core.data import Calibration, Camera, Mesh, Silhouettes, mask_box
+from plantscan_core.parallel import thread_map
 from plantscan_core.pipeline import read_mask as _read_mask
 from plantscan_hull.views import signed_distance
 
@@ -87,10 +86,8 @@ def rim_points(points: np.ndarray, views: list[tuple[int, Camera, Path]]) -> np.
         return ok[np.abs(sd[v[ok], u[ok]]) <= RIM_PX]
 
     rim = np.zeros(len(points), dtype=bool)
-    workers = max(1, min(4, os.cpu_count() or 1, len(views)))
-    with ThreadPoolExecutor(workers) as pool:
-        for near in pool.map(lambda view: near_in(view[1], view[2]), views):
-            rim[near] = True
+    for near in thread_map(near_in, [v[1] for v in views], [v[2] for v in views]):
+        rim[near] = True
     return rim
 
 

@@ -11,10 +11,8 @@ from __future__ import annotations
 
 import functools
 import math
-import os
 import threading
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -22,6 +20,7 @@ import numpy as np
 
 from plantscan_core.data import Calibration, Camera, CameraModel, Silhouette
 from plantscan_core.errors import DataError
+from plantscan_core.parallel import thread_map
 
 # Pixels kept around the mask's bounding box in the distance table; beyond it
 # the distance to the box is used (a lower bound of the distance to the mask).
@@ -298,15 +297,7 @@ def prepare_views(silhouettes: Sequence[Silhouette], calibration: Calibration) -
             cameras.append(calibration.camera_for_view(sil.view))
         except KeyError as exc:
             raise DataError(f"{view_label(sil)}: no camera in the calibration ({exc})") from None
-    workers = max(1, min(4, os.cpu_count() or 1, len(cameras)))
-
-    def run(fn, *args):
-        if workers == 1:
-            return list(map(fn, *args))
-        with ThreadPoolExecutor(workers) as pool:
-            return list(pool.map(fn, *args))
-
-    checked = run(_checked_region, silhouettes, cameras)
+    checked = thread_map(_checked_region, silhouettes, cameras)
     sizes = [(r[3] - r[1]) * (r[2] - r[0]) for _, r in checked]
     buffer = np.empty(int(sum(sizes)), dtype=SD_DTYPE)
     starts = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
@@ -317,7 +308,7 @@ def prepare_views(silhouettes: Sequence[Silhouette], calibration: Calibration) -
         box, roi = checked[i]
         return _view_field(silhouettes[i], cameras[i], box, roi, outs[i])
 
-    views = run(one, range(len(cameras)))
+    views = thread_map(one, range(len(cameras)))
     _scratch.__dict__.pop("buffers", None)  # this thread's, when it did the work (1 worker)
     return views
 

@@ -43,8 +43,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -60,6 +58,7 @@ from scipy.sparse.csgraph import (
 )
 
 from plantscan_core.data import LabelledMesh, LeafTraits, Mesh, Traits
+from plantscan_core.parallel import thread_map
 from plantscan_core.stages import StageParams
 from plantscan_leaves import geometry as geo
 
@@ -817,9 +816,7 @@ def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = No
     # Leaves are measured independently, on both cores: their numpy/scipy work releases
     # the GIL for most of the time (1.2 M-face dicot hull, 12 leaves: 5.6 -> 3.5 s wall,
     # same CPU, same traits).  Results keep the leaves' order.
-    workers = max(1, min(4, os.cpu_count() or 1, len(leaf_labels)))
-    with ThreadPoolExecutor(workers) as pool:
-        done = list(pool.map(one, leaf_labels, _submeshes(labelled, leaf_labels)))
+    done = thread_map(one, leaf_labels, _submeshes(labelled, leaf_labels))
     measurements = [m for m, _ in done if m is not None]
     info["warnings"] += [w for _, w in done if w is not None]
     leaves = [m.traits for m in measurements]

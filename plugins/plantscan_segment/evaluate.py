@@ -3,15 +3,14 @@
 from __future__ import annotations
 
 import json
-import os
 import threading
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from plantscan_core.errors import PlantScanError
+from plantscan_core.parallel import thread_map
 from plantscan_core.pipeline import read_mask
 from plantscan_core.scanfolder import ScanFolder
 from plantscan_segment.metrics import MaskMetrics, mask_metrics, summarise
@@ -76,7 +75,5 @@ def evaluate_silhouettes(run_dir: Path, truth_dir: Path) -> dict | None:
 
     # Decoding (PNG, JPEG) and the OpenCV metrics release the GIL: views on both cores
     # (paper-360 at 18 MP: one view is ~0.3 s, most of it decoding).
-    workers = max(1, min(4, os.cpu_count() or 1, len(pairs)))
-    with ThreadPoolExecutor(workers) as pool:
-        metrics = list(pool.map(lambda pair: one(*pair), pairs))
+    metrics = thread_map(one, [p for p, _ in pairs], [t for _, t in pairs])
     return {"silhouettes": summarise(metrics)} if metrics else None
