@@ -127,7 +127,10 @@ def match_leaves(labelled: LabelledMesh, truth_vertices: np.ndarray, truth_faces
              for r, c in zip(rows, cols) if cover[r, c] >= PAIR_COVER]
     paired_t = {p[0] for p in pairs}
     paired_m = {p[1] for p in pairs}
+    to_stem = ~np.isin(label_of_truth_face, leaf_labels)  # stem, pot or unlabelled
     out.update(
+        area_shares=_area_shares(truth_ids, truth_leaf_id, t_area, to_stem, cover, pairs,
+                                 leaf_labels),
         pairs=pairs,
         merged=[leaf_labels[j] for j in range(len(leaf_labels))
                 if np.count_nonzero(cover[:, j] >= MERGE_COVER) >= 2],
@@ -136,6 +139,31 @@ def match_leaves(labelled: LabelledMesh, truth_vertices: np.ndarray, truth_faces
         cover=cover.round(4).tolist(),
     )
     return out
+
+
+def _area_shares(truth_ids: list[int], truth_leaf_id: np.ndarray, t_area: np.ndarray,
+                 to_stem: np.ndarray, cover: np.ndarray, pairs: list[tuple[int, int, float]],
+                 leaf_labels: list[int]) -> list[dict[str, Any]]:
+    """Where each truth leaf's surface went: its own (paired) leaf, the stem (any label
+    that is not a leaf), other leaves.
+
+    Shares of the truth leaf's area by the label of the nearest measured face
+    (the same attribution as the pairing); they sum to 1.  A leaf measured too
+    short usually shows a stem share (its base or petiole end went to the
+    stem), a leaf that lost a piece to a neighbour an other-leaves share.
+    """
+    col = {lab: j for j, lab in enumerate(leaf_labels)}
+    mate = {t: m for t, m, _ in pairs}
+    rows = []
+    for i, tid in enumerate(truth_ids):
+        sel = truth_leaf_id == tid
+        total = max(float(t_area[sel].sum()), 1e-12)
+        own = float(cover[i, col[mate[tid]]]) if tid in mate else 0.0
+        stem = float(t_area[sel & to_stem].sum()) / total
+        other = float(cover[i].sum()) - own
+        rows.append({"truth_id": tid, "measured_id": mate.get(tid), "own": round(own, 4),
+                     "stem": round(stem, 4), "other_leaves": round(other, 4)})
+    return rows
 
 
 def trait_errors(truth: Traits, measured: Traits, pairs: list[tuple[int, int, float]]
@@ -188,6 +216,7 @@ def evaluate_traits(run_dir: Path, truth_dir: Path) -> dict[str, Any] | None:
             **({"frame_alignment": m["frame_alignment"]} if "frame_alignment" in m else {}),
             "pairs": [{"truth_id": t, "measured_id": mm, "cover": c} for t, mm, c in m["pairs"]],
             "per_leaf": errs["per_leaf"],
+            "area_shares": m.get("area_shares", []),
             **({"plant": plant} if plant else {}),
         }
     }

@@ -104,3 +104,37 @@ def test_evaluate_finds_the_turntable_gauge(mock_plant, mock_plant_measured, tmp
     assert align["yaw_deg"] == pytest.approx(-90.0, abs=1.0)
     assert align["translation_mm"][2] == pytest.approx(-80.0, abs=1.0)
     assert align["median_distance_mm"] < 0.5
+
+
+def test_evaluate_says_where_each_truth_leaf_went(mock_plant, tmp_path):
+    # a segmentation that gave the base third of leaf 0 to the stem and a third of leaf 1 to
+    # leaf 2: the evaluation names both losses, in shares of the truth leaf's area
+    plant, mesh, part = mock_plant
+    truth = _truth_dir(tmp_path, plant, mesh, part)
+    run = tmp_path / "run"
+    run.mkdir()
+    centres = mesh.vertices[mesh.faces].mean(axis=1)
+    areas = mesh.face_areas()
+    labels = part + 1  # stem -> 0, truth leaf i -> i + 1
+    r = np.hypot(centres[:, 0], centres[:, 1])
+    leaf0, leaf1 = part == 0, part == 1
+    base0 = leaf0 & (r < np.percentile(r[leaf0], 33))
+    third1 = leaf1 & (centres[:, 2] < np.percentile(centres[leaf1, 2], 33))
+    labels[base0] = 0
+    labels[third1] = 3
+    kinds = {0: "stem", **{int(k): "leaf" for k in np.unique(labels) if k > 0}}
+    lm = LabelledMesh(mesh, labels, kinds)
+    lm.save(run / "labelled.npz")
+    leaves_plugin.LeafGeometry().measure(lm).save(run / "traits.csv")
+    shares = {row["truth_id"]: row
+              for row in leaves_plugin.plantscan_evaluate(run, truth)["traits"]["area_shares"]}
+    assert len(shares) == len(plant.leaves)
+    # the measured mesh is the truth mesh, so each truth face's nearest face is itself and
+    # the shares are the moved areas exactly (up to float sums)
+    assert shares[0]["stem"] == pytest.approx(areas[base0].sum() / areas[leaf0].sum(), abs=1e-4)
+    assert shares[0]["own"] == pytest.approx(1.0 - shares[0]["stem"], abs=1e-4)
+    assert shares[1]["other_leaves"] == pytest.approx(areas[third1].sum() / areas[leaf1].sum(),
+                                                      abs=1e-4)
+    assert shares[1]["stem"] == 0.0
+    for t in range(2, len(plant.leaves)):
+        assert shares[t]["own"] == pytest.approx(1.0) and shares[t]["measured_id"] == t + 1
