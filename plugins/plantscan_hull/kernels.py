@@ -639,10 +639,10 @@ if HAVE_NUMBA:
         return (sdc - lip * (abs(u - uc) + abs(v - vc))) * (zc / fs)
 
     @njit(cache=True)
-    def _voxel_range(lo, hi, centres, valid, p_start, p_views, p_out, p_in, voxel_size, params,
-                     tables, k, min_seen, lip, out):
-        # Serial body of ``_voxel_group`` for parents lo..hi, view-major as
-        # ``_classify_range``.
+    def _voxel_range_bounded(lo, hi, centres, valid, p_start, p_views, p_out, p_in, voxel_size,
+                             params, tables, k, min_seen, lip, out):
+        # Serial body of ``_voxel_group`` with bounds (lip > 0) for parents lo..hi,
+        # view-major as ``_classify_range``.
         h = 0.5 * voxel_size
         nv = params.shape[0]
         n = (hi - lo) * 8
@@ -731,6 +731,194 @@ if HAVE_NUMBA:
                 out[i * 8 + ch] = val
         return count, centre, bounded
 
+    # ------------------------------------------------------------------ fine voxels, in passes
+    # ``_voxel_range`` without bounds, restructured for throughput (same arithmetic, same
+    # field to the bit, same test counts; session 6): per view, the children of a block of
+    # parents are projected in one branch-free loop that the compiler vectorises (8
+    # divisions at once), their 4 table values are read in a second loop, the bilinear
+    # values formed in a third, and each child's k+1 smallest values are kept sorted and
+    # updated without branches (a data-dependent branch per test mispredicts).  Scalar, the
+    # same work cost 33-41 ns per test on the captured 256^3 input; in passes 19-25 ns.
+
+    @njit(cache=True, error_model="numpy")
+    def _project_children(n, X, Y, Z, vr, fs, U, V, ZF, IDX, FX, FY, ON):
+        # Camera-frame points (X, Y, Z)[:n] -> their pixels (U, V), depth / (f voxel) ZF,
+        # whether seen ON (1) and, for ``_bilinear_row``'s in-table branch, the table
+        # index of the upper-left neighbour IDX and fractions FX, FY (same arithmetic as
+        # ``_pixel`` and ``_bilinear_row``).  Returns how many seen points fall beyond the
+        # table (their bilinear value is the box bound: ``_fix_off_table``).
+        w = vr.tw
+        h = vr.th
+        x_max = w - 2 if w > 1 else 0
+        y_max = h - 2 if h > 1 else 0
+        n_off = 0
+        for t in range(n):
+            zc = Z[t]
+            zs = zc if zc > 0.0 else 1.0  # behind the camera: not seen, any finite pixel
+            xn = X[t] / zs
+            yn = Y[t] / zs
+            r2 = xn * xn + yn * yn
+            s = 1.0 + vr.d1 * r2 + vr.d2 * r2 * r2
+            u = vr.f * xn * s + vr.cu
+            v = vr.fy * yn * s + vr.cv
+            on = (zc > 0.0) & (u >= -0.5) & (u <= vr.u_hi) & (v >= -0.5) & (v <= vr.v_hi)
+            lu = u - vr.u0
+            lv = v - vr.v0
+            n_off += on & ~((lu >= -0.5) & (lu <= w - 0.5) & (lv >= -0.5) & (lv <= h - 0.5))
+            # Unseen points read the table's first pixel (any in-bounds index; unused).
+            lu = min(max(lu, 0.0), w - 1.0) if on else 0.0
+            lv = min(max(lv, 0.0), h - 1.0) if on else 0.0
+            x0 = min(int(np.floor(lu)), x_max)
+            y0 = min(int(np.floor(lv)), y_max)
+            FX[t] = np.float32(lu - x0)
+            FY[t] = np.float32(lv - y0)
+            IDX[t] = vr.off + y0 * w + x0
+            ZF[t] = zc / fs
+            ON[t] = on
+            U[t] = u
+            V[t] = v
+        return n_off
+
+    @njit(cache=True, error_model="numpy")
+    def _read_corners(n, tables, IDX, dx, dy, A, B, C, D):
+        # The 4 table values around each point (a separate loop: the loads are what it
+        # waits for; the arithmetic after it vectorises).
+        for t in range(n):
+            q = IDX[t]
+            A[t] = tables[q]
+            B[t] = tables[q + dx]
+            C[t] = tables[q + dy]
+            D[t] = tables[q + dy + dx]
+
+    @njit(cache=True, error_model="numpy")
+    def _bilinear_values(n, A, B, C, D, FX, FY, ZF, ON, DD):
+        # DD: field value (voxels, float32) of each seen point, +inf for the unseen (as
+        # ``_bilinear_row`` then ``_voxel_test``).
+        for t in range(n):
+            fx = FX[t]
+            fy = FY[t]
+            a = np.float32(A[t])
+            b = np.float32(B[t])
+            c = np.float32(C[t])
+            d = np.float32(D[t])
+            top = a * (1 - fx) + b * fx
+            bot = c * (1 - fx) + d * fx
+            val = np.float32((top * (1 - fy) + bot * fy) * _SD_STEP * ZF[t])
+            DD[t] = val if ON[t] else np.float32(np.inf)
+
+    @njit(cache=True, error_model="numpy")
+    def _voxel_range(lo, hi, centres, valid, p_start, p_views, p_out, p_in, voxel_size, params,
+                     tables, k, min_seen, out):
+        # Serial body of ``_voxel_group`` (no bounds) for parents lo..hi, view-major as
+        # ``_classify_range``.  Each voxel keeps its k+1 smallest values sorted in
+        # kept[p, :, ch] (kept[p, k, ch] is the (k+1)-th smallest); a dead voxel (<= -1)
+        # is still updated with its siblings (its clamped value stays -1) but no longer
+        # counted, and a parent whose voxels are all dead is skipped.
+        h = 0.5 * voxel_size
+        nv = params.shape[0]
+        npl = hi - lo
+        kept = np.empty((npl, k + 1, 8), dtype=np.float32)
+        seen = np.empty((npl, 8), dtype=np.int32)
+        live_ok = np.empty((npl, 8), dtype=np.bool_)
+        cursor = np.empty(npl, dtype=np.int64)
+        alive = np.empty(npl, dtype=np.int32)
+        total = 0
+        for i in range(lo, hi):
+            p = i - lo
+            cursor[p] = p_start[i]
+            # Decided views of the parent: out -> -1, in -> +1 after clamping.
+            n_out = min(p_out[i], k + 1)
+            n_in = min(p_in[i], k + 1 - n_out)
+            alive[p] = 0
+            for ch in range(8):
+                for q in range(k + 1):
+                    kept[p, q, ch] = (np.float32(-1.0) if q < n_out else np.float32(1.0)
+                                      if q < n_out + n_in else np.float32(np.inf))
+                seen[p, ch] = p_out[i] + p_in[i]
+                live_ok[p, ch] = valid[i * 8 + ch]
+                alive[p] += live_ok[p, ch] and kept[p, k, ch] > -1.0
+            total += alive[p]
+        m = npl * 8
+        X = np.empty(m)
+        Y = np.empty(m)
+        Z = np.empty(m)
+        U = np.empty(m)
+        V = np.empty(m)
+        ZF = np.empty(m)
+        IDX = np.empty(m, dtype=np.int64)
+        FX = np.empty(m, dtype=np.float32)
+        FY = np.empty(m, dtype=np.float32)
+        ON = np.empty(m, dtype=np.bool_)
+        A = np.empty(m, dtype=SD_DTYPE)
+        B = np.empty(m, dtype=SD_DTYPE)
+        C = np.empty(m, dtype=SD_DTYPE)
+        D = np.empty(m, dtype=SD_DTYPE)
+        DD = np.empty(m, dtype=np.float32)
+        sel = np.empty(npl, dtype=np.int64)
+        x = np.empty(8, dtype=np.float32)
+        offs = np.empty((8, 3))
+        count = 0
+        for j in range(nv):
+            if total == 0:
+                break
+            vr = _row(params, j)
+            fs = vr.f * voxel_size
+            _child_offsets(vr, h, offs)
+            ns = 0
+            for i in range(lo, hi):
+                p = i - lo
+                if not _takes_view(cursor, p, p_start, p_views, i, j) or alive[p] == 0:
+                    continue
+                count += alive[p]
+                xc0, yc0, zc0 = _cam(vr, centres[i, 0], centres[i, 1], centres[i, 2])
+                for ch in range(8):
+                    X[ns * 8 + ch] = xc0 + offs[ch, 0]
+                    Y[ns * 8 + ch] = yc0 + offs[ch, 1]
+                    Z[ns * 8 + ch] = zc0 + offs[ch, 2]
+                sel[ns] = p
+                ns += 1
+            n = ns * 8
+            n_off = _project_children(n, X, Y, Z, vr, fs, U, V, ZF, IDX, FX, FY, ON)
+            _read_corners(n, tables, IDX, 1 if vr.tw > 1 else 0, vr.tw if vr.th > 1 else 0,
+                          A, B, C, D)
+            _bilinear_values(n, A, B, C, D, FX, FY, ZF, ON, DD)
+            if n_off:  # seen beyond the table (rare): the box bound, as ``_bilinear_row``
+                for t in range(n):
+                    lu = U[t] - vr.u0
+                    lv = V[t] - vr.v0
+                    if ON[t] and not (lu >= -0.5 and lu <= vr.tw - 0.5 and lv >= -0.5
+                                      and lv <= vr.th - 0.5):
+                        DD[t] = np.float32(_box_bound(vr, U[t], V[t]) * ZF[t])
+            for s in range(ns):
+                p = sel[s]
+                # Insert each child's value into its sorted k+1 smallest, dropping the
+                # largest; a value at or above the largest (or unseen: +inf) changes
+                # nothing.  Same multiset as ``_keep_smallest``.
+                for ch in range(8):
+                    x[ch] = min(DD[s * 8 + ch], kept[p, k, ch])
+                    seen[p, ch] += ON[s * 8 + ch]
+                for q in range(k, 0, -1):
+                    for ch in range(8):
+                        kept[p, q, ch] = max(kept[p, q - 1, ch], min(kept[p, q, ch], x[ch]))
+                for ch in range(8):
+                    kept[p, 0, ch] = min(kept[p, 0, ch], x[ch])
+                a = 0
+                for ch in range(8):
+                    a += live_ok[p, ch] and kept[p, k, ch] > -1.0
+                total -= alive[p] - a
+                alive[p] = a
+        for i in range(lo, hi):
+            p = i - lo
+            for ch in range(8):
+                if not valid[i * 8 + ch]:
+                    continue
+                mk = kept[p, k, ch]
+                val = min(max(mk, np.float32(-1.0)), np.float32(1.0))
+                if seen[p, ch] < min_seen and mk > -1.0:
+                    val = np.float32(-1.0)
+                out[i * 8 + ch] = val
+        return count
+
     @njit(cache=True, parallel=True)
     def _voxel_group(centres, valid, p_start, p_views, p_out, p_in, voxel_size, params, tables,
                      k, min_seen, lip, chunk):
@@ -741,9 +929,16 @@ if HAVE_NUMBA:
         out = np.full(n_par * 8, np.float32(-1.0))
         tests = np.zeros((nchunks, 3), dtype=np.int64)
         for c in prange(nchunks):
-            a, b, e = _voxel_range(c * chunk, min(n_par, (c + 1) * chunk), centres, valid,
-                                   p_start, p_views, p_out, p_in, voxel_size, params, tables,
-                                   k, min_seen, lip, out)
+            lo = c * chunk
+            hi = min(n_par, (c + 1) * chunk)
+            if lip > 0.0:
+                a, b, e = _voxel_range_bounded(lo, hi, centres, valid, p_start, p_views, p_out,
+                                               p_in, voxel_size, params, tables, k, min_seen,
+                                               lip, out)
+            else:
+                a = _voxel_range(lo, hi, centres, valid, p_start, p_views, p_out, p_in,
+                                 voxel_size, params, tables, k, min_seen, out)
+                b = e = 0
             tests[c, 0] = a
             tests[c, 1] = b
             tests[c, 2] = e

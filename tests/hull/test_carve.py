@@ -383,3 +383,46 @@ def test_octree_equals_dense_for_every_top_cell(rig, mixed_sils, backend):
     for top in (1, 2, 4, 32):
         octree, _ = carve_octree(vf, grid, 3, top_cell=top, backend=backend)
         assert np.array_equal(octree, dense), top
+
+
+@pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="the compiled kernels' test")
+def test_fine_voxel_passes_equal_the_scalar_kernel(rig, mixed_sils):
+    # Session 6: the fine voxels' kernel runs in passes (vectorised projection, table
+    # reads, branch-free sorted insertion).  It must give the scalar kernel's values to
+    # the bit and the same test count, also where the scalar one branches: voxels beyond
+    # the tables (box bound), off the image, behind a camera, parents with views already
+    # decided out / in, voxels beyond the grid.
+    cal, _ = rig
+    vf = prepare_views(list(mixed_sils), cal)
+    params, tables = kernels.pack(vf)
+    rng = np.random.default_rng(6)
+    n_par, n_views, s = 300, len(vf), 8.0  # coarse voxels: fewer values clamped at +-1
+    dist = np.linalg.norm(vf[0].camera.pose.t)  # camera distance from the origin (mm)
+    centres = rng.uniform(-1.2 * dist, 1.2 * dist, (n_par, 3))  # some behind cameras
+    centres[: n_par // 2] = rng.uniform(-50, 50, (n_par // 2, 3))  # around the objects
+    lists = [np.flatnonzero(rng.random(n_views) < 0.8) for _ in range(n_par)]
+    start = np.concatenate([[0], np.cumsum([len(v) for v in lists])]).astype(np.int64)
+    views = np.concatenate(lists).astype(np.int16)
+    p_out = rng.integers(0, 3, n_par).astype(np.int32)
+    p_in = rng.integers(0, 3, n_par).astype(np.int32)
+    valid = rng.random(n_par * 8) < 0.9
+    beyond = behind = 0  # the inputs do reach the scalar kernel's branches
+    for v in vf:
+        front = centres @ v.camera.pose.R[2] + v.camera.pose.t[2] > 0
+        behind += (~front).sum()
+        u, w = v.camera.project(centres[front]).T
+        on = (u >= -0.5) & (u <= v.width - 0.5) & (w >= -0.5) & (w <= v.height - 0.5)
+        lu, lv = u - v.u0, w - v.v0
+        beyond += (on & ~((lu >= -0.5) & (lu <= v.sd.shape[1] - 0.5) & (lv >= -0.5)
+                          & (lv <= v.sd.shape[0] - 0.5))).sum()
+    assert beyond > 0 and behind > 0
+    for k, min_seen in ((3, 4), (0, 1), (3, 0)):
+        new = np.full(n_par * 8, np.float32(-1.0))
+        old = np.full(n_par * 8, np.float32(-1.0))
+        n_new = kernels._voxel_range(0, n_par, centres, valid, start, views, p_out, p_in, s,
+                                     params, tables, k, min_seen, new)
+        n_old = kernels._voxel_range_bounded(0, n_par, centres, valid, start, views, p_out,
+                                             p_in, s, params, tables, k, min_seen, 0.0, old)[0]
+        assert np.array_equal(new.view(np.int32), old.view(np.int32)), k
+        assert n_new == n_old
+        assert len(np.unique(new)) > 20  # not all clamped: real field values compared
