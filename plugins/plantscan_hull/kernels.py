@@ -510,6 +510,90 @@ if HAVE_NUMBA:
     # A chunk of parents is processed view-major (lists are in the global view
     # order), so one view's table is read for neighbouring cells in a row.
 
+    @njit(cache=True, error_model="numpy")
+    def _project_cells(n, X, Y, Z, vr, rho, voxel_size, lip, slack, bil_r, U, V, RES, MARGIN,
+                       IDX, DX, DY, FX, FY):
+        # The geometry of ``_cell_test`` for the cells centred at (X, Y, Z)[:n] (camera
+        # frame), branch-free: RES CELL_OFF / CELL_EDGE when decided without the table,
+        # else -1 and the margin and table reading to decide it (``_cell_outcomes``):
+        # bilinear at the centre for small footprints, else the nearest pixel, which is
+        # the bilinear formula with zero fractions on one corner (the same value).
+        # Returns how many nearest readings fall beyond the table (the box bound:
+        # ``_fix_off_table``).
+        w = vr.tw
+        h = vr.th
+        x_max = w - 2 if w > 1 else 0
+        y_max = h - 2 if h > 1 else 0
+        dx1 = 1 if w > 1 else 0
+        dy1 = w if h > 1 else 0
+        n_beyond = 0
+        for t in range(n):
+            zc = Z[t]
+            near = zc - rho
+            zs = zc if zc > 0.0 else 1.0  # behind: decided below, any finite pixel
+            xn = X[t] / zs
+            yn = Y[t] / zs
+            r2 = xn * xn + yn * yn
+            s = 1.0 + vr.d1 * r2 + vr.d2 * r2 * r2
+            u = vr.f * xn * s + vr.cu
+            v = vr.fy * yn * s + vr.cv
+            ns = near if near > 0.0 else 1.0
+            r = rho * (vr.gain / ns)
+            off_img = (u + r < -0.5) | (u - r > vr.u_hi) | (v + r < -0.5) | (v - r > vr.v_hi)
+            in_img = (u - r >= -0.5) & (u + r <= vr.u_hi) & (v - r >= -0.5) & (v + r <= vr.v_hi)
+            behind = zc + rho <= 0
+            off = behind | ((near > 0.0) & off_img)
+            edge = ~behind & ((near <= 0.0) | (~off_img & ~in_img))
+            read = ~off & ~edge
+            one_voxel = voxel_size * vr.f / ns
+            lu = u - vr.u0
+            lv = v - vr.v0
+            bil = ((r < bil_r) & (lu - r >= -0.5) & (lu + r <= w - 0.5) & (lv - r >= -0.5)
+                   & (lv + r <= h - 0.5))
+            in_tab = (lu >= -0.5) & (lu <= w - 0.5) & (lv >= -0.5) & (lv <= h - 0.5)
+            n_beyond += read & ~bil & ~in_tab
+            MARGIN[t] = (lip * _SQRT2 * r + _SD_STEP + one_voxel if bil
+                         else lip * r + one_voxel + slack)
+            RES[t] = CELL_OFF if off else (CELL_EDGE if edge else -1)
+            # Unread cells read the table's first pixel (any in-bounds index; unused).
+            lu = min(max(lu, 0.0), w - 1.0) if read else 0.0
+            lv = min(max(lv, 0.0), h - 1.0) if read else 0.0
+            x0 = min(int(np.floor(lu)), x_max)
+            y0 = min(int(np.floor(lv)), y_max)
+            iu = min(max(int(np.rint(lu)), 0), w - 1)
+            iv = min(max(int(np.rint(lv)), 0), h - 1)
+            IDX[t] = vr.off + (y0 * w + x0 if bil else iv * w + iu)
+            DX[t] = dx1 if bil else 0
+            DY[t] = dy1 if bil else 0
+            FX[t] = np.float32(lu - x0) if bil else np.float32(0.0)
+            FY[t] = np.float32(lv - y0) if bil else np.float32(0.0)
+            U[t] = u
+            V[t] = v
+        return n_beyond
+
+    @njit(cache=True, error_model="numpy")
+    def _cell_outcomes(n, tables, IDX, DX, DY, FX, FY, MARGIN, RES, A, B, C, D):
+        # The table readings of the cells with RES -1 and their outcomes.
+        for t in range(n):
+            q = IDX[t]
+            A[t] = tables[q]
+            B[t] = tables[q + DX[t]]
+            C[t] = tables[q + DY[t]]
+            D[t] = tables[q + DY[t] + DX[t]]
+        for t in range(n):
+            fx = FX[t]
+            fy = FY[t]
+            a = np.float32(A[t])
+            b = np.float32(B[t])
+            c = np.float32(C[t])
+            d = np.float32(D[t])
+            top = a * (1 - fx) + b * fx
+            bot = c * (1 - fx) + d * fx
+            sd = (top * (1 - fy) + bot * fy) * _SD_STEP
+            m = MARGIN[t]
+            res = CELL_OUT if sd < -m else (CELL_IN if sd > m else CELL_AMB)
+            RES[t] = res if RES[t] < 0 else RES[t]
+
     @njit(cache=True)
     def _classify_range(lo, hi, centres, valid, p_start, p_views, p_out, p_in, p_offc,
                         scratch_off, half_size, voxel_size, params, tables, k, slack, min_seen,
@@ -518,19 +602,24 @@ if HAVE_NUMBA:
         # view (lists are in the global view order) the parents of the chunk whose list
         # holds it, so one view's table is read for neighbouring cells in a row (the
         # reads stay in cache; cell-major order reads a different table every test).
+        # In passes as ``_voxel_range`` (session 6): the children of the parents that
+        # take the view are projected and decided in vectorised loops, then counted; a
+        # removed child is still counted with its siblings (it stays removed: its
+        # counts only grow) but no longer counted as tested.
         nv = params.shape[0]
         rho = (half_size - 0.5 * voxel_size) * np.sqrt(3.0)  # voxel centres: see carve
         max_off = nv - min_seen
-        n = (hi - lo) * 8
+        npl = hi - lo
+        n = npl * 8
         count = 0
         n_out = np.empty(n, np.int32)
         n_in = np.empty(n, np.int32)
         n_off = np.empty(n, np.int32)
-        n_on_amb = np.empty(n, np.int32)
+        n_on_amb = np.zeros(n, np.int32)
         na = np.zeros(n, np.int32)
-        live = np.empty(n, np.bool_)
-        alive = np.zeros(hi - lo, np.int32)
-        cursor = np.empty(hi - lo, np.int64)
+        live_ok = np.empty(n, np.bool_)
+        alive = np.zeros(npl, np.int32)
+        cursor = np.empty(npl, np.int64)
         for i in range(lo, hi):
             cursor[i - lo] = p_start[i]
             for ch in range(8):
@@ -538,37 +627,71 @@ if HAVE_NUMBA:
                 n_out[f] = p_out[i]
                 n_in[f] = p_in[i]
                 n_off[f] = p_offc[i]
-                n_on_amb[f] = 0
-                live[f] = valid[i * 8 + ch]
-                alive[i - lo] += live[f]
+                live_ok[f] = valid[i * 8 + ch]
+                alive[i - lo] += live_ok[f] and not (n_out[f] > k or n_off[f] > max_off)
+        X = np.empty(n)
+        Y = np.empty(n)
+        Z = np.empty(n)
+        U = np.empty(n)
+        V = np.empty(n)
+        MARGIN = np.empty(n)
+        RES = np.empty(n, dtype=np.int8)
+        IDX = np.empty(n, dtype=np.int64)
+        DX = np.empty(n, dtype=np.int64)
+        DY = np.empty(n, dtype=np.int64)
+        FX = np.empty(n, dtype=np.float32)
+        FY = np.empty(n, dtype=np.float32)
+        A = np.empty(n, dtype=SD_DTYPE)
+        B = np.empty(n, dtype=SD_DTYPE)
+        C = np.empty(n, dtype=SD_DTYPE)
+        D = np.empty(n, dtype=SD_DTYPE)
+        sel = np.empty(npl, dtype=np.int64)
         offs = np.empty((8, 3))
         for j in range(nv):
             vr = _row(params, j)
             _child_offsets(vr, half_size, offs)
+            ns = 0
             for i in range(lo, hi):
                 if not _takes_view(cursor, i - lo, p_start, p_views, i, j) or alive[i - lo] == 0:
                     continue
+                count += alive[i - lo]
                 xc0, yc0, zc0 = _cam(vr, centres[i, 0], centres[i, 1], centres[i, 2])
                 for ch in range(8):
+                    X[ns * 8 + ch] = xc0 + offs[ch, 0]
+                    Y[ns * 8 + ch] = yc0 + offs[ch, 1]
+                    Z[ns * 8 + ch] = zc0 + offs[ch, 2]
+                sel[ns] = i
+                ns += 1
+            m = ns * 8
+            n_beyond = _project_cells(m, X, Y, Z, vr, rho, voxel_size, lip, slack, bil_r, U, V,
+                                      RES, MARGIN, IDX, DX, DY, FX, FY)
+            _cell_outcomes(m, tables, IDX, DX, DY, FX, FY, MARGIN, RES, A, B, C, D)
+            if n_beyond:  # nearest readings beyond the table (rare): the box bound
+                for t in range(m):
+                    lu = U[t] - vr.u0
+                    lv = V[t] - vr.v0
+                    if RES[t] > CELL_EDGE and DX[t] == 0 and not (
+                            lu >= -0.5 and lu <= vr.tw - 0.5 and lv >= -0.5
+                            and lv <= vr.th - 0.5):
+                        sd = _box_bound(vr, U[t], V[t])
+                        mg = MARGIN[t]
+                        RES[t] = CELL_OUT if sd < -mg else (CELL_IN if sd > mg else CELL_AMB)
+            for s in range(ns):
+                i = sel[s]
+                a = 0
+                for ch in range(8):
                     f = (i - lo) * 8 + ch
-                    if not live[f]:
-                        continue
-                    count += 1
-                    res = _cell_test(vr, tables, xc0 + offs[ch, 0], yc0 + offs[ch, 1],
-                                     zc0 + offs[ch, 2], rho, voxel_size, lip, slack, bil_r)
-                    if res == CELL_OFF:
-                        n_off[f] += 1
-                    elif res == CELL_OUT:
-                        n_out[f] += 1
-                    elif res == CELL_IN:
-                        n_in[f] += 1
-                    else:
-                        amb[scratch_off[i * 8 + ch] + na[f]] = j
-                        na[f] += 1
-                        n_on_amb[f] += res == CELL_AMB
-                    if n_out[f] > k or n_off[f] > max_off:
-                        live[f] = False  # removed already
-                        alive[i - lo] -= 1
+                    res = RES[s * 8 + ch]
+                    n_off[f] += res == CELL_OFF
+                    n_out[f] += res == CELL_OUT
+                    n_in[f] += res == CELL_IN
+                    # Ambiguous views, in the global view order; the slot is the child's
+                    # (at most as many as its parent's list), written whatever the outcome.
+                    amb[scratch_off[i * 8 + ch] + na[f]] = j
+                    na[f] += (res == CELL_EDGE) | (res == CELL_AMB)
+                    n_on_amb[f] += res == CELL_AMB
+                    a += live_ok[f] and not (n_out[f] > k or n_off[f] > max_off)
+                alive[i - lo] = a
         for i in range(lo, hi):
             for ch in range(8):
                 f = (i - lo) * 8 + ch
