@@ -146,7 +146,8 @@ def run_case(folder: Path, case: str, res: int, k: int) -> dict:
         out.update(carve_s=time.perf_counter() - t0, carve_cpu_s=time.process_time() - c0,
                    voxel_view_tests=st.voxel_view_tests,
                    cell_view_tests=st.cell_view_tests, inside=int((phi > 0).sum()),
-                   fine_voxels=st.fine_voxels,
+                   fine_voxels=st.fine_voxels, field_digest=_digest(phi),
+                   load=os.getloadavg()[0],
                    seconds_per_level={str(a): round(b, 2)
                                       for a, b in st.seconds_per_level.items()})
         out["peak_rss_carve_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
@@ -175,6 +176,13 @@ def run_case(folder: Path, case: str, res: int, k: int) -> dict:
         out.update(open3d_carve(views, grid))
     out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return out
+
+
+def _digest(field: np.ndarray) -> str:
+    """Short hash of a field's bytes: equal digests = the same field to the bit."""
+    import hashlib
+
+    return hashlib.sha1(np.ascontiguousarray(field).tobytes()).hexdigest()[:12]
 
 
 def open3d_carve(views, grid) -> dict:
@@ -547,8 +555,9 @@ def main() -> int:
     ap.add_argument("--case", help=argparse.SUPPRESS)
     ap.add_argument("--plugins", help=argparse.SUPPRESS)
     ap.add_argument("--baseline", default="",
-                    help="git revision whose plantscan_hull is also run (octree at the "
-                         "largest --res), e.g. 2459b3ff: before/after in the same run")
+                    help="git revision whose plantscan_hull is also run (octree at every "
+                         "--res, before each case of ours), e.g. 2459b3ff: before/after in "
+                         "the same run")
     ap.add_argument("--carve-only", action="store_true",
                     help="octree cases without mesh and pot (bounding box, tables, carve)")
     ap.add_argument("--write", action="store_true", help="write docs/benchmarks/hull.md")
@@ -596,7 +605,9 @@ def main() -> int:
     base_dir = None
     if args.baseline:
         base_dir = _extract(args.baseline)
-        cases.insert(0, ("baseline", max(args.res.split(","), key=int)))
+        at = [i for i, c in enumerate(cases) if c[0] == octree]  # alternate: load drifts
+        for i in reversed(at):
+            cases.insert(i, ("baseline", cases[i][1]))
     for case, res in cases:
         cmd = [sys.executable, __file__, "--views", str(args.views), "--size", args.size,
                "--k", str(args.k), "--case", f"{octree if case == 'baseline' else case}:{res}"]
@@ -639,12 +650,13 @@ def render_markdown(rows, prep, args, size) -> str:
         "includes the silhouette tables.  CPU = process CPU time (all threads).",
         "",
         "| method | grid (effective) | carve s wall | carve s CPU | voxel-view tests | "
-        "cell-view tests | inside voxels | peak RSS MB | mesh + pot s wall | mesh + pot s CPU |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "cell-view tests | inside voxels | field digest | load | peak RSS MB | "
+        "mesh + pot s wall | mesh + pot s CPU |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         if "error" in r:
-            lines.append(f"| {r['case']} | {r['res']} | failed: {r['error']} | | | | | | | |")
+            lines.append(f"| {r['case']} | {r['res']} | failed: {r['error']} | | | | | | | | | |")
             continue
         mesh = f"{r['mesh_s']:.2f}" if "mesh_s" in r else ""
         mesh_cpu = f"{r['mesh_cpu_s']:.2f}" if "mesh_cpu_s" in r else ""
@@ -652,6 +664,7 @@ def render_markdown(rows, prep, args, size) -> str:
         lines.append(f"| {r['case']} | {r['res']} ({'x'.join(map(str, r['grid']))}) | "
                      f"{r['carve_s']:.2f} | {cpu} | {r['voxel_view_tests']:.3g} | "
                      f"{r['cell_view_tests']:.3g} | {r.get('inside', '')} | "
+                     f"{r.get('field_digest', '')} | {r.get('load', float('nan')):.1f} | "
                      f"{r['peak_rss_mb']:.0f} | {mesh} | {mesh_cpu} |")
     ok = [r for r in rows if "prep_ms_per_view" in r]
     if ok:

@@ -510,6 +510,38 @@ if HAVE_NUMBA:
     # A chunk of parents is processed view-major (lists are in the global view
     # order), so one view's table is read for neighbouring cells in a row.
 
+    @njit(cache=True, inline="always")
+    def _children_in_view(vr, j, offs, lo, hi, centres, cursor, p_start, p_views, alive, X, Y,
+                          Z, sel):
+        # The parents lo..hi whose list holds view j (next, in the global view order) and
+        # that have live children: their indices in sel[:ns], their 8 children's centres
+        # (camera frame, ``offs`` from the parent's) in (X, Y, Z)[:8 ns].  Returns ns and
+        # the number of live children among them (the tests counted).
+        ns = 0
+        count = 0
+        for i in range(lo, hi):
+            if not _takes_view(cursor, i - lo, p_start, p_views, i, j) or alive[i - lo] == 0:
+                continue
+            count += alive[i - lo]
+            xc0, yc0, zc0 = _cam(vr, centres[i, 0], centres[i, 1], centres[i, 2])
+            for ch in range(8):
+                X[ns * 8 + ch] = xc0 + offs[ch, 0]
+                Y[ns * 8 + ch] = yc0 + offs[ch, 1]
+                Z[ns * 8 + ch] = zc0 + offs[ch, 2]
+            sel[ns] = i
+            ns += 1
+        return ns, count
+
+    @njit(cache=True, inline="always")
+    def _pass_buffers(n):
+        # Scratch of the passes for n children: centres X, Y, Z (camera frame), pixels U,
+        # V, table index IDX and fractions FX, FY of the bilinear reading, its 4 corners.
+        return (np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty(n),
+                np.empty(n, dtype=np.int64), np.empty(n, dtype=np.float32),
+                np.empty(n, dtype=np.float32), np.empty(n, dtype=SD_DTYPE),
+                np.empty(n, dtype=SD_DTYPE), np.empty(n, dtype=SD_DTYPE),
+                np.empty(n, dtype=SD_DTYPE))
+
     @njit(cache=True, error_model="numpy")
     def _project_cells(n, X, Y, Z, vr, rho, voxel_size, lip, slack, bil_r, U, V, RES, MARGIN,
                        IDX, DX, DY, FX, FY):
@@ -629,39 +661,19 @@ if HAVE_NUMBA:
                 n_off[f] = p_offc[i]
                 live_ok[f] = valid[i * 8 + ch]
                 alive[i - lo] += live_ok[f] and not (n_out[f] > k or n_off[f] > max_off)
-        X = np.empty(n)
-        Y = np.empty(n)
-        Z = np.empty(n)
-        U = np.empty(n)
-        V = np.empty(n)
+        X, Y, Z, U, V, IDX, FX, FY, A, B, C, D = _pass_buffers(n)
         MARGIN = np.empty(n)
         RES = np.empty(n, dtype=np.int8)
-        IDX = np.empty(n, dtype=np.int64)
         DX = np.empty(n, dtype=np.int64)
         DY = np.empty(n, dtype=np.int64)
-        FX = np.empty(n, dtype=np.float32)
-        FY = np.empty(n, dtype=np.float32)
-        A = np.empty(n, dtype=SD_DTYPE)
-        B = np.empty(n, dtype=SD_DTYPE)
-        C = np.empty(n, dtype=SD_DTYPE)
-        D = np.empty(n, dtype=SD_DTYPE)
         sel = np.empty(npl, dtype=np.int64)
         offs = np.empty((8, 3))
         for j in range(nv):
             vr = _row(params, j)
             _child_offsets(vr, half_size, offs)
-            ns = 0
-            for i in range(lo, hi):
-                if not _takes_view(cursor, i - lo, p_start, p_views, i, j) or alive[i - lo] == 0:
-                    continue
-                count += alive[i - lo]
-                xc0, yc0, zc0 = _cam(vr, centres[i, 0], centres[i, 1], centres[i, 2])
-                for ch in range(8):
-                    X[ns * 8 + ch] = xc0 + offs[ch, 0]
-                    Y[ns * 8 + ch] = yc0 + offs[ch, 1]
-                    Z[ns * 8 + ch] = zc0 + offs[ch, 2]
-                sel[ns] = i
-                ns += 1
+            ns, tested = _children_in_view(vr, j, offs, lo, hi, centres, cursor, p_start,
+                                           p_views, alive, X, Y, Z, sel)
+            count += tested
             m = ns * 8
             n_beyond = _project_cells(m, X, Y, Z, vr, rho, voxel_size, lip, slack, bil_r, U, V,
                                       RES, MARGIN, IDX, DX, DY, FX, FY)
@@ -962,20 +974,9 @@ if HAVE_NUMBA:
                 alive[p] += live_ok[p, ch] and kept[p, k, ch] > -1.0
             total += alive[p]
         m = npl * 8
-        X = np.empty(m)
-        Y = np.empty(m)
-        Z = np.empty(m)
-        U = np.empty(m)
-        V = np.empty(m)
+        X, Y, Z, U, V, IDX, FX, FY, A, B, C, D = _pass_buffers(m)
         ZF = np.empty(m)
-        IDX = np.empty(m, dtype=np.int64)
-        FX = np.empty(m, dtype=np.float32)
-        FY = np.empty(m, dtype=np.float32)
         ON = np.empty(m, dtype=np.bool_)
-        A = np.empty(m, dtype=SD_DTYPE)
-        B = np.empty(m, dtype=SD_DTYPE)
-        C = np.empty(m, dtype=SD_DTYPE)
-        D = np.empty(m, dtype=SD_DTYPE)
         DD = np.empty(m, dtype=np.float32)
         sel = np.empty(npl, dtype=np.int64)
         x = np.empty(8, dtype=np.float32)
@@ -987,19 +988,9 @@ if HAVE_NUMBA:
             vr = _row(params, j)
             fs = vr.f * voxel_size
             _child_offsets(vr, h, offs)
-            ns = 0
-            for i in range(lo, hi):
-                p = i - lo
-                if not _takes_view(cursor, p, p_start, p_views, i, j) or alive[p] == 0:
-                    continue
-                count += alive[p]
-                xc0, yc0, zc0 = _cam(vr, centres[i, 0], centres[i, 1], centres[i, 2])
-                for ch in range(8):
-                    X[ns * 8 + ch] = xc0 + offs[ch, 0]
-                    Y[ns * 8 + ch] = yc0 + offs[ch, 1]
-                    Z[ns * 8 + ch] = zc0 + offs[ch, 2]
-                sel[ns] = p
-                ns += 1
+            ns, tested = _children_in_view(vr, j, offs, lo, hi, centres, cursor, p_start,
+                                           p_views, alive, X, Y, Z, sel)
+            count += tested
             n = ns * 8
             n_off = _project_children(n, X, Y, Z, vr, fs, U, V, ZF, IDX, FX, FY, ON)
             _read_corners(n, tables, IDX, 1 if vr.tw > 1 else 0, vr.tw if vr.th > 1 else 0,
@@ -1013,7 +1004,7 @@ if HAVE_NUMBA:
                                       and lv <= vr.th - 0.5):
                         DD[t] = np.float32(_box_bound(vr, U[t], V[t]) * ZF[t])
             for s in range(ns):
-                p = sel[s]
+                p = sel[s] - lo
                 # Insert each child's value into its sorted k+1 smallest, dropping the
                 # largest; a value at or above the largest (or unseen: +inf) changes
                 # nothing.  Same multiset as ``_keep_smallest``.
