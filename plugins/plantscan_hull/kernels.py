@@ -534,17 +534,17 @@ if HAVE_NUMBA:
 
     @njit(cache=True, inline="always")
     def _pass_buffers(n):
-        # Scratch of the passes for n children: centres X, Y, Z (camera frame), pixels U,
-        # V, table index IDX and fractions FX, FY of the bilinear reading, its 4 corners.
-        return (np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty(n),
-                np.empty(n, dtype=np.int64), np.empty(n, dtype=np.float32),
-                np.empty(n, dtype=np.float32), np.empty(n, dtype=SD_DTYPE),
+        # Scratch of the passes for n children: centres X, Y, Z (camera frame), table
+        # index IDX and fractions FX, FY of the bilinear reading, its 4 corners.
+        return (np.empty(n), np.empty(n), np.empty(n), np.empty(n, dtype=np.int64),
+                np.empty(n, dtype=np.float32), np.empty(n, dtype=np.float32),
+                np.empty(n, dtype=SD_DTYPE),
                 np.empty(n, dtype=SD_DTYPE), np.empty(n, dtype=SD_DTYPE),
                 np.empty(n, dtype=SD_DTYPE))
 
     @njit(cache=True, error_model="numpy")
-    def _project_cells(n, X, Y, Z, vr, rho, voxel_size, lip, slack, bil_r, U, V, RES, MARGIN,
-                       IDX, DX, DY, FX, FY):
+    def _project_cells(n, X, Y, Z, vr, rho, voxel_size, lip, slack, bil_r, RES, MARGIN, IDX,
+                       BIL, FX, FY):
         # The geometry of ``_cell_test`` for the cells centred at (X, Y, Z)[:n] (camera
         # frame), branch-free: RES CELL_OFF / CELL_EDGE when decided without the table,
         # else -1 and the margin and table reading to decide it (``_cell_outcomes``):
@@ -556,8 +556,6 @@ if HAVE_NUMBA:
         h = vr.th
         x_max = w - 2 if w > 1 else 0
         y_max = h - 2 if h > 1 else 0
-        dx1 = 1 if w > 1 else 0
-        dy1 = w if h > 1 else 0
         n_beyond = 0
         for t in range(n):
             zc = Z[t]
@@ -595,23 +593,22 @@ if HAVE_NUMBA:
             iu = min(max(int(np.rint(lu)), 0), w - 1)
             iv = min(max(int(np.rint(lv)), 0), h - 1)
             IDX[t] = vr.off + (y0 * w + x0 if bil else iv * w + iu)
-            DX[t] = dx1 if bil else 0
-            DY[t] = dy1 if bil else 0
+            BIL[t] = bil
             FX[t] = np.float32(lu - x0) if bil else np.float32(0.0)
             FY[t] = np.float32(lv - y0) if bil else np.float32(0.0)
-            U[t] = u
-            V[t] = v
         return n_beyond
 
     @njit(cache=True, error_model="numpy")
-    def _cell_outcomes(n, tables, IDX, DX, DY, FX, FY, MARGIN, RES, A, B, C, D):
+    def _cell_outcomes(n, tables, IDX, BIL, dx1, dy1, FX, FY, MARGIN, RES, A, B, C, D):
         # The table readings of the cells with RES -1 and their outcomes.
         for t in range(n):
             q = IDX[t]
             A[t] = tables[q]
-            B[t] = tables[q + DX[t]]
-            C[t] = tables[q + DY[t]]
-            D[t] = tables[q + DY[t] + DX[t]]
+            dx = dx1 if BIL[t] else 0  # the nearest pixel: all 4 corners on it
+            dy = dy1 if BIL[t] else 0
+            B[t] = tables[q + dx]
+            C[t] = tables[q + dy]
+            D[t] = tables[q + dy + dx]
         for t in range(n):
             fx = FX[t]
             fy = FY[t]
@@ -661,11 +658,10 @@ if HAVE_NUMBA:
                 n_off[f] = p_offc[i]
                 live_ok[f] = valid[i * 8 + ch]
                 alive[i - lo] += live_ok[f] and not (n_out[f] > k or n_off[f] > max_off)
-        X, Y, Z, U, V, IDX, FX, FY, A, B, C, D = _pass_buffers(n)
+        X, Y, Z, IDX, FX, FY, A, B, C, D = _pass_buffers(n)
         MARGIN = np.empty(n)
         RES = np.empty(n, dtype=np.int8)
-        DX = np.empty(n, dtype=np.int64)
-        DY = np.empty(n, dtype=np.int64)
+        BIL = np.empty(n, dtype=np.bool_)
         sel = np.empty(npl, dtype=np.int64)
         offs = np.empty((8, 3))
         for j in range(nv):
@@ -675,17 +671,20 @@ if HAVE_NUMBA:
                                            p_views, alive, X, Y, Z, sel)
             count += tested
             m = ns * 8
-            n_beyond = _project_cells(m, X, Y, Z, vr, rho, voxel_size, lip, slack, bil_r, U, V,
-                                      RES, MARGIN, IDX, DX, DY, FX, FY)
-            _cell_outcomes(m, tables, IDX, DX, DY, FX, FY, MARGIN, RES, A, B, C, D)
+            n_beyond = _project_cells(m, X, Y, Z, vr, rho, voxel_size, lip, slack, bil_r, RES,
+                                      MARGIN, IDX, BIL, FX, FY)
+            _cell_outcomes(m, tables, IDX, BIL, 1 if vr.tw > 1 else 0,
+                           vr.tw if vr.th > 1 else 0, FX, FY, MARGIN, RES, A, B, C, D)
             if n_beyond:  # nearest readings beyond the table (rare): the box bound
                 for t in range(m):
-                    lu = U[t] - vr.u0
-                    lv = V[t] - vr.v0
-                    if RES[t] > CELL_EDGE and DX[t] == 0 and not (
-                            lu >= -0.5 and lu <= vr.tw - 0.5 and lv >= -0.5
+                    if RES[t] <= CELL_EDGE or BIL[t]:
+                        continue
+                    u, v = _pixel(vr, X[t], Y[t], Z[t])  # as in ``_project_cells``
+                    lu = u - vr.u0
+                    lv = v - vr.v0
+                    if not (lu >= -0.5 and lu <= vr.tw - 0.5 and lv >= -0.5
                             and lv <= vr.th - 0.5):
-                        sd = _box_bound(vr, U[t], V[t])
+                        sd = _box_bound(vr, u, v)
                         mg = MARGIN[t]
                         RES[t] = CELL_OUT if sd < -mg else (CELL_IN if sd > mg else CELL_AMB)
             for s in range(ns):
@@ -876,8 +875,8 @@ if HAVE_NUMBA:
     # same work cost 33-41 ns per test on the captured 256^3 input; in passes 19-25 ns.
 
     @njit(cache=True, error_model="numpy")
-    def _project_children(n, X, Y, Z, vr, fs, U, V, ZF, IDX, FX, FY, ON):
-        # Camera-frame points (X, Y, Z)[:n] -> their pixels (U, V), depth / (f voxel) ZF,
+    def _project_children(n, X, Y, Z, vr, fs, ZF, IDX, FX, FY, ON):
+        # Camera-frame points (X, Y, Z)[:n] -> their depth / (f voxel) ZF,
         # whether seen ON (1) and, for ``_bilinear_row``'s in-table branch, the table
         # index of the upper-left neighbour IDX and fractions FX, FY (same arithmetic as
         # ``_pixel`` and ``_bilinear_row``).  Returns how many seen points fall beyond the
@@ -910,8 +909,6 @@ if HAVE_NUMBA:
             IDX[t] = vr.off + y0 * w + x0
             ZF[t] = zc / fs
             ON[t] = on
-            U[t] = u
-            V[t] = v
         return n_off
 
     @njit(cache=True, error_model="numpy")
@@ -974,7 +971,7 @@ if HAVE_NUMBA:
                 alive[p] += live_ok[p, ch] and kept[p, k, ch] > -1.0
             total += alive[p]
         m = npl * 8
-        X, Y, Z, U, V, IDX, FX, FY, A, B, C, D = _pass_buffers(m)
+        X, Y, Z, IDX, FX, FY, A, B, C, D = _pass_buffers(m)
         ZF = np.empty(m)
         ON = np.empty(m, dtype=np.bool_)
         DD = np.empty(m, dtype=np.float32)
@@ -992,17 +989,20 @@ if HAVE_NUMBA:
                                            p_views, alive, X, Y, Z, sel)
             count += tested
             n = ns * 8
-            n_off = _project_children(n, X, Y, Z, vr, fs, U, V, ZF, IDX, FX, FY, ON)
+            n_off = _project_children(n, X, Y, Z, vr, fs, ZF, IDX, FX, FY, ON)
             _read_corners(n, tables, IDX, 1 if vr.tw > 1 else 0, vr.tw if vr.th > 1 else 0,
                           A, B, C, D)
             _bilinear_values(n, A, B, C, D, FX, FY, ZF, ON, DD)
             if n_off:  # seen beyond the table (rare): the box bound, as ``_bilinear_row``
                 for t in range(n):
-                    lu = U[t] - vr.u0
-                    lv = V[t] - vr.v0
-                    if ON[t] and not (lu >= -0.5 and lu <= vr.tw - 0.5 and lv >= -0.5
-                                      and lv <= vr.th - 0.5):
-                        DD[t] = np.float32(_box_bound(vr, U[t], V[t]) * ZF[t])
+                    if not ON[t]:
+                        continue
+                    u, v = _pixel(vr, X[t], Y[t], Z[t])  # as in ``_project_children``
+                    lu = u - vr.u0
+                    lv = v - vr.v0
+                    if not (lu >= -0.5 and lu <= vr.tw - 0.5 and lv >= -0.5
+                            and lv <= vr.th - 0.5):
+                        DD[t] = np.float32(_box_bound(vr, u, v) * ZF[t])
             for s in range(ns):
                 p = sel[s] - lo
                 # Insert each child's value into its sorted k+1 smallest, dropping the

@@ -426,3 +426,95 @@ def test_fine_voxel_passes_equal_the_scalar_kernel(rig, mixed_sils):
         assert np.array_equal(new.view(np.int32), old.view(np.int32)), k
         assert n_new == n_old
         assert len(np.unique(new)) > 20  # not all clamped: real field values compared
+
+
+if kernels.HAVE_NUMBA:
+    from numba import njit
+
+    @njit(cache=True)
+    def _scalar_cells(centres, valid, start, views, p_out, p_in, p_off, half, s, params, tables,
+                      k, slack, min_seen, lip, bil_r):
+        # The reference of ``kernels._classify_range``: each child of each parent, view by
+        # view with the scalar ``_cell_test``, stopping once removed (the kernel's counts).
+        n_par = centres.shape[0]
+        rho = (half - 0.5 * s) * np.sqrt(3.0)
+        max_off = params.shape[0] - min_seen
+        decision = np.zeros(n_par * 8, np.int8)
+        counts = np.zeros((n_par * 8, 4), np.int64)  # out, in, off, ambiguous
+        amb = np.full(views.shape[0] * 8, -1, np.int16)
+        tests = 0
+        offs = np.empty((8, 3))
+        for i in range(n_par):
+            for ch in range(8):
+                g = i * 8 + ch
+                if not valid[g]:
+                    continue
+                n_out, n_in, n_off, na, n_on_amb = p_out[i], p_in[i], p_off[i], 0, 0
+                for t in range(start[i], start[i + 1]):
+                    if n_out > k or n_off > max_off:
+                        break
+                    vr = kernels._row(params, views[t])
+                    kernels._child_offsets(vr, half, offs)
+                    x0, y0, z0 = kernels._cam(vr, centres[i, 0], centres[i, 1], centres[i, 2])
+                    tests += 1
+                    res = kernels._cell_test(vr, tables, x0 + offs[ch, 0], y0 + offs[ch, 1],
+                                             z0 + offs[ch, 2], rho, s, lip, slack, bil_r)
+                    if res == kernels.CELL_OFF:
+                        n_off += 1
+                    elif res == kernels.CELL_OUT:
+                        n_out += 1
+                    elif res == kernels.CELL_IN:
+                        n_in += 1
+                    else:
+                        amb[start[i] * 8 + ch * (start[i + 1] - start[i]) + na] = views[t]
+                        na += 1
+                        n_on_amb += res == kernels.CELL_AMB
+                counts[g] = n_out, n_in, n_off, na
+                if n_out > k or n_off > max_off:
+                    decision[g] = 0
+                elif n_out + na <= k and n_out + n_in + n_on_amb >= min_seen:
+                    decision[g] = 1
+                else:
+                    decision[g] = 2
+        return decision, counts, amb, tests
+
+
+@pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="the compiled kernels' test")
+def test_cell_passes_equal_the_scalar_cell_test(rig, mixed_sils):
+    # Session 6: sibling cells are classified in passes.  Each child's decision, counts
+    # and list of ambiguous views must be those of the scalar ``_cell_test`` applied
+    # view by view (child by child here), also beyond the tables (nearest pixel: box
+    # bound), off the image, behind a camera and for the bilinear small footprints.
+    cal, _ = rig
+    vf = prepare_views(list(mixed_sils), cal)
+    params, tables = kernels.pack(vf)
+    rng = np.random.default_rng(7)
+    n_par, n_views = 400, len(vf)
+    dist = np.linalg.norm(vf[0].camera.pose.t)
+    centres = rng.uniform(-1.2 * dist, 1.2 * dist, (n_par, 3))
+    centres[: n_par // 2] = rng.uniform(-50, 50, (n_par // 2, 3))
+    lists = [np.flatnonzero(rng.random(n_views) < 0.8) for _ in range(n_par)]
+    start = np.concatenate([[0], np.cumsum([len(v) for v in lists])]).astype(np.int64)
+    views = np.concatenate(lists).astype(np.int16)
+    p_out = rng.integers(0, 3, n_par).astype(np.int32)
+    p_in = rng.integers(0, 3, n_par).astype(np.int32)
+    p_off = rng.integers(0, 3, n_par).astype(np.int32)
+    valid = rng.random(n_par * 8) < 0.9
+    scratch = kernels._offsets(np.repeat(np.diff(start), 8))
+    for half, s, k, min_seen in ((1.0, 1.0, 3, 4), (2.0, 1.0, 3, 4), (4.0, 2.0, 0, 0)):
+        args = (half, s, params, tables, k, 1.5, min_seen, 1.02, 3.48)
+        decision = np.zeros(n_par * 8, np.int8)
+        outs = [np.zeros(n_par * 8, np.int32) for _ in range(5)]
+        amb = np.full(scratch[-1], -1, np.int16)
+        tests = kernels._classify_range(0, n_par, centres, valid, start, views, p_out, p_in,
+                                        p_off, scratch, *args, decision, *outs, amb)
+        ref, counts, ref_amb, ref_tests = _scalar_cells(centres, valid, start, views, p_out,
+                                                        p_in, p_off, *args)
+        assert np.array_equal(decision, ref) and tests == ref_tests, half
+        kept = decision > 0  # removed cells' counts and lists are never read
+        assert np.array_equal(np.stack(outs[:4], 1)[kept], counts[kept]), half
+        for g in np.flatnonzero(kept):
+            na = counts[g, 3]
+            assert np.array_equal(amb[scratch[g]:scratch[g] + na],
+                                  ref_amb[scratch[g]:scratch[g] + na]), g
+        assert len(np.unique(ref)) == 3 and (counts[kept, 3] > 0).any()
