@@ -798,6 +798,9 @@ def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = No
         tree = cKDTree(mesh.vertices[stem_vertices])
 
     def one(leaf_id: int, sub: Mesh) -> tuple[LeafMeasurement | None, str | None]:
+        if len(sub.faces) < p.min_leaf_faces:  # also a leaf label no face carries
+            return None, f"leaf {leaf_id}: {len(sub.faces)} faces (fewer than " \
+                         f"{p.min_leaf_faces}), skipped"
         hint = None
         if tree is not None:
             probe = sub.vertices[:: max(1, len(sub.vertices) // 5000)]  # 5000 are plenty

@@ -93,6 +93,20 @@ def test_no_leaf_label_gives_empty_traits(caplog):
     assert traits.plant["height_mm"] == pytest.approx(61.0, abs=1.5)  # the stem still counts
 
 
+def test_leaf_label_without_faces_is_skipped_not_fatal():
+    # a segmenter (ours after joining pieces, or a user's) may list a leaf no face carries
+    leaf = ph.EllipseLeaf(40.0, 20.0)
+    mesh = ph.ellipse_slab_mesh(leaf.a, leaf.b, 2.0, voxel_mm=0.5)
+    stem = ph.mesh_field(ph.cylinder_field(3.0, -60.0, -10.0), (-4, -4, -61), (4, 4, -9), 0.5)
+    both = Mesh(np.vstack([mesh.vertices, stem.vertices]),
+                np.vstack([mesh.faces, stem.faces + len(mesh.vertices)]))
+    labels = np.r_[np.ones(len(mesh.faces), int), np.zeros(len(stem.faces), int)]
+    traits, _, info = measure_plant(LabelledMesh(both, labels, {0: "stem", 1: "leaf", 2: "leaf"}))
+    assert [lf.leaf_id for lf in traits.leaves] == [1]
+    assert _rel(traits.leaves[0].area_mm2, leaf.area_mm2) < 0.02
+    assert any("leaf 2: 0 faces" in w for w in info["warnings"])
+
+
 def test_holed_leaf_keeps_its_outline():
     # the segmentation may give a patch of one side to a neighbour (a hole in the slab) and
     # leave crumbs of the leaf elsewhere: the outline must still be the leaf's, not the
