@@ -385,6 +385,22 @@ def test_octree_equals_dense_for_every_top_cell(rig, mixed_sils, backend):
         assert np.array_equal(octree, dense), top
 
 
+def _random_parents(vf, n_par: int, seed: int):
+    """Inputs of the sibling kernels: (P, 3) parent centres (half around the objects, half
+    anywhere within 1.2 camera distances: behind cameras, off the images, beyond the
+    tables), each parent's list of ~80 % of the views, decided out / in / off counts and
+    which children lie in the grid."""
+    rng = np.random.default_rng(seed)
+    dist = np.linalg.norm(vf[0].camera.pose.t)  # camera distance from the origin (mm)
+    centres = rng.uniform(-1.2 * dist, 1.2 * dist, (n_par, 3))
+    centres[: n_par // 2] = rng.uniform(-50, 50, (n_par // 2, 3))
+    lists = [np.flatnonzero(rng.random(len(vf)) < 0.8) for _ in range(n_par)]
+    start = np.concatenate([[0], np.cumsum([len(v) for v in lists])]).astype(np.int64)
+    views = np.concatenate(lists).astype(np.int16)
+    counts = [rng.integers(0, 3, n_par).astype(np.int32) for _ in range(3)]
+    return centres, start, views, *counts, rng.random(n_par * 8) < 0.9
+
+
 @pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="the compiled kernels' test")
 def test_fine_voxel_passes_equal_the_scalar_kernel(rig, mixed_sils):
     # Session 6: the fine voxels' kernel runs in passes (vectorised projection, table
@@ -395,17 +411,8 @@ def test_fine_voxel_passes_equal_the_scalar_kernel(rig, mixed_sils):
     cal, _ = rig
     vf = prepare_views(list(mixed_sils), cal)
     params, tables = kernels.pack(vf)
-    rng = np.random.default_rng(6)
-    n_par, n_views, s = 300, len(vf), 8.0  # coarse voxels: fewer values clamped at +-1
-    dist = np.linalg.norm(vf[0].camera.pose.t)  # camera distance from the origin (mm)
-    centres = rng.uniform(-1.2 * dist, 1.2 * dist, (n_par, 3))  # some behind cameras
-    centres[: n_par // 2] = rng.uniform(-50, 50, (n_par // 2, 3))  # around the objects
-    lists = [np.flatnonzero(rng.random(n_views) < 0.8) for _ in range(n_par)]
-    start = np.concatenate([[0], np.cumsum([len(v) for v in lists])]).astype(np.int64)
-    views = np.concatenate(lists).astype(np.int16)
-    p_out = rng.integers(0, 3, n_par).astype(np.int32)
-    p_in = rng.integers(0, 3, n_par).astype(np.int32)
-    valid = rng.random(n_par * 8) < 0.9
+    n_par, s = 300, 8.0  # coarse voxels: fewer values clamped at +-1
+    centres, start, views, p_out, p_in, _, valid = _random_parents(vf, n_par, 6)
     beyond = behind = 0  # the inputs do reach the scalar kernel's branches
     for v in vf:
         front = centres @ v.camera.pose.R[2] + v.camera.pose.t[2] > 0
@@ -488,18 +495,8 @@ def test_cell_passes_equal_the_scalar_cell_test(rig, mixed_sils):
     cal, _ = rig
     vf = prepare_views(list(mixed_sils), cal)
     params, tables = kernels.pack(vf)
-    rng = np.random.default_rng(7)
-    n_par, n_views = 400, len(vf)
-    dist = np.linalg.norm(vf[0].camera.pose.t)
-    centres = rng.uniform(-1.2 * dist, 1.2 * dist, (n_par, 3))
-    centres[: n_par // 2] = rng.uniform(-50, 50, (n_par // 2, 3))
-    lists = [np.flatnonzero(rng.random(n_views) < 0.8) for _ in range(n_par)]
-    start = np.concatenate([[0], np.cumsum([len(v) for v in lists])]).astype(np.int64)
-    views = np.concatenate(lists).astype(np.int16)
-    p_out = rng.integers(0, 3, n_par).astype(np.int32)
-    p_in = rng.integers(0, 3, n_par).astype(np.int32)
-    p_off = rng.integers(0, 3, n_par).astype(np.int32)
-    valid = rng.random(n_par * 8) < 0.9
+    n_par = 400
+    centres, start, views, p_out, p_in, p_off, valid = _random_parents(vf, n_par, 7)
     scratch = kernels._offsets(np.repeat(np.diff(start), 8))
     for half, s, k, min_seen in ((1.0, 1.0, 3, 4), (2.0, 1.0, 3, 4), (4.0, 2.0, 0, 0)):
         args = (half, s, params, tables, k, 1.5, min_seen, 1.02, 3.48)
