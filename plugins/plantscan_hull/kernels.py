@@ -871,8 +871,9 @@ if HAVE_NUMBA:
     # parents are projected in one branch-free loop that the compiler vectorises (8
     # divisions at once), their 4 table values are read in a second loop, the bilinear
     # values formed in a third, and each child's k+1 smallest values are kept sorted and
-    # updated without branches (a data-dependent branch per test mispredicts).  Scalar, the
-    # same work cost 33-41 ns per test on the captured 256^3 input; in passes 17-22 ns.
+    # updated without branches, the 8 siblings at once (vectorised min / max).  Scalar, the
+    # same work cost 33-41 ns per test on the captured 256^3 input; in passes 17-22 ns
+    # (the loads of the table corners are the largest part left).
 
     @njit(cache=True, error_model="numpy")
     def _project_children(n, X, Y, Z, vr, fs, ZF, IDX, FX, FY, ON):
