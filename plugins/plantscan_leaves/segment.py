@@ -111,6 +111,14 @@ class CurvatureRegionsParams(StageParams):
                     "(a narrow grass tip is as thick as it is wide in the hull, so its normals "
                     "turn all round; grasses: true; broad leaves: false, a stem top hanging "
                     "off a leaf that grabbed the stem below it would go to the leaf)")
+    join_gap_mm: float | None = Field(
+        None, gt=0,
+        description="a grass blade cut in two where it crosses a stem (its hull fuses with "
+                    "the stem there) is joined again: two leaves whose ends lie within this "
+                    "many mm, continue each other (outward directions opposite within "
+                    "~30°) and are both wide there (a blade's own base tapers) become one, "
+                    "with the stem faces between the ends; about the stem's diameter in the "
+                    "hull plus a margin (grasses: 12); None: off (broad leaves)")
     ground_band_mm: float = Field(
         12.0, ge=0,
         description="leaf-like pieces lying entirely this close to the bottom of the mesh are "
@@ -356,6 +364,10 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
         out, n_split = _split_joined_leaves(out, kf < -p.split_curvature_per_mm, areas,
                                             topo.face_pairs, p.min_leaf_area_mm2)
         info["leaves_split"] = n_split
+        leaf_pieces = list(range(int(out.max())))
+    if p.join_gap_mm is not None and len(leaf_pieces) > 1:
+        out, n_joined = _join_broken_blades(out, centroids, areas, p.join_gap_mm)
+        info["blades_joined"] = n_joined
         leaf_pieces = list(range(int(out.max())))
     for new in range(1, len(leaf_pieces) + 1):
         kinds[new] = "leaf"
@@ -680,6 +692,114 @@ def _split_joined_leaves(labels: np.ndarray, crease: np.ndarray, areas: np.ndarr
     if (labels > 0).all():  # no stem at all: ids start at 1 anyway
         out += 1
     return out, int(split.sum())
+
+
+# A broken blade's two pieces: their facing ends point at each other within ~30° and
+# are at least this share of each piece's widest station wide (a blade's own base tapers,
+# so two blades meeting base to base across a stem are not joined).
+JOIN_END_COS = 0.85
+JOIN_END_WIDTH_SHARE = 0.6
+JOIN_END_MM = 5.0  # the end zone whose width is read (a tapered base is narrow there)
+JOIN_DIRECTION_MM = 30.0  # the end zone whose principal axis is the end's direction
+
+
+def _blade_ends(q: np.ndarray, w: np.ndarray) -> tuple[list[tuple[np.ndarray, np.ndarray,
+                                                                     float]], float]:
+    """Both ends of a leaf piece: (point, outward direction, width) each, mm.
+
+    Ends are the last ``JOIN_END_MM`` along the piece's principal axis (area-weighted;
+    the point is their mean, not the single extreme face, a corner of the cut); the
+    direction is the principal axis of the last ``JOIN_DIRECTION_MM``, pointing out;
+    the width is twice the 95th percentile of the lateral distance over the last
+    ``JOIN_END_MM``.  Also returns the widest 10 mm station across the second
+    principal axis.
+    """
+    mu = np.average(q, axis=0, weights=w)
+    _, _, vt = np.linalg.svd((q - mu) * np.sqrt(w)[:, None], full_matrices=False)
+    s = (q - mu) @ vt[0]
+    across = (q - mu) @ vt[1]
+    station = np.floor((s - s.min()) / 10.0).astype(np.int64)
+    lo = np.full(int(station.max()) + 1, np.inf)
+    hi = np.full(int(station.max()) + 1, -np.inf)
+    np.minimum.at(lo, station, across)
+    np.maximum.at(hi, station, across)
+    widest = float(np.max(hi - lo))
+    ends = []
+    for sign in (1.0, -1.0):
+        ss = sign * s
+        top = ss.max()
+        zone = q[ss > top - JOIN_DIRECTION_MM]
+        _, _, vz = np.linalg.svd(zone - zone.mean(axis=0), full_matrices=False)
+        d = vz[0] if vz[0] @ (sign * vt[0]) > 0 else -vz[0]
+        tip = q[ss > top - JOIN_END_MM]
+        rel = tip - tip.mean(axis=0)
+        width = 2.0 * float(np.percentile(geo.row_norm(rel - np.outer(rel @ d, d)), 95))
+        ends.append((tip.mean(axis=0), d, width))
+    return ends, widest
+
+
+def _join_broken_blades(labels: np.ndarray, centroids: np.ndarray, areas: np.ndarray,
+                        gap_mm: float) -> tuple[np.ndarray, int]:
+    """Leaves that are two pieces of one blade cut where it crosses a stem, joined.
+
+    Where a grass blade lies against a stem or tiller it crosses, the hull fuses
+    them and the concave creases on both sides of the stem cut the blade in two;
+    the outer piece then measures as an extra leaf and the blade as far too short
+    (18 MP wheat, paper-72: one blade −51 % length).  Two leaf pieces are one blade
+    when an end of each lies within ``gap_mm`` of the other, the two ends point at
+    each other (outward directions opposite within ~30°) and both are wide there
+    (``JOIN_END_WIDTH_SHARE`` of the piece's widest station: a blade's own base
+    tapers, so blades meeting base to base across a stem stay apart).  The stem
+    faces between the ends (within half the wider end + 2 mm of the segment
+    joining them) join too, so the blade is one connected surface.  Returns
+    labels 0 (stem), 1..n and the number of joins.
+    """
+    n = int(labels.max())
+    ends: dict[int, list] = {}
+    widest: dict[int, float] = {}
+    for lab in range(1, n + 1):
+        sel = labels == lab
+        if np.count_nonzero(sel) >= 10:
+            ends[lab], widest[lab] = _blade_ends(centroids[sel], areas[sel])
+    root = np.arange(n + 1)
+
+    def find(a: int) -> int:
+        while root[a] != a:
+            a = root[a]
+        return a
+
+    out = labels.copy()
+    joined = 0
+    keys = sorted(ends)
+    for i, a in enumerate(keys):
+        for b in keys[i + 1:]:
+            for pa, da, wa in ends[a]:
+                for pb, db, wb in ends[b]:
+                    gap = float(np.linalg.norm(pb - pa))
+                    if (gap > gap_mm or float(da @ -db) < JOIN_END_COS
+                            or wa < JOIN_END_WIDTH_SHARE * widest[a]
+                            or wb < JOIN_END_WIDTH_SHARE * widest[b]):
+                        continue
+                    u = (pb - pa) / max(gap, 1e-9)
+                    rel = centroids - pa
+                    t = rel @ u
+                    r = 0.5 * max(wa, wb) + 2.0
+                    bridge = ((labels == STEM_LABEL) & (t > -r) & (t < gap + r)
+                              & (geo.row_norm(rel - np.outer(t, u)) < r))
+                    ra, rb = find(a), find(b)
+                    if ra != rb:
+                        root[max(ra, rb)] = min(ra, rb)
+                        joined += 1
+                    out[bridge] = min(ra, rb)
+    if not joined:
+        return labels, 0
+    final = np.array([find(k) for k in range(n + 1)])
+    out = np.where(out > 0, final[out], 0)
+    _, new = np.unique(out, return_inverse=True)  # 0 stays 0 when a stem face exists
+    new = new.reshape(out.shape).astype(np.int32)
+    if (out > 0).all():
+        new += 1
+    return new, joined
 
 
 def _merge_crumbs(labels: np.ndarray, crumbs: np.ndarray, pairs: np.ndarray, nlab: int,
