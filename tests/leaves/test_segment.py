@@ -345,3 +345,20 @@ def test_join_is_off_for_broad_leaves_and_changes_nothing_without_a_cut():
     on, info_on = segment_leaves(mesh, CurvatureRegionsParams(join_gap_mm=12.0))
     assert "blades_joined" not in info_off and info_on["blades_joined"] == 0
     assert np.array_equal(off.face_labels, on.face_labels)
+
+
+def test_stray_tip_joins_the_nearest_blade_of_its_region_not_the_biggest():
+    # one region holding two blades (the petiole test cut them apart) and a broken-off tip
+    # 3 mm beyond the end of the smaller one: the tip belongs to the blade it came off
+    from plantscan_leaves.segment import _strays_to_region
+
+    small_blade = np.stack([np.linspace(0, 100, 50), np.zeros(50), np.zeros(50)], 1)
+    big_blade = np.stack([np.linspace(200, 400, 100), np.zeros(100), np.zeros(100)], 1)
+    tip = np.stack([np.linspace(103, 110, 5), np.zeros(5), np.zeros(5)], 1)
+    centroids = np.vstack([small_blade, big_blade, tip])
+    pieces = np.repeat([0, 1, 2], [50, 100, 5])
+    small = np.array([False, False, True])
+    regions = np.zeros(len(pieces), np.int64)
+    out = _strays_to_region(pieces, small, regions, centroids)
+    assert (out[pieces == 2] == 0).all()
+    assert np.array_equal(out[pieces != 2], pieces[pieces != 2])
