@@ -649,6 +649,14 @@ if HAVE_NUMBA:
         live_ok = np.empty(n, np.bool_)
         alive = np.zeros(npl, np.int32)
         cursor = np.empty(npl, np.int64)
+        # Which of its parent's listed views each child found ambiguous: bit q of
+        # ambig[q // 64, child] for list position q.  One row per 64 positions, so a view's
+        # updates write one contiguous row (writing the lists view by view touched one
+        # cache line per child: 20 % of the time); the lists are written at the end.
+        longest = 0
+        for i in range(lo, hi):
+            longest = max(longest, p_start[i + 1] - p_start[i])
+        ambig = np.zeros(((longest + 63) // 64, n), np.uint64)
         for i in range(lo, hi):
             cursor[i - lo] = p_start[i]
             for ch in range(8):
@@ -690,16 +698,18 @@ if HAVE_NUMBA:
             for s in range(ns):
                 i = sel[s]
                 a = 0
+                q = cursor[i - lo] - 1 - p_start[i]  # view j's position in the parent's list
+                row = q >> 6
+                bit = np.uint64(1) << np.uint64(q & 63)
                 for ch in range(8):
                     f = (i - lo) * 8 + ch
                     res = RES[s * 8 + ch]
                     n_off[f] += res == CELL_OFF
                     n_out[f] += res == CELL_OUT
                     n_in[f] += res == CELL_IN
-                    # Ambiguous views, in the global view order; the slot is the child's
-                    # (at most as many as its parent's list), written whatever the outcome.
-                    amb[scratch_off[i * 8 + ch] + na[f]] = j
-                    na[f] += (res == CELL_EDGE) | (res == CELL_AMB)
+                    is_amb = (res == CELL_EDGE) | (res == CELL_AMB)
+                    ambig[row, f] |= bit if is_amb else np.uint64(0)
+                    na[f] += is_amb
                     n_on_amb[f] += res == CELL_AMB
                     a += live_ok[f] and not (n_out[f] > k or n_off[f] > max_off)
                 alive[i - lo] = a
@@ -720,6 +730,13 @@ if HAVE_NUMBA:
                     decision[g] = 1
                 else:
                     decision[g] = 2
+                    # Its list of ambiguous views (in the global view order), for its
+                    # children; removed and full cells' lists are never read.
+                    w = scratch_off[g]
+                    for q in range(p_start[i + 1] - p_start[i]):
+                        if ambig[q >> 6, f] & (np.uint64(1) << np.uint64(q & 63)):
+                            amb[w] = p_views[p_start[i] + q]
+                            w += 1
         return count
 
     @njit(cache=True, parallel=True)
