@@ -17,7 +17,17 @@ from pathlib import Path
 import numpy as np
 
 from plantscan_calib.solver import Detection
-from plantscan_core.data import Calibration, CameraModel, Pose, rotation_x, rotation_y, rotation_z
+from plantscan_core.data import (
+    Calibration,
+    CameraModel,
+    Pose,
+    Silhouette,
+    Silhouettes,
+    ViewRecord,
+    rotation_x,
+    rotation_y,
+    rotation_z,
+)
 from plantscan_core.errors import DataError
 
 
@@ -107,3 +117,29 @@ def project_original(cal: Calibration, board_poses: dict[int, Pose], det: Detect
     fx, fy = cal.quality["fx_fy"][det.camera]
     m = cal.models[det.camera]
     return np.stack([fx * xc[:, 0] / xc[:, 2] + m.cu, fy * xc[:, 1] / xc[:, 2] + m.cv], axis=1)
+
+
+def load_silhouettes(bin_dir: Path) -> Silhouettes:
+    """The original software's plant silhouettes (``bin/{side,top}/<angle>.png``) as views.
+
+    File names are turntable angles in degrees; the turntable turns clockwise, so
+    each view's angle is minus the recorded one, as for the corners.  Views are
+    ordered by camera, then angle.
+    """
+    import cv2
+
+    items: list[Silhouette] = []
+    for cam_dir in sorted(p for p in Path(bin_dir).iterdir() if p.is_dir()):
+        files = sorted(cam_dir.glob("*.png"), key=lambda p: float(p.stem))
+        for i, path in enumerate(files):
+            mask = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+            if mask is None:
+                raise DataError(f"{path}: not a readable image")
+            view = ViewRecord(index=len(items), role="plant", camera=cam_dir.name, tilt_index=0,
+                              tilt_deg=0.0, angle_index=i,
+                              commanded_angle_deg=-float(path.stem), measured_angle_deg=None,
+                              file=str(path))
+            items.append(Silhouette(view, mask > 0))
+    if not items:
+        raise DataError(f"{bin_dir}: no <camera>/<angle>.png silhouettes")
+    return Silhouettes(items)

@@ -28,6 +28,12 @@ MAX_LP_VIEWS = 72
 # Views used by the quick carve.  Fewer views never remove more (the hull of a subset
 # contains the hull of all), so the box stays safe; the final carve checks clipping.
 MAX_BOX_CARVE_VIEWS = 48
+# How far below ``floor_z`` the silhouettes may put the plant before the floor is taken
+# for a frame mistake: the frustum box of a potted plant ends within ~15 mm of a
+# plantscan plate (18 MP dicot scans: 5-15 mm above it); a calibration whose z = 0 is
+# elsewhere (PhenoArch: the camera's height) puts it hundreds of mm below.
+FLOOR_SLACK_MM = 50.0
+FLOOR_SLACK_SHARE = 0.1  # of the frustum box's height, if more
 
 
 class BoundingBoxError(DataError):
@@ -111,6 +117,15 @@ def auto_box(views: Sequence[ViewField], k: int, margin_mm: float, coarse: int =
     """
     lo0, hi0 = frustum_box(views)
     if floor_z is not None:
+        depth = floor_z - lo0[2]
+        if depth > max(FLOOR_SLACK_MM, FLOOR_SLACK_SHARE * (hi0[2] - lo0[2])):
+            raise BoundingBoxError(
+                f"the silhouettes put the plant down to z = {lo0[2]:.0f} mm, {depth:.0f} mm "
+                f"below reconstruct.params.floor_z_mm = {floor_z:g} mm (the top of the "
+                "turntable plate in a plantscan calibration), and nothing below the floor is "
+                "kept: the plant would be cut off there. If this calibration's z = 0 is not "
+                "the plate (a calibration imported from another rig or program), set "
+                "reconstruct.params.floor_z_mm to the plate's height, or to null")
         lo0[2] = max(lo0[2], floor_z)
         hi0[2] = max(hi0[2], floor_z + 1.0)
     lo, hi = lo0.copy(), hi0.copy()

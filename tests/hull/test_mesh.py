@@ -415,8 +415,18 @@ def test_auto_k_grows_with_the_views(rig, potted):
     assert [resolve_k("auto", n) for n in (4, 72, 360)] == [3, 3, 9]
     assert resolve_k(5, 360) == 5
     cal, _ = rig
-    volume = OctreeHull(OctreeHull.Params(resolution=32)).reconstruct(potted, cal)
+    volume = OctreeHull(OctreeHull.Params(resolution=32, floor_z_mm=None)).reconstruct(potted,
+                                                                                      cal)
     assert volume.stats["k"] == resolve_k("auto", len(potted)) == 3
+
+
+def test_a_frame_whose_floor_is_not_the_plate_is_reported(rig, potted):
+    # this rig's pot stands 20-60 mm below z = 0 (like a calibration imported from a rig
+    # whose z = 0 is the camera's height): the default floor (a plantscan plate at z = 0)
+    # would cut it off silently; the error names the parameter that fixes it
+    cal, _ = rig
+    with pytest.raises(BoundingBoxError, match=r"z = -\d+ mm.*reconstruct.params.floor_z_mm"):
+        OctreeHull(OctreeHull.Params(resolution=32)).reconstruct(potted, cal)
 
 
 def test_bad_params_are_rejected():
