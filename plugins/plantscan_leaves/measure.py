@@ -388,6 +388,9 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
         if extent[st] <= 0:
             break
         in_st = np.flatnonzero(station == st)
+        if not len(in_st):  # the outline crosses this station, no crest node does
+            width = max(width, float(extent[st]))
+            continue
         li = valid[in_st[np.argmax(lateral[in_st])]]
         ri = valid[in_st[np.argmin(lateral[in_st])]]
         w = _two_side_length([g_a, g_b], q, int(li), int(ri), sigma,
