@@ -713,7 +713,9 @@ if HAVE_NUMBA:
                     n_on_amb[f] += res == CELL_AMB
                     a += live_ok[f] and not (n_out[f] > k or n_off[f] > max_off)
                 alive[i - lo] = a
+        w = np.empty(8, np.int64)
         for i in range(lo, hi):
+            any_split = False
             for ch in range(8):
                 f = (i - lo) * 8 + ch
                 g = i * 8 + ch
@@ -730,13 +732,23 @@ if HAVE_NUMBA:
                     decision[g] = 1
                 else:
                     decision[g] = 2
-                    # Its list of ambiguous views (in the global view order), for its
-                    # children; removed and full cells' lists are never read.
-                    w = scratch_off[g]
-                    for q in range(p_start[i + 1] - p_start[i]):
-                        if ambig[q >> 6, f] & (np.uint64(1) << np.uint64(q & 63)):
-                            amb[w] = p_views[p_start[i] + q]
-                            w += 1
+                    any_split = True
+            if any_split:
+                # The split children's lists of ambiguous views (in the global view
+                # order), for their own children; the siblings' lists are written in one
+                # walk of the parent's list (each slot written, kept if its bit is set:
+                # a list never outgrows the walk).  Other children's lists are not read.
+                for ch in range(8):
+                    w[ch] = scratch_off[i * 8 + ch]
+                p0 = p_start[i]
+                for q in range(p_start[i + 1] - p0):
+                    view = p_views[p0 + q]
+                    row = q >> 6
+                    shift = np.uint64(q & 63)
+                    for ch in range(8):
+                        amb[w[ch]] = view
+                        w[ch] += np.int64((ambig[row, (i - lo) * 8 + ch] >> shift)
+                                          & np.uint64(1))
         return count
 
     @njit(cache=True, parallel=True)
