@@ -349,6 +349,18 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
             leaf_face &= ~to_stem
             pieces = np.where(leaf_face, pieces, -1)
             small |= drop
+    if p.join_gap_mm is not None and n_pieces > 1:
+        # a blade the petiole test cut where it lies across a tiller may leave a piece too
+        # small to be a leaf on its own (its base): join the pieces of one blade before
+        # small pieces merge into whatever they touch most (the stem)
+        pieces, n_joined = _join_blade_pieces(pieces, leaf_face, small, centroids, areas,
+                                              p.join_gap_mm, p.min_leaf_area_mm2)
+        if n_joined:
+            leaf_face = pieces >= 0
+            n_pieces = int(pieces.max()) + 1
+            piece_area = np.bincount(pieces[leaf_face], areas[leaf_face], n_pieces) / 2.0
+            small = piece_area < p.min_leaf_area_mm2
+        info["blade_pieces_joined"] = n_joined
     if small.any() and (~small).any():
         merged = _merge_crumbs(np.where(leaf_face, pieces, n_pieces), np.append(small, False),
                                topo.face_pairs, n_pieces + 1)
@@ -801,6 +813,37 @@ def _join_broken_blades(labels: np.ndarray, centroids: np.ndarray, areas: np.nda
     if (out > 0).all():
         new += 1
     return new, joined
+
+
+JOIN_MIN_PIECE_SHARE = 0.25  # of min_leaf_area_mm2: smaller pieces are crumbs, not blade parts
+
+
+def _join_blade_pieces(pieces: np.ndarray, leaf_face: np.ndarray, small: np.ndarray,
+                       centroids: np.ndarray, areas: np.ndarray, gap_mm: float,
+                       min_area: float) -> tuple[np.ndarray, int]:
+    """Leaf pieces of one blade cut apart at a stem, joined (``_join_broken_blades``' rule).
+
+    ``pieces`` (F,) piece per face, -1 off leaves; ``small`` (P,) pieces below a leaf's
+    area.  Candidates are the pieces with ``JOIN_MIN_PIECE_SHARE`` of a leaf's area (a
+    blade's base cut off where it crosses a tiller is often less than a leaf, more than
+    a crumb); the faces bridging a joined pair become leaf faces of the joined piece.
+    Returns the pieces renumbered 0..n-1 (-1 off leaves) and the number of joins.
+    """
+    npc = len(small)
+    on = leaf_face & (pieces >= 0)
+    area = np.bincount(pieces[on], areas[on], npc) / 2.0
+    cand = area >= JOIN_MIN_PIECE_SHARE * min_area
+    cand_face = on & cand[np.maximum(pieces, 0)]
+    lab = np.where(cand_face, pieces + 1, 0).astype(np.int32)
+    joined, n = _join_broken_blades(lab, centroids, areas, gap_mm)
+    if not n:
+        return pieces, 0
+    # joined candidates (and their bridges) keep their new ids; other leaf pieces follow
+    m = int(joined.max())
+    out = np.where(joined > 0, joined - 1, -1)
+    rest = on & ~cand_face & (joined == 0)
+    out[rest] = m + pieces[rest]
+    return _relabel(out), n
 
 
 def _merge_crumbs(labels: np.ndarray, crumbs: np.ndarray, pairs: np.ndarray, nlab: int,

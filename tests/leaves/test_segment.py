@@ -362,3 +362,25 @@ def test_stray_tip_joins_the_nearest_blade_of_its_region_not_the_biggest():
     out = _strays_to_region(pieces, small, regions, centroids)
     assert (out[pieces == 2] == 0).all()
     assert np.array_equal(out[pieces != 2], pieces[pieces != 2])
+
+
+def test_a_blade_base_too_small_for_a_leaf_is_joined_to_its_blade():
+    # the petiole test can cut a blade where it lies across a tiller, leaving its base a
+    # piece below a leaf's area that would merge into the stem (18 MP wheat paper-72:
+    # blade 13 -33 % length); blade A's base here (x < -5 mm) holds ~690 mm² on one side,
+    # below a leaf's 1000 mm² in this test
+    from plantscan_leaves.segment import _join_blade_pieces
+
+    mesh = _blades_at_a_stem()
+    c = mesh.vertices[mesh.faces].mean(axis=1)
+    areas = mesh.face_areas()
+    pieces = np.where(c[:, 2] > 75.0, np.where(c[:, 0] < 0, 1, 0), np.where(c[:, 0] > 0, 2, 3))
+    pieces[np.hypot(c[:, 0], c[:, 1]) < 5.0] = -1
+    base_area = areas[pieces == 1].sum() / 2.0
+    assert 0.25 * 1000.0 < base_area < 1000.0  # a blade part, not a leaf by itself
+    small = np.array([False, True, False, False])
+    joined, n = _join_blade_pieces(pieces, pieces >= 0, small, c, areas, 20.0, 1000.0)
+    assert n == 1
+    blade_a = (c[:, 2] > 75.0) & (pieces >= 0)
+    assert len(np.unique(joined[blade_a])) == 1
+    assert len({joined[pieces == 2][0], joined[pieces == 3][0], joined[blade_a][0]}) == 3
