@@ -4,6 +4,7 @@
     python benchmarks/hull.py --run-masks RUN --scan SCAN [--baseline REV]   # memory
     python benchmarks/hull.py --mesh FIELD.npz[,FIELD2.npz] [--baseline REV]   # mesher
     python benchmarks/hull.py --prep-band   # per-view preparation, banded idea
+    python benchmarks/hull.py --kernel-bench 256   # ns per test of the last levels' kernels
 
 The second form measures the ``octree-hull`` reconstructor on the masks of a
 processing run (``RUN/masks``, ``RUN/calibration.yaml``, the plant views of
@@ -210,6 +211,83 @@ def open3d_carve(views, grid) -> dict:
     return {"carve_s": time.perf_counter() - t0, "carve_cpu_s": time.process_time() - c0,
             "voxel_view_tests": nx * ny * nz * len(views),
             "cell_view_tests": 0, "inside": len(vg.get_voxels())}
+
+
+def kernel_bench(folder: Path, res: int, k: int, rounds: int = 3) -> dict:
+    """ns per test of the last levels' kernels, single-threaded, on the carve's own inputs.
+
+    Carves at ``res`` with ``voxel_group`` / ``classify_group`` wrapped to keep the
+    inputs and outputs of the fine voxels and of the last cell level (2-voxel cells),
+    then runs ``kernels._voxel_range`` and ``_classify_range`` chunk by chunk
+    (``GROUP_CHUNK`` parents) in this thread, ``rounds`` times, and checks their
+    outputs against the carve's (to the bit; the lists of split cells).
+    """
+    from plantscan_hull import kernels
+    from plantscan_hull.bbox import auto_box
+    from plantscan_hull.carve import Grid, carve_octree
+    from plantscan_hull.views import prepare_views
+
+    sils, cal = load_scene(folder)
+    views = prepare_views(list(sils), cal)
+    min_seen = max(k + 1, len(views) // 2)
+    lo, hi, _ = auto_box(views, k, 5.0, coarse=min(128, res), backend="auto",
+                         min_seen=min_seen, floor_z=0.0)
+    grid = Grid.from_box(lo, hi, res)
+    voxels, cells, packed = [], [], []
+    voxel_group, classify_group = kernels.voxel_group, kernels.classify_group
+
+    def keep_voxels(pk, tree, centres, valid, *a, **kw):
+        out = voxel_group(pk, tree, centres, valid, *a, **kw)
+        packed[:] = [pk]
+        voxels.append((tree, np.ascontiguousarray(centres), valid, out))
+        return out
+
+    def keep_cells(pk, tree, centres, valid, half, s, *a, **kw):
+        decision, child = classify_group(pk, tree, centres, valid, half, s, *a, **kw)
+        if half == s:  # the last cell level: children of 2 voxels
+            cells.append((tree, np.ascontiguousarray(centres), valid, a, kw, decision, child))
+        return decision, child
+
+    kernels.voxel_group, kernels.classify_group = keep_voxels, keep_cells
+    try:
+        carve_octree(views, grid, k, 32, backend="numba", min_seen=min_seen)
+    finally:
+        kernels.voxel_group, kernels.classify_group = voxel_group, classify_group
+    params, tables = packed[0]
+    s, chunk, out = grid.voxel_size, kernels.GROUP_CHUNK, {"res": res}
+    for rnd in range(rounds):
+        c0, tests, same = time.process_time(), 0, True
+        for tree, centres, valid, ref in voxels:
+            values = np.full(len(ref), np.float32(-1.0))
+            for a in range(0, len(centres), chunk):
+                tests += kernels._voxel_range(
+                    a, min(len(centres), a + chunk), centres, valid, tree.start, tree.views,
+                    tree.n_out, tree.n_in, s, params, tables, k, min_seen, values)
+            same &= bool(np.array_equal(values.view(np.int32), ref.view(np.int32)))
+        dt = time.process_time() - c0
+        out[f"voxel_ns_round{rnd + 1}"] = round(1e9 * dt / tests, 2)
+        c0, n_cell, same_cells = time.process_time(), 0, True
+        for tree, centres, valid, a, kw, ref, child in cells:
+            n8 = 8 * len(centres)
+            scratch = kernels._offsets(np.repeat(np.diff(tree.start), 8))
+            decision = np.zeros(n8, np.int8)
+            counts = [np.zeros(n8, np.int32) for _ in range(5)]
+            amb = np.empty(scratch[-1], np.int16)
+            slack, lip = a[1], a[3]  # as ``carve`` calls it: k, slack, min_seen, lip, ...
+            for b in range(0, len(centres), chunk):
+                n_cell += kernels._classify_range(
+                    b, min(len(centres), b + chunk), centres, valid, tree.start, tree.views,
+                    tree.n_out, tree.n_in, tree.n_off, scratch, s, s, params, tables, k, slack,
+                    min_seen, lip, a[5] if len(a) > 5 else kw.get("bilinear_px", 0.0),
+                    decision, *counts, amb)
+            split = kernels._split_tree(decision, *counts, amb, scratch)
+            same_cells &= bool(np.array_equal(decision, ref)
+                               and np.array_equal(split.views, child.views))
+        dt = time.process_time() - c0
+        out[f"cell_ns_round{rnd + 1}"] = round(1e9 * dt / n_cell, 2)
+    out.update(voxel_view_tests=tests, cell_view_tests_last_level=n_cell,
+               voxels_identical=same, cells_identical=same_cells)
+    return out
 
 
 def prep_full_size(n: int = 24) -> dict:
@@ -567,6 +645,9 @@ def main() -> int:
     ap.add_argument("--reduce", type=int, default=2, help="segment.reduce of --run-masks")
     ap.add_argument("--mesh", help="saved field(s) (.npz with field, origin, voxel_size), "
                     "comma-separated: the mesher alone, before/after")
+    ap.add_argument("--kernel-bench", type=int, metavar="RES",
+                    help="ns per test of the last levels' kernels, single-threaded, on the "
+                         "inputs of a RES^3 carve")
     ap.add_argument("--prep-band", action="store_true",
                     help="per-view preparation: tables vs the banded idea")
     args = ap.parse_args()
@@ -579,6 +660,10 @@ def main() -> int:
         return mesh_main(args)
     if args.prep_band:
         print(json.dumps(prep_band()))
+        return 0
+    if args.kernel_bench:
+        size = tuple(int(x) for x in args.size.split("x"))
+        print(json.dumps(kernel_bench(make_scene(args.views, size), args.kernel_bench, args.k)))
         return 0
     if args.run_masks:
         if args.case:
