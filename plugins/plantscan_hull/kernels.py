@@ -169,6 +169,15 @@ if HAVE_NUMBA:
         return -np.float32(np.sqrt(du * du + dv * dv))
 
     @njit(cache=True, inline="always")
+    def _lerp2(a, b, c, d, fx, fy):
+        # Bilinear blend of the four int16 corner readings a (x0, y0), b (x1, y0),
+        # c (x0, y1), d (x1, y1), in table steps (float32); one order of operations for
+        # every kernel, so their fields agree to the bit.
+        top = np.float32(a) * (1 - fx) + np.float32(b) * fx
+        bot = np.float32(c) * (1 - fx) + np.float32(d) * fx
+        return top * (1 - fy) + bot * fy
+
+    @njit(cache=True, inline="always")
     def _bilinear_row(vr, tables, u, v):
         w = vr.tw
         h = vr.th
@@ -184,13 +193,9 @@ if HAVE_NUMBA:
         y1 = min(y0 + 1, h - 1)
         fx = np.float32(lu - x0)
         fy = np.float32(lv - y0)
-        a = np.float32(tables[vr.off + y0 * w + x0])
-        b = np.float32(tables[vr.off + y0 * w + x1])
-        c = np.float32(tables[vr.off + y1 * w + x0])
-        d = np.float32(tables[vr.off + y1 * w + x1])
-        top = a * (1 - fx) + b * fx
-        bot = c * (1 - fx) + d * fx
-        return (top * (1 - fy) + bot * fy) * _SD_STEP
+        return _lerp2(tables[vr.off + y0 * w + x0], tables[vr.off + y0 * w + x1],
+                      tables[vr.off + y1 * w + x0], tables[vr.off + y1 * w + x1],
+                      fx, fy) * _SD_STEP
 
     @njit(cache=True, inline="always")
     def _nearest_row(vr, tables, u, v):
@@ -610,15 +615,7 @@ if HAVE_NUMBA:
             C[t] = tables[q + dy]
             D[t] = tables[q + dy + dx]
         for t in range(n):
-            fx = FX[t]
-            fy = FY[t]
-            a = np.float32(A[t])
-            b = np.float32(B[t])
-            c = np.float32(C[t])
-            d = np.float32(D[t])
-            top = a * (1 - fx) + b * fx
-            bot = c * (1 - fx) + d * fx
-            sd = (top * (1 - fy) + bot * fy) * _SD_STEP
+            sd = _lerp2(A[t], B[t], C[t], D[t], FX[t], FY[t]) * _SD_STEP
             m = MARGIN[t]
             res = CELL_OUT if sd < -m else (CELL_IN if sd > m else CELL_AMB)
             RES[t] = res if RES[t] < 0 else RES[t]
@@ -957,15 +954,7 @@ if HAVE_NUMBA:
         # DD: field value (voxels, float32) of each seen point, +inf for the unseen (as
         # ``_bilinear_row`` then ``_voxel_test``).
         for t in range(n):
-            fx = FX[t]
-            fy = FY[t]
-            a = np.float32(A[t])
-            b = np.float32(B[t])
-            c = np.float32(C[t])
-            d = np.float32(D[t])
-            top = a * (1 - fx) + b * fx
-            bot = c * (1 - fx) + d * fx
-            val = np.float32((top * (1 - fy) + bot * fy) * _SD_STEP * ZF[t])
+            val = np.float32(_lerp2(A[t], B[t], C[t], D[t], FX[t], FY[t]) * _SD_STEP * ZF[t])
             DD[t] = val if ON[t] else np.float32(np.inf)
 
     @njit(cache=True, error_model="numpy")
