@@ -131,15 +131,21 @@ if HAVE_NUMBA:
                 vr.r20 * x + vr.r21 * y + vr.r22 * z + vr.t2)
 
     @njit(cache=True, inline="always")
-    def _pixel(vr, xc, yc, zc):
-        # Camera frame -> pixels, the seed's radial model; NaN behind the camera.
-        if zc <= 0.0:
-            return np.nan, np.nan
+    def _radial(vr, xc, yc, zc):
+        # Camera frame -> pixels, the seed's radial model, for zc > 0 (branch-free: the
+        # vectorised passes call it with any positive stand-in depth behind the camera).
         xn = xc / zc
         yn = yc / zc
         r2 = xn * xn + yn * yn
         s = 1.0 + vr.d1 * r2 + vr.d2 * r2 * r2
         return vr.f * xn * s + vr.cu, vr.fy * yn * s + vr.cv
+
+    @njit(cache=True, inline="always")
+    def _pixel(vr, xc, yc, zc):
+        # Camera frame -> pixels; NaN behind the camera.
+        if zc <= 0.0:
+            return np.nan, np.nan
+        return _radial(vr, xc, yc, zc)
 
     @njit(cache=True, inline="always")
     def _child_offsets(vr, half, out):
@@ -566,12 +572,7 @@ if HAVE_NUMBA:
             zc = Z[t]
             near = zc - rho
             zs = zc if zc > 0.0 else 1.0  # behind: decided below, any finite pixel
-            xn = X[t] / zs
-            yn = Y[t] / zs
-            r2 = xn * xn + yn * yn
-            s = 1.0 + vr.d1 * r2 + vr.d2 * r2 * r2
-            u = vr.f * xn * s + vr.cu
-            v = vr.fy * yn * s + vr.cv
+            u, v = _radial(vr, X[t], Y[t], zs)
             ns = near if near > 0.0 else 1.0
             r = rho * (vr.gain / ns)
             off_img = (u + r < -0.5) | (u - r > vr.u_hi) | (v + r < -0.5) | (v - r > vr.v_hi)
@@ -916,12 +917,7 @@ if HAVE_NUMBA:
         for t in range(n):
             zc = Z[t]
             zs = zc if zc > 0.0 else 1.0  # behind the camera: not seen, any finite pixel
-            xn = X[t] / zs
-            yn = Y[t] / zs
-            r2 = xn * xn + yn * yn
-            s = 1.0 + vr.d1 * r2 + vr.d2 * r2 * r2
-            u = vr.f * xn * s + vr.cu
-            v = vr.fy * yn * s + vr.cv
+            u, v = _radial(vr, X[t], Y[t], zs)
             on = (zc > 0.0) & (u >= -0.5) & (u <= vr.u_hi) & (v >= -0.5) & (v <= vr.v_hi)
             lu = u - vr.u0
             lv = v - vr.v0
