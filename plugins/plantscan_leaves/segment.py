@@ -119,6 +119,14 @@ class CurvatureRegionsParams(StageParams):
                     "~30°) and are both wide there (a blade's own base tapers) become one, "
                     "with the stem faces between the ends; about the stem's diameter in the "
                     "hull plus a margin (grasses: 12); None: off (broad leaves)")
+    base_reach_mm: float | None = Field(
+        None, gt=0,
+        description="a grass blade whose base runs through the tangle of tillers is fused "
+                    "with them in the hull, and its base is labelled stem: the stem faces "
+                    "off the straight culms (found by RANSAC) that lie along the blade's "
+                    "continuation, within its width at the cut + 1 mm and up to this many "
+                    "mm from the cut, go back to the blade (grasses: 80); None: off (broad "
+                    "leaves)")
     ground_band_mm: float = Field(
         12.0, ge=0,
         description="leaf-like pieces lying entirely this close to the bottom of the mesh are "
@@ -381,6 +389,11 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
         out, n_joined = _join_broken_blades(out, centroids, areas, p.join_gap_mm)
         info["blades_joined"] = n_joined
         leaf_pieces = list(range(int(out.max())))
+    if p.base_reach_mm is not None and leaf_pieces:
+        out, n_claimed = _blade_bases_off_culms(out, centroids, topo.face_pairs,
+                                                float(v[:, 2].min()) + p.ground_band_mm,
+                                                p.base_reach_mm)
+        info["base_faces_from_stem"] = n_claimed
     for new in range(1, len(leaf_pieces) + 1):
         kinds[new] = "leaf"
     if (out == STEM_LABEL).any() or not leaf_pieces:
@@ -813,6 +826,146 @@ def _join_broken_blades(labels: np.ndarray, centroids: np.ndarray, areas: np.nda
     if (out > 0).all():
         new += 1
     return new, joined
+
+
+CULM_MIN_LENGTH_MM = 100.0  # a culm axis: a straight tube at least this long ...
+CULM_MIN_STEEPNESS = 0.5  # ... and steeper than 30 degrees (|axis z| > sin 30°)
+CULM_INLIER_MM = 6.0  # stem faces within this of a candidate line are its inliers
+CULM_MARGIN_MM = 1.5  # faces beyond a culm's radius + this are off the culm
+CULM_SAMPLE = 30_000  # stem faces the RANSAC looks at
+CULM_TRIALS = 400
+CULM_MAX_LINES = 16
+BASE_DIRECTION_MM = 30.0  # a blade's direction at its cut: its faces within this of the cut
+BASE_MARGIN_MM = 1.0  # the corridor: the cut's half width (90th percentile) + this
+
+
+def _culm_axes(points: np.ndarray, rng: np.random.Generator
+               ) -> list[tuple[np.ndarray, np.ndarray, float, float, float]]:
+    """Straight culm axes through stem points: ``(origin, direction, s0, s1, radius)`` each.
+
+    Sequential RANSAC lines (two random points; inliers within
+    ``CULM_INLIER_MM``), each refined by the PCA of its inliers (a tube's
+    surface points average onto its axis); a line is a culm when its inliers
+    span ``CULM_MIN_LENGTH_MM`` (2nd-98th percentile along it) and it is
+    steeper than 30°; ``radius`` is the inliers' median distance from it.  Points
+    within twice the inlier distance leave the pool after every line, culm or
+    not (the soil disc's edge, fused blade bases).
+    """
+    axes = []
+    pool = np.ones(len(points), bool)
+    for _ in range(CULM_MAX_LINES):
+        idx = np.flatnonzero(pool)
+        if len(idx) < 200:
+            break
+        pairs = [rng.choice(idx, 2, replace=False) for _t in range(CULM_TRIALS)]
+        o_t = points[[i for i, _ in pairs]]
+        d_t = points[[j for _, j in pairs]] - o_t
+        length = geo.row_norm(d_t)
+        keep = length >= 15.0
+        if not keep.any():
+            break
+        o_t, d_t = o_t[keep], d_t[keep] / length[keep, None]
+        # squared distance of every point from every trial line, |w|^2 - (w.d)^2 with
+        # w = p - o, in two matrix products (one pass over the points for all trials)
+        n_in = np.zeros(len(o_t), np.int64)
+        od, oo = np.einsum("ij,ij->i", o_t, d_t), np.einsum("ij,ij->i", o_t, o_t)
+        for k in range(0, len(idx), 8192):  # ~25 MB per block at 400 trials
+            q = points[idx[k:k + 8192]]
+            along = q @ d_t.T - od
+            w2 = np.einsum("ij,ij->i", q, q)[:, None] - 2.0 * (q @ o_t.T) + oo
+            n_in += np.count_nonzero(w2 - along * along < CULM_INLIER_MM ** 2, axis=0)
+        t = int(np.argmax(n_in))
+        o, d = o_t[t], d_t[t]
+        for _r in range(4):
+            w = points[idx] - o
+            q = points[idx][geo.row_norm(w - np.outer(w @ d, d)) < CULM_INLIER_MM]
+            o = q.mean(axis=0)
+            d = np.linalg.svd(q - o, full_matrices=False)[2][0]
+        w = points[idx] - o
+        s = w @ d
+        r = geo.row_norm(w - np.outer(s, d))
+        inl = r < CULM_INLIER_MM
+        pool[idx[r < 2.0 * CULM_INLIER_MM]] = False
+        if (np.percentile(s[inl], 98) - np.percentile(s[inl], 2) >= CULM_MIN_LENGTH_MM
+                and abs(d[2]) > CULM_MIN_STEEPNESS):
+            axes.append((o, d, float(np.percentile(s[inl], 1)), float(np.percentile(s[inl], 99)),
+                         float(np.median(r[inl]))))
+    return axes
+
+
+def _axis_distance(points: np.ndarray, axes: list) -> np.ndarray:
+    """(N,) distance of every point from the nearest culm axis segment (inf without axes)."""
+    best = np.full(len(points), np.inf)
+    for o, d, s0, s1, _ in axes:
+        w = points - o
+        s = np.clip(w @ d, s0, s1)
+        best = np.minimum(best, geo.row_norm(w - np.outer(s, d)))
+    return best
+
+
+def _blade_bases_off_culms(labels: np.ndarray, centroids: np.ndarray, pairs: np.ndarray,
+                           ground_z: float, reach_mm: float) -> tuple[np.ndarray, int]:
+    """Stem faces along a blade's continuation into the tangle of tillers, given to the blade.
+
+    A wheat blade's base often runs across the neighbouring tillers to its own
+    node; the 2-camera hull fuses blade and tillers there, the region growing
+    and the petiole test call that stretch stem, and the blade measures a third
+    short (18 MP wheat paper-72: two blades −31 / −35 % length, 37-40 % of their
+    area in the stem label).  The culms themselves are straight tubes
+    (``_culm_axes``); the fused blade bases lie off them.  For every leaf
+    touching the stem: its direction is the principal axis of its faces within
+    ``BASE_DIRECTION_MM`` of the cut (the leaf faces next to stem faces),
+    pointing into the stem; the stem faces off every culm (beyond its radius +
+    ``CULM_MARGIN_MM``), above ``ground_z``, ahead of the cut up to
+    ``reach_mm`` and within the cut's half width + ``BASE_MARGIN_MM`` of that
+    ray are claimed; a face two rays claim goes to the nearer ray; a leaf keeps
+    only the claimed faces connected to it.  Returns the labels and the number
+    of faces moved.
+    """
+    stem = labels == STEM_LABEL
+    if not stem.any():
+        return labels, 0
+    si = np.flatnonzero(stem)
+    rng = np.random.default_rng(0)  # the same labels from the same mesh
+    sample = si if len(si) <= CULM_SAMPLE else rng.choice(si, CULM_SAMPLE, replace=False)
+    axes = _culm_axes(centroids[sample], rng)
+    if not axes:
+        return labels, 0
+    off = _axis_distance(centroids, axes) > np.median([a[4] for a in axes]) + CULM_MARGIN_MM
+    cand = stem & off & (centroids[:, 2] > ground_z)
+    a, b = pairs[:, 0], pairs[:, 1]
+    cut = np.zeros(len(labels), bool)
+    cut[a[(labels[a] > 0) & stem[b]]] = True
+    cut[b[(labels[b] > 0) & stem[a]]] = True
+    best = np.full(len(labels), np.inf)
+    claim = np.zeros(len(labels), labels.dtype)
+    ids_all = np.flatnonzero(cand)
+    for lab in np.unique(labels[cut]):
+        cf = cut & (labels == lab)
+        if np.count_nonzero(cf) < 3:
+            continue
+        c0 = centroids[cf].mean(axis=0)
+        q = centroids[(labels == lab) & (geo.row_norm(centroids - c0) < BASE_DIRECTION_MM)]
+        mu = q.mean(axis=0)
+        d = np.linalg.svd(q - mu, full_matrices=False)[2][0]
+        if d @ (c0 - mu) < 0:
+            d = -d
+        w = centroids[cf] - c0
+        half = float(np.percentile(geo.row_norm(w - np.outer(w @ d, d)), 90)) + BASE_MARGIN_MM
+        w = centroids[ids_all] - c0
+        t = w @ d
+        lat = geo.row_norm(w - np.outer(t, d))
+        ok = (t > -BASE_MARGIN_MM) & (t < reach_mm) & (lat < half)
+        ids, lat = ids_all[ok], lat[ok]
+        nearer = lat < best[ids]
+        best[ids[nearer]] = lat[nearer]
+        claim[ids[nearer]] = lab
+    out = labels.copy()
+    for lab in np.unique(claim[claim > 0]):
+        comp = _regions_of(len(labels), pairs, (claim == lab) | (labels == lab))
+        main = np.bincount(comp[labels == lab]).argmax()
+        out[(claim == lab) & (comp == main)] = lab
+    return out, int(np.count_nonzero(out != labels))
 
 
 JOIN_MIN_PIECE_SHARE = 0.25  # of min_leaf_area_mm2: smaller pieces are crumbs, not blade parts
