@@ -396,14 +396,16 @@ def _blade_base_through_tillers():
                      [np.sin(np.pi / 4), 0.0, np.cos(np.pi / 4)]])
     along = tilt @ np.array([1.0, 0.0, 0.0])
     base = np.array([4.0, 0.0, 40.0])
-    field = ph.union(ph.cylinder_field(3.0, 0.0, 170.0), ph.cylinder_field(3.0, 0.0, 170.0, (30.0, 0.0)),
+    field = ph.union(ph.cylinder_field(3.0, 0.0, 170.0),
+                     ph.cylinder_field(3.0, 0.0, 170.0, (30.0, 0.0)),
                      ph.placed(ph.ellipse_slab_field(90.0, 8.0, 1.5), tilt, base + 90.0 * along),
                      ph.placed(ph.ellipse_slab_field(60.0, 8.0, 1.5), np.eye(3), (-63.0, 0.0, 120.0)))
     mesh = ph.mesh_field(field, (-130, -12, -2), (142, 12, 172), 0.6)
     c = mesh.vertices[mesh.faces].mean(axis=1)
     on_culm = (np.hypot(c[:, 0], c[:, 1]) < 5.0) | (np.hypot(c[:, 0] - 30.0, c[:, 1]) < 5.0)
     from_base = (c - base) @ along  # along blade A from its base, on blade A
-    blade_a = (c[:, 0] > 3.0) & (np.abs((c - base) @ np.cross(along, [0.0, 1.0, 0.0])) < 3.0)
+    normal_a = np.cross(along, [0.0, 1.0, 0.0])
+    blade_a = (c[:, 0] > 3.0) & (np.abs((c - base) @ normal_a) < 3.0)
     return mesh, c, on_culm, blade_a, from_base
 
 
@@ -419,7 +421,8 @@ def test_a_blade_base_fused_with_the_tillers_it_crosses_goes_back_to_the_blade()
     labels = np.where(blade_a, 1, 2).astype(np.int32)
     labels[on_culm | (blade_a & (from_base < 50.0))] = 0
     topo = geo.topology(mesh.faces)
-    out, n = _blade_bases_off_culms(labels, c, topo.face_pairs, float(mesh.vertices[:, 2].min()) + 12.0, 80.0)
+    ground_z = float(mesh.vertices[:, 2].min()) + 12.0
+    out, n = _blade_bases_off_culms(labels, c, topo.face_pairs, ground_z, 80.0)
     areas = mesh.face_areas()
     fused = blade_a & (from_base < 50.0) & ~on_culm
     # the base off the culms goes back to blade A (the culm's radius + 1.5 mm around the
@@ -453,12 +456,15 @@ def test_blade_bases_off_culms_take_only_blade_faces_on_intact_blades():
     moved = off.face_labels != on.face_labels
     assert info["base_faces_from_stem"] == int(moved.sum())
     # B's and C's bases at z 50, off the 3 mm stem, 1 mm of slab either side
-    assert (np.abs(c[moved, 2] - 50.0) < 1.0).all() and (np.hypot(c[moved, 0], c[moved, 1]) < 8.0).all()
+    assert (np.abs(c[moved, 2] - 50.0) < 1.0).all()
+    assert (np.hypot(c[moved, 0], c[moved, 1]) < 8.0).all()
     assert (off.face_labels[moved] == 0).all()
     truth = {180.0, 120.0}
     before, _, _ = measure_plant(off)
     after, _, _ = measure_plant(on)
-    for b, a in zip(sorted(lf.length_mm for lf in before.leaves), sorted(lf.length_mm for lf in after.leaves)):
+    pairs = zip(sorted(lf.length_mm for lf in before.leaves),
+                sorted(lf.length_mm for lf in after.leaves), strict=True)
+    for b, a in pairs:
         t = min(truth, key=lambda x: abs(x - b))
         # no blade moves away from its length (B, C: 116-118 -> 118 of 120 mm)
         assert abs(a - t) <= abs(b - t) + 1e-9
