@@ -399,7 +399,8 @@ def _blade_base_through_tillers():
     field = ph.union(ph.cylinder_field(3.0, 0.0, 170.0),
                      ph.cylinder_field(3.0, 0.0, 170.0, (30.0, 0.0)),
                      ph.placed(ph.ellipse_slab_field(90.0, 8.0, 1.5), tilt, base + 90.0 * along),
-                     ph.placed(ph.ellipse_slab_field(60.0, 8.0, 1.5), np.eye(3), (-63.0, 0.0, 120.0)))
+                     ph.placed(ph.ellipse_slab_field(60.0, 8.0, 1.5), np.eye(3),
+                               (-63.0, 0.0, 120.0)))
     mesh = ph.mesh_field(field, (-130, -12, -2), (142, 12, 172), 0.6)
     c = mesh.vertices[mesh.faces].mean(axis=1)
     on_culm = (np.hypot(c[:, 0], c[:, 1]) < 5.0) | (np.hypot(c[:, 0] - 30.0, c[:, 1]) < 5.0)
