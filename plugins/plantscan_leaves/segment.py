@@ -32,6 +32,7 @@ import numpy as np
 from pydantic import Field
 from scipy import sparse
 from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 
 from plantscan_core.data import LabelledMesh, Mesh
 from plantscan_core.stages import StageParams
@@ -837,6 +838,7 @@ CULM_TRIALS = 400
 CULM_MAX_LINES = 16
 BASE_DIRECTION_MM = 30.0  # a blade's direction at its cut: its faces within this of the cut
 BASE_MARGIN_MM = 1.0  # the corridor: the cut's half width (90th percentile) + this
+CUT_LINK_MM = 3.0  # cut faces this close are one place where a leaf meets the stem
 
 
 def _culm_axes(points: np.ndarray, rng: np.random.Generator
@@ -903,6 +905,24 @@ def _axis_distance(points: np.ndarray, axes: list) -> np.ndarray:
     return best
 
 
+def _cut_places(labels: np.ndarray, cut: np.ndarray, centroids: np.ndarray):
+    """``(label, faces)`` for every place a leaf meets the stem: its cut faces grouped by
+    single linkage within ``CUT_LINK_MM`` (a border's faces touch at vertices, not
+    edges), groups of at least 3 faces."""
+    for lab in np.unique(labels[cut]):
+        ids = np.flatnonzero(cut & (labels == lab))
+        if len(ids) < 3:
+            continue
+        links = cKDTree(centroids[ids]).query_pairs(CUT_LINK_MM, output_type="ndarray")
+        g = sparse.csr_matrix((np.ones(len(links), np.int8), (links[:, 0], links[:, 1])),
+                              shape=(len(ids), len(ids)))
+        _, group = connected_components(g, directed=False)
+        for k in np.flatnonzero(np.bincount(group) >= 3):
+            faces = np.zeros(len(labels), bool)
+            faces[ids[group == k]] = True
+            yield lab, faces
+
+
 def _blade_bases_off_culms(labels: np.ndarray, centroids: np.ndarray, pairs: np.ndarray,
                            ground_z: float, reach_mm: float) -> tuple[np.ndarray, int]:
     """Stem faces along a blade's continuation into the tangle of tillers, given to the blade.
@@ -919,8 +939,9 @@ def _blade_bases_off_culms(labels: np.ndarray, centroids: np.ndarray, pairs: np.
     ``CULM_MARGIN_MM``), above ``ground_z``, ahead of the cut up to
     ``reach_mm`` and within the cut's half width + ``BASE_MARGIN_MM`` of that
     ray are claimed; a face two rays claim goes to the nearer ray; a leaf keeps
-    only the claimed faces connected to it.  Returns the labels and the number
-    of faces moved.
+    only the claimed faces connected to it.  A leaf meeting the stem in several
+    places (``_cut_places``) gets a corridor from each.  Returns the labels and
+    the number of faces moved.
     """
     stem = labels == STEM_LABEL
     if not stem.any():
@@ -940,12 +961,11 @@ def _blade_bases_off_culms(labels: np.ndarray, centroids: np.ndarray, pairs: np.
     best = np.full(len(labels), np.inf)
     claim = np.zeros(len(labels), labels.dtype)
     ids_all = np.flatnonzero(cand)
-    for lab in np.unique(labels[cut]):
-        cf = cut & (labels == lab)
-        if np.count_nonzero(cf) < 3:
-            continue
+    for lab, cf in _cut_places(labels, cut, centroids):
         c0 = centroids[cf].mean(axis=0)
         q = centroids[(labels == lab) & (geo.row_norm(centroids - c0) < BASE_DIRECTION_MM)]
+        if len(q) < 10:
+            continue
         mu = q.mean(axis=0)
         d = np.linalg.svd(q - mu, full_matrices=False)[2][0]
         if d @ (c0 - mu) < 0:
