@@ -392,8 +392,7 @@ def _blade_base_through_tillers():
     # the first culm's surface at z 40 crosses the second at z ~66, as a wheat blade's base
     # crosses the neighbouring tillers to its own node; a short blade with its tapered base
     # at the first culm, on the other side, at z 120
-    tilt = np.array([[np.cos(np.pi / 4), 0.0, -np.sin(np.pi / 4)], [0.0, 1.0, 0.0],
-                     [np.sin(np.pi / 4), 0.0, np.cos(np.pi / 4)]])
+    tilt = rotation_about_axis((0.0, 1.0, 0.0), -45.0)  # x -> (cos 45°, 0, sin 45°)
     along = tilt @ np.array([1.0, 0.0, 0.0])
     base = np.array([4.0, 0.0, 40.0])
     field = ph.union(ph.cylinder_field(3.0, 0.0, 170.0),
