@@ -729,19 +729,27 @@ class LabelledMesh:
 
 
 # --------------------------------------------------------------------------- traits
-LEAF_TRAIT_COLUMNS = ("leaf_id", "length_mm", "width_mm", "area_mm2", "perimeter_mm")
+LEAF_TRAIT_COLUMNS = ("leaf_id", "length_mm", "width_mm", "area_mm2", "perimeter_mm",
+                      "thick_share")
 TRAIT_NAMES = ("length", "width", "area", "perimeter")
 
 
 @dataclass
 class LeafTraits:
-    """Flat-leaf measurements of one leaf (as if dissected onto a flatbed)."""
+    """Flat-leaf measurements of one leaf (as if dissected onto a flatbed).
+
+    ``thick_share`` is a quality figure, not a trait: the share (0-1) of the
+    leaf's area where its reconstructed surface is much thicker than the leaf
+    elsewhere (phantom volume of a visual hull, or an organ fused with it;
+    see docs/leaves.md).  NaN when the measurer does not say.
+    """
 
     leaf_id: int
     length_mm: float
     width_mm: float
     area_mm2: float
     perimeter_mm: float
+    thick_share: float = math.nan
 
     def trait(self, name: str) -> float:
         """Value of ``name`` in ``TRAIT_NAMES`` (length, width, area, perimeter)."""
@@ -785,7 +793,8 @@ class Traits:
         rows = list(csv.DictReader(io.StringIO(text)))
         leaves = [
             LeafTraits(int(r["leaf_id"]), float(r["length_mm"]), float(r["width_mm"]),
-                       float(r["area_mm2"]), float(r["perimeter_mm"]))
+                       float(r["area_mm2"]), float(r["perimeter_mm"]),
+                       float(r.get("thick_share") or "nan"))  # tables before the column
             for r in rows
         ]
         return cls(leaves)

@@ -199,8 +199,15 @@ class Run:
         except (OSError, ValueError):
             return False
 
-    def _store_key(self, stage: str, key: str) -> None:
-        atomic_write_text(self._cache_path(stage), json.dumps({"key": key, "at": now_iso()}))
+    def _store_key(self, stage: str, key: str, notes: dict | None = None) -> None:
+        entry = {"key": key, "at": now_iso(), **({"info": notes} if notes else {})}
+        atomic_write_text(self._cache_path(stage), json.dumps(entry))
+
+    def _cached_notes(self, stage: str) -> dict:
+        try:
+            return json.loads(self._cache_path(stage).read_text()).get("info") or {}
+        except (OSError, ValueError):
+            return {}
 
     # ------------------------------------------------------------------ stage runner
     def run_stage(
@@ -228,10 +235,14 @@ class Run:
         try:
             if cached:
                 value = load()
+                notes = self._cached_notes(section)
             else:
                 self._cache_path(section).unlink(missing_ok=True)
                 value = compute(plugin)
-                self._store_key(section, key)
+                # what the plugin says of its work (counts, warnings): kept with the cache key
+                # so that a cached stage reports it again
+                notes = plain(getattr(plugin, "info", None) or {})
+                self._store_key(section, key, notes)
         except BaseException as exc:
             self.manager.on_stage_error(stage, plugin, self.context, exc)
             self._write_info()
@@ -240,6 +251,8 @@ class Run:
             raise StageError(section, spec.plugin, str(exc) or type(exc).__name__) from exc
         seconds = time.perf_counter() - t0
         self.info["stages"][section]["cached"] = cached
+        if notes:
+            self.info["stages"][section]["info"] = notes
         self.info["timings_s"][section] = round(seconds, 4)
         self.info.setdefault("cpu_s", {})[section] = round(time.process_time() - c0, 4)
         self.info.setdefault("peak_rss_mb", {})[section] = round(peak_rss_mb(), 1)

@@ -67,7 +67,13 @@ class StageContext:
 
 
 class Stage(abc.ABC):
-    """Common base: a named, parametrised implementation of one stage."""
+    """Common base: a named, parametrised implementation of one stage.
+
+    A processing stage may leave what it has to say of its last call (work
+    counts, ``"warnings"``: a list of messages) in a plain dict attribute
+    ``info``; the run writes it to ``run.json`` under ``stages.<section>.info``,
+    also when the stage's result comes from the cache.
+    """
 
     stage: ClassVar[str] = ""
     name: ClassVar[str] = ""

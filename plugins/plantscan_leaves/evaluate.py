@@ -180,7 +180,8 @@ def trait_errors(truth: Traits, measured: Traits, pairs: list[tuple[int, int, fl
     per_leaf = [
         {"truth_id": t.leaf_id, "measured_id": m.leaf_id,
          **{f"{name}_truth": t.trait(name) for name in TRAIT_NAMES},
-         **{f"{name}_measured": m.trait(name) for name in TRAIT_NAMES}}
+         **{f"{name}_measured": m.trait(name) for name in TRAIT_NAMES},
+         "thick_share": None if np.isnan(m.thick_share) else m.thick_share}
         for t, m in used
     ]
     return {"mean_relative_error": errors, "per_leaf": per_leaf, "pairs_measured": len(used)}

@@ -68,6 +68,15 @@ log = logging.getLogger(__name__)
 CLEAN_OUTLINE_SHARE = 0.95
 # a leaf whose open border is at most this share of its outline was only cut at its base
 CUT_BORDER_SHARE = 0.25
+# hull more than this many times the leaf's median thickness is not a leaf slab: phantom volume
+# of the visual hull, or an organ fused with the leaf (docs/leaves.md, "thick share")
+THICK_FACTOR = 3.0
+# faces per leaf whose inward thickness is cast: the share to about +-1 %
+THICK_SAMPLE = 4000
+# a leaf with more of its area that thick is named in a warning: on the virtual scans the
+# leaves grown into phantom volume hold 14-27 % and were measured 3-20 % off in length;
+# the others hold at most 9 % (docs/benchmarks/leaves.md, session 8)
+THICK_WARN_SHARE = 0.12
 
 
 class LeafGeometryParams(StageParams):
@@ -407,6 +416,50 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
                            {"rim_length_mm": rim_length, "outline": outline_kind,
                             "border_length_mm": border_length,
                             "tip_extension_mm": tip_extension_mm})
+
+
+def thick_shares(mesh: Mesh, face_labels: np.ndarray, leaf_labels: list[int]
+                 ) -> dict[int, tuple[float, float]]:
+    """``{leaf: (share, median mm)}``: the share of each leaf's area where the mesh is over
+    ``THICK_FACTOR`` x the leaf's median thickness there, and that median.
+
+    The thickness at a face is how far a ray from it along its inward normal runs
+    before it leaves the closed surface of the whole plant (Open3D's ray casting),
+    read at ``THICK_SAMPLE`` faces of the leaf drawn at random, weighted by area.  A
+    leaf's slab is about as thick everywhere (the hull of a thin sheet); where the
+    surface is several times thicker it is not the leaf's own: phantom volume the
+    views could not carve (a young leaf folded against its neighbours) or another
+    organ fused with it, and the traits measured there carry it.  Rays that leave
+    through nothing (a numerically open spot) are not counted.
+    """
+    import open3d as o3d
+
+    v, f = mesh.vertices, mesh.faces
+    out: dict[int, tuple[float, float]] = {}
+    if not len(f) or not leaf_labels:
+        return out
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)),
+                        o3d.core.Tensor(f.astype(np.uint32)))
+    rng = np.random.default_rng(0)  # the same figure from the same mesh
+    eps = 1e-3  # mm: off the face, well inside any slab
+    for label in leaf_labels:
+        ids = np.flatnonzero(face_labels == label)
+        if not len(ids):
+            continue
+        # faces drawn uniformly, weighted by their area: the area share without the areas
+        # of all faces (a marching-cubes mesh's faces differ in area by a few times only)
+        pick = ids[rng.integers(0, len(ids), THICK_SAMPLE)]
+        fn, fa = geo.face_normals_areas(v, f[pick])
+        centre = geo.face_centroids(v, f[pick])
+        rays = np.hstack([centre - eps * fn, -fn]).astype(np.float32)
+        t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+        hit = np.isfinite(t)
+        if hit.any() and fa[hit].sum() > 0:
+            median = float(np.median(t[hit]))
+            thick = t[hit] > THICK_FACTOR * median
+            out[label] = (float(fa[hit][thick].sum() / fa[hit].sum()), median)
+    return out
 
 
 def _tip_extension(q: np.ndarray, g: sparse.csr_matrix, base: int, tip: int,
@@ -825,5 +878,21 @@ def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = No
     done = thread_map(one, leaf_labels, _submeshes(labelled, leaf_labels))
     measurements = [m for m, _ in done if m is not None]
     info["warnings"] += [w for _, w in done if w is not None]
+    shares = thick_shares(mesh, labelled.face_labels, [m.traits.leaf_id for m in measurements])
+    info["thick_leaves"] = []
+    for m in measurements:
+        if m.traits.leaf_id not in shares:
+            continue
+        share, median = shares[m.traits.leaf_id]
+        m.traits.thick_share = share
+        m.info["median_thickness_mm"] = median
+        if share >= THICK_WARN_SHARE:
+            msg = (f"leaf {m.traits.leaf_id}: {100 * share:.0f} % of its area lies where the "
+                   f"surface is more than {THICK_FACTOR:g}x its median thickness "
+                   f"({median:.1f} mm): phantom volume or a fused organ, which its traits "
+                   "carry (more views or tilts carve phantom volume)")
+            log.warning(msg)
+            info["warnings"].append(msg)
+            info["thick_leaves"].append(m.traits.leaf_id)
     leaves = [m.traits for m in measurements]
     return Traits(leaves, plant_traits(mesh, leaves)), measurements, info

@@ -252,14 +252,25 @@ def _traits_section(run: RunResult) -> str:
     for leaf in traits.leaves:
         swatch = (f'<span class="swatch" style="background:{hex_colour(colours[leaf.leaf_id])}">'
                   "</span>" if leaf.leaf_id in colours else "")
+        thick = (f"{100 * leaf.thick_share:.1f}" if math.isfinite(leaf.thick_share) else "—")
         rows.append([f"{swatch}{leaf.leaf_id}", _fmt(leaf.length_mm), _fmt(leaf.width_mm),
-                     _fmt(leaf.area_mm2), _fmt(leaf.perimeter_mm)])
-    leaf_table = _table(["leaf", "length (mm)", "width (mm)", "area (mm²)", "perimeter (mm)"],
+                     _fmt(leaf.area_mm2), _fmt(leaf.perimeter_mm), thick])
+    leaf_table = _table(["leaf", "length (mm)", "width (mm)", "area (mm²)", "perimeter (mm)",
+                         "thick area (%)"],
                         rows) if rows else '<p class="note">No leaf was found.</p>'
     plant_rows = [[_esc(k), _fmt(v)] for k, v in sorted(traits.plant.items())]
     plant_table = _table(["plant trait", "value"], plant_rows) if plant_rows else ""
-    return (f'<section id="traits"><h2>Traits</h2><div class="grid"><div>{leaf_table}</div>'
-            f"<div>{plant_table}</div></div></section>")
+    note = ('<p class="note">thick area: the share of a leaf\'s area where the reconstructed '
+            "surface is several times thicker than the leaf elsewhere (phantom volume the views "
+            "could not carve, or an organ fused with the leaf); that leaf's traits carry it.</p>"
+            if rows else "")
+    warnings = [w for section in ("segment_mesh", "measure")
+                for w in (run.info.get("stages", {}).get(section, {}).get("info", {})
+                          .get("warnings", []))]
+    warned = ("<h3>Warnings</h3><ul>" + "".join(f"<li>{_esc(w)}</li>" for w in warnings)
+              + "</ul>") if warnings else ""
+    return (f'<section id="traits"><h2>Traits</h2><div class="grid"><div>{leaf_table}{note}'
+            f"</div><div>{plant_table}</div></div>{warned}</section>")
 
 
 def _calibration_section(run: RunResult, figs: _Figures) -> str:

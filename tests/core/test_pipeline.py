@@ -64,6 +64,8 @@ class CountingReconstructor(Reconstructor):
         if self.params.fail:
             raise ValueError("bounding box clips the plant")
         area = float(np.mean([s.mask.mean() for s in silhouettes]))
+        # what a stage says of its work (counts, warnings) goes to run.json
+        self.info = {"views": len(silhouettes), "warnings": [f"{len(silhouettes)} views"]}
         return Volume(np.full((2, 2, 2), area, np.float32), np.zeros(3), 1.0)
 
 
@@ -108,12 +110,16 @@ def test_masks_are_right_and_cache_follows_parameters(tiny_scan, manager, tmp_pa
     assert info["stages"]["segment"]["params"] == {"threshold": 100}
     assert set(info["timings_s"]) >= {"calibrate", "segment", "reconstruct", "total"}
     assert "plant_views" in info["input_hashes"]
+    said = {"views": len(plant_views), "warnings": [f"{len(plant_views)} views"]}
+    assert info["stages"]["reconstruct"]["info"] == said
+    assert "info" not in info["stages"]["segment"]  # a stage with nothing to say
 
-    # Same recipe again: everything comes from the cache.
+    # Same recipe again: everything comes from the cache, and the stage's notes with it.
     process(tiny_scan.root, recipe, run, manager, raw_recipe=raw)
     assert CALLS == {"calibrate": 1, "segment": len(plant_views)}
     info = json.loads((run / "run.json").read_text())
     assert all(info["stages"][s]["cached"] for s in ("calibrate", "segment", "reconstruct"))
+    assert info["stages"]["reconstruct"]["info"] == said
 
     # New segmentation parameter: segmentation and what follows recompute, calibration does not.
     recipe2, raw2 = _recipe(manager, threshold=60)

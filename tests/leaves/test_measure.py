@@ -9,7 +9,7 @@ import pytest
 from plantscan_leaves import phantoms as ph
 from plantscan_leaves.measure import LeafGeometryParams, measure_leaf, measure_plant
 
-from plantscan_core.data import LabelledMesh, Mesh, rotation_about_axis
+from plantscan_core.data import LabelledMesh, Mesh, Traits, rotation_about_axis
 
 
 def _rel(measured: float, truth: float) -> float:
@@ -74,6 +74,37 @@ def test_plant_level_traits_of_a_flat_slab():
     assert traits.plant["height_mm"] == pytest.approx(2.0, abs=0.5)  # slab thickness
     # convex hull of a rounded 2 mm slab: between the inscribed and the bounding prism
     assert 0.8 * leaf.area_mm2 * 2.0 < traits.plant["convex_hull_volume_mm3"] < leaf.area_mm2 * 2.0
+
+
+def test_thick_share_names_a_leaf_grown_into_phantom_volume(caplog):
+    # two 60 x 30 mm leaves, 1.5 mm thick; over the base half of the second lies a 12 mm
+    # thick lump fused with it (what a visual hull leaves where the views could not carve
+    # between young leaves).  Truth: the share of that leaf's surface lying on the lump,
+    # from the analytic field (faces within half a voxel of the lump's surface).
+    leaf = ph.EllipseLeaf(60.0, 30.0)
+    slab = ph.ellipse_slab_field(leaf.a, leaf.b, 1.5)
+    other = ph.placed(slab, np.eye(3), (0.0, 0.0, 40.0))
+    lump = ph.capsule_field((-52.0, 0.0, 0.0), (0.0, 0.0, 0.0), 6.0)
+    voxel = 0.5
+    mesh = ph.mesh_field(ph.union(slab, lump, other), (-61, -31, -7), (61, 31, 41), voxel)
+    c = mesh.vertices[mesh.faces].mean(axis=1)
+    labels = np.where(c[:, 2] > 20, 1, 2)
+    with caplog.at_level(logging.WARNING):
+        traits, _, info = measure_plant(LabelledMesh(mesh, labels, {1: "leaf", 2: "leaf"}))
+    share = {lf.leaf_id: lf.thick_share for lf in traits.leaves}
+    areas = mesh.face_areas()
+    on_lump = (labels == 2) & (np.abs(lump(c)) < voxel / 2 + 0.1)
+    truth = areas[on_lump].sum() / areas[labels == 2].sum()
+    assert 0.15 < truth < 0.3  # the phantom is what it should be
+    # 4000 sampled faces: +-1.5 % (2 sigma); the lump's edge, where the slab runs into it
+    # over about a voxel, is either: 3 % in all
+    assert share[2] == pytest.approx(truth, abs=0.03)
+    # a clean leaf: only its rim faces, whose inward ray runs along the slab, can read thick
+    assert share[1] < 0.01
+    assert info["thick_leaves"] == [2]
+    assert "leaf 2:" in caplog.text and "phantom volume" in caplog.text
+    assert Traits.from_csv(traits.to_csv()).leaves[1].thick_share == pytest.approx(share[2],
+                                                                                  abs=1e-4)
 
 
 def test_empty_mesh_gives_empty_traits(caplog):

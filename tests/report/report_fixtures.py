@@ -164,9 +164,12 @@ def synthetic_run_in(tmp_path: Path) -> RunResult:
     write_truth(scan, labelled, {0: 1, 1: 0})
     traits = analytic_traits()
     traits.leaves[0].length_mm *= 1.05
+    traits.leaves[0].thick_share = 0.2
     run_dir = tmp_path / "run"
     run_dir.mkdir()
     return RunResult(run_dir=run_dir, recipe=make_recipe(), scan=scan, calibration=calibration,
                      silhouettes=sils, mesh=labelled.mesh, labelled=labelled, traits=traits,
                      timings={"calibrate": 1.5, "segment": 2.25, "reconstruct": 4.0,
-                              "mesh": 0.5, "segment_mesh": 0.75, "measure": 0.1})
+                              "mesh": 0.5, "segment_mesh": 0.75, "measure": 0.1},
+                     info={"stages": {"measure": {"info": {"warnings": [
+                         "leaf 0: 20 % <thick> (phantom volume)"]}}}})

@@ -211,6 +211,10 @@ def test_report_is_self_contained_escaped_and_has_every_section(synthetic_run):
     assert '<script>alert("x")' not in text and "<img src=x" not in text
     assert "&lt;script&gt;alert(&quot;x&quot;)&lt;/script&gt; &amp; plant-7" in text
     assert "&lt;b&gt;not bold&lt;/b&gt;" in text  # calibrator text too
+    # the measurer's quality column and its warnings, escaped
+    plain = text.replace(' class=""', "")
+    assert "<th>thick area (%)</th>" in plain and "<td>20.0</td>" in plain
+    assert "<li>leaf 0: 20 % &lt;thick&gt; (phantom volume)</li>" in text
     # ε of length: leaf 0 (40 mm semi-axis) measured 5 % long, leaf 1 exact -> 2.5 %.
     assert "<td>length</td><td>2.5%</td>" in text.replace(' class=""', "").replace(' class="l"', "")
 
