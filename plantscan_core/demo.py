@@ -73,6 +73,11 @@ def run_demo(out: Path, overrides: list[str], recipe_name: str = "plastic-dicot"
             f"{k} {100 * v:.2f} %" for k, v in mre.items()))
         print(f"demo: leaves found {traits.get('leaves_found')} of {traits.get('leaves_truth')}, "
               f"merged {traits.get('leaves_merged')}")
+        warned = traits.get("leaves_warned", 0)
+        if warned:
+            quiet = traits.get("mean_relative_error_unwarned", {})
+            print(f"demo: {warned} leaves warned about (phantom volume, see the report); the "
+                  "others: " + ", ".join(f"{k} {100 * v:.2f} %" for k, v in quiet.items()))
     else:
         print("demo: no trait errors (the leaf stages did not run)")
     print(f"demo: evaluation {run_dir / 'evaluation.json'}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -67,6 +68,24 @@ def test_evaluate_matches_and_scores(manager, mock_plant, mock_plant_measured, t
     t0 = Traits.load(truth / "traits.csv").leaves[0]
     row = next(r for r in section["per_leaf"] if r["truth_id"] == 0)
     assert row["area_truth"] == pytest.approx(t0.area_mm2)
+    # no leaf of the mock plant sits in thick volume: nothing warned, the same ε
+    assert all(r["thick_share"] < 0.05 for r in section["per_leaf"])
+    assert section["leaves_warned"] == 0
+    assert section["mean_relative_error_unwarned"] == pytest.approx(err)
+    # a leaf the measurer warned about (measured 20 % long here) is left out of the
+    # second figure only
+    bad = row["measured_id"]
+    warned = Traits([dataclasses.replace(lf, length_mm=1.2 * lf.length_mm, thick_share=0.3)
+                     if lf.leaf_id == bad else lf for lf in traits.leaves], traits.plant)
+    warned.save(run / "traits.csv", run / "plant_traits.json")  # the fixture stays as it was
+    rows = section["per_leaf"]
+    section = manager.evaluate(run, truth)["traits"]
+    assert section["leaves_warned"] == 1
+    rel = [abs(r["length_measured"] / r["length_truth"] - 1) for r in rows
+           if r["measured_id"] != bad]
+    assert section["mean_relative_error_unwarned"]["length"] == pytest.approx(np.mean(rel))
+    assert section["mean_relative_error"]["length"] == pytest.approx(
+        (sum(rel) + abs(1.2 * row["length_measured"] / row["length_truth"] - 1)) / len(rows))
 
 
 def test_evaluate_counts_merged_and_missed(mock_plant, tmp_path):
