@@ -78,6 +78,11 @@ THICK_SAMPLE = 4000
 # length), the other ten at most 7 %; wheat blades fused with tillers hold 6-17 %
 # (docs/benchmarks/leaves.md, session 8)
 THICK_WARN_SHARE = 0.12
+# an outline runs from base to tip and back, each way at least the base-to-tip geodesic the
+# length follows: a perimeter under this many lengths means one of the two is wrong (10 %
+# below 2 for the smoothing of both; the leaves of the virtual scans measure 1.9-2.4 unless
+# their length ran into another organ or their outline broke)
+MIN_PERIMETER_PER_LENGTH = 1.8
 
 
 class LeafGeometryParams(StageParams):
@@ -460,6 +465,25 @@ def thick_shares(mesh: Mesh, face_labels: np.ndarray, leaf_labels: list[int]
             median = float(np.median(t[hit]))
             thick = t[hit] > THICK_FACTOR * median
             out[label] = (float(fa[hit][thick].sum() / fa[hit].sum()), median)
+    return out
+
+
+def inconsistent_leaves(leaves: list[LeafTraits]) -> list[str]:
+    """Warnings for leaves whose perimeter is under ``MIN_PERIMETER_PER_LENGTH`` x their length.
+
+    Whatever its shape, a leaf's outline goes from base to tip along one edge and back
+    along the other, and neither edge is shorter than the shortest path from base to tip
+    that the length follows; a perimeter much under twice the length says that the
+    length ran on into another organ or that the outline was traced wrong (a leaf holed
+    by the segmentation).  The traits are kept: which of the two is wrong is not known.
+    """
+    out = []
+    for lf in leaves:
+        if lf.length_mm > 0 and lf.perimeter_mm < MIN_PERIMETER_PER_LENGTH * lf.length_mm:
+            out.append(f"leaf {lf.leaf_id}: perimeter {lf.perimeter_mm:.1f} mm is under "
+                       f"{MIN_PERIMETER_PER_LENGTH:g}x its length {lf.length_mm:.1f} mm; an "
+                       "outline runs base to tip and back, so one of the two is wrong (a length "
+                       "run into another organ, or an outline of a holed leaf)")
     return out
 
 
@@ -895,5 +919,8 @@ def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = No
             log.warning(msg)
             info["warnings"].append(msg)
             info["thick_leaves"].append(m.traits.leaf_id)
+    for msg in inconsistent_leaves([m.traits for m in measurements]):
+        log.warning(msg)
+        info["warnings"].append(msg)
     leaves = [m.traits for m in measurements]
     return Traits(leaves, plant_traits(mesh, leaves)), measurements, info

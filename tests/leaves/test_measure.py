@@ -7,9 +7,14 @@ import logging
 import numpy as np
 import pytest
 from plantscan_leaves import phantoms as ph
-from plantscan_leaves.measure import LeafGeometryParams, measure_leaf, measure_plant
+from plantscan_leaves.measure import (
+    LeafGeometryParams,
+    inconsistent_leaves,
+    measure_leaf,
+    measure_plant,
+)
 
-from plantscan_core.data import LabelledMesh, Mesh, Traits, rotation_about_axis
+from plantscan_core.data import LabelledMesh, LeafTraits, Mesh, Traits, rotation_about_axis
 
 
 def _rel(measured: float, truth: float) -> float:
@@ -105,6 +110,20 @@ def test_thick_share_names_a_leaf_grown_into_phantom_volume(caplog):
     assert "leaf 2:" in caplog.text and "phantom volume" in caplog.text
     assert Traits.from_csv(traits.to_csv()).leaves[1].thick_share == pytest.approx(share[2],
                                                                                   abs=1e-4)
+
+
+def test_perimeter_under_twice_the_length_is_named():
+    # exact traits of real shapes pass: an ellipse (P = 2.42 L) and a grass blade 200 x 10
+    # mm (P just over 2 L); a blade whose outline broke does not (wheat, session 8:
+    # length 154.7 mm, perimeter 98.7 mm)
+    ellipse = ph.EllipseLeaf(60.0, 30.0)
+    blade = ph.EllipseLeaf(100.0, 5.0)
+    leaves = [LeafTraits(1, ellipse.length_mm, ellipse.width_mm, ellipse.area_mm2,
+                         ellipse.perimeter_mm),
+              LeafTraits(2, blade.length_mm, blade.width_mm, blade.area_mm2, blade.perimeter_mm),
+              LeafTraits(3, 154.7, 14.2, 1373.6, 98.7)]
+    said = inconsistent_leaves(leaves)
+    assert len(said) == 1 and said[0].startswith("leaf 3: perimeter 98.7 mm")
 
 
 def test_empty_mesh_gives_empty_traits(caplog):
