@@ -76,7 +76,7 @@ def run_demo(out: Path, overrides: list[str], recipe_name: str = "plastic-dicot"
         warned = traits.get("leaves_warned", 0)
         if warned:
             quiet = traits.get("mean_relative_error_unwarned", {})
-            print(f"demo: {warned} leaves warned about (phantom volume, see the report); the "
+            print(f"demo: {warned} leaves warned about (see the report's warnings); the "
                   "others: " + ", ".join(f"{k} {100 * v:.2f} %" for k, v in quiet.items()))
     else:
         print("demo: no trait errors (the leaf stages did not run)")

@@ -33,7 +33,7 @@ import numpy as np
 from plantscan_core.data import TRAIT_NAMES, LabelledMesh, Traits, mean_relative_error
 from plantscan_core.errors import DataError
 from plantscan_leaves import geometry as geo
-from plantscan_leaves.measure import THICK_WARN_SHARE
+from plantscan_leaves.measure import warned
 
 PAIR_COVER = 0.5  # more than half of a truth leaf must be in its measured leaf
 MERGE_COVER = 0.3  # a measured leaf holding 30 % of each of two truth leaves merged them
@@ -205,10 +205,10 @@ def evaluate_traits(run_dir: Path, truth_dir: Path) -> dict[str, Any] | None:
         raise DataError(f"{run_dir} / {truth_dir}: cannot read leaves or truth ({exc})") from exc
     m = match_leaves(labelled, tv, tf, tid)
     errs = trait_errors(truth, measured, m["pairs"])
-    # the same over the leaves the measurer did not warn about (thick_share below its
-    # warning level): what its warnings buy a user who sets those leaves aside
-    share = {lf.leaf_id: lf.thick_share for lf in measured.leaves}
-    unwarned = [p for p in m["pairs"] if not share.get(p[1], np.nan) >= THICK_WARN_SHARE]
+    # the same over the leaves the measurer did not warn about (phantom volume, or a
+    # perimeter too short for the length): what its warnings buy a user who sets them aside
+    said = {lf.leaf_id for lf in measured.leaves if warned(lf)}
+    unwarned = [p for p in m["pairs"] if p[1] not in said]
     quiet = trait_errors(truth, measured, unwarned)["mean_relative_error"]
     plant = plant_errors(run_dir / "plant_traits.json", truth_dir / "plant_traits.json")
     return {

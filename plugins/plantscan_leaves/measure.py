@@ -468,6 +468,17 @@ def thick_shares(mesh: Mesh, face_labels: np.ndarray, leaf_labels: list[int]
     return out
 
 
+def short_outline(leaf: LeafTraits) -> bool:
+    """Whether ``leaf``'s perimeter is under ``MIN_PERIMETER_PER_LENGTH`` x its length."""
+    return leaf.length_mm > 0 and leaf.perimeter_mm < MIN_PERIMETER_PER_LENGTH * leaf.length_mm
+
+
+def warned(leaf: LeafTraits) -> bool:
+    """Whether the measurer warns about ``leaf``: phantom volume (``thick_share``) or a
+    perimeter too short for its length."""
+    return bool(leaf.thick_share >= THICK_WARN_SHARE) or short_outline(leaf)
+
+
 def inconsistent_leaves(leaves: list[LeafTraits]) -> list[str]:
     """Warnings for leaves whose perimeter is under ``MIN_PERIMETER_PER_LENGTH`` x their length.
 
@@ -479,7 +490,7 @@ def inconsistent_leaves(leaves: list[LeafTraits]) -> list[str]:
     """
     out = []
     for lf in leaves:
-        if lf.length_mm > 0 and lf.perimeter_mm < MIN_PERIMETER_PER_LENGTH * lf.length_mm:
+        if short_outline(lf):
             out.append(f"leaf {lf.leaf_id}: perimeter {lf.perimeter_mm:.1f} mm is under "
                        f"{MIN_PERIMETER_PER_LENGTH:g}x its length {lf.length_mm:.1f} mm; an "
                        "outline runs base to tip and back, so one of the two is wrong (a length "
