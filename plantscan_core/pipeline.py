@@ -190,24 +190,20 @@ class Run:
     def _cache_path(self, stage: str) -> Path:
         return self.run_dir / CACHE_DIR / f"{stage}.json"
 
-    def _cached(self, stage: str, key: str, outputs: list[Path]) -> bool:
+    def _cached(self, stage: str, key: str, outputs: list[Path]) -> dict | None:
+        """The stage's cache entry when its last result is for ``key`` and on disk, else None."""
         p = self._cache_path(stage)
         if not p.exists() or not all(o.exists() for o in outputs):
-            return False
+            return None
         try:
-            return json.loads(p.read_text()).get("key") == key
+            entry = json.loads(p.read_text())
         except (OSError, ValueError):
-            return False
+            return None
+        return entry if isinstance(entry, dict) and entry.get("key") == key else None
 
     def _store_key(self, stage: str, key: str, notes: dict | None = None) -> None:
         entry = {"key": key, "at": now_iso(), **({"info": notes} if notes else {})}
         atomic_write_text(self._cache_path(stage), json.dumps(entry))
-
-    def _cached_notes(self, stage: str) -> dict:
-        try:
-            return json.loads(self._cache_path(stage).read_text()).get("info") or {}
-        except (OSError, ValueError):
-            return {}
 
     # ------------------------------------------------------------------ stage runner
     def run_stage(
@@ -229,13 +225,14 @@ class Run:
         self.info["stages"][section] = {"plugin": spec.plugin, "version": plugin.version(),
                                         "params": plugin.params.model_dump(mode="json"),
                                         "key": key}
-        cached = self._cached(section, key, outputs)
+        entry = self._cached(section, key, outputs)
+        cached = entry is not None
         self.manager.before_stage(stage, plugin, self.context)
         t0, c0 = time.perf_counter(), time.process_time()
         try:
             if cached:
                 value = load()
-                notes = self._cached_notes(section)
+                notes = entry.get("info") or {}
             else:
                 self._cache_path(section).unlink(missing_ok=True)
                 value = compute(plugin)

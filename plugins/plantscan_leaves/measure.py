@@ -468,6 +468,11 @@ def thick_shares(mesh: Mesh, face_labels: np.ndarray, leaf_labels: list[int]
     return out
 
 
+def in_phantom(leaf: LeafTraits) -> bool:
+    """Whether ``leaf``'s ``thick_share`` reaches ``THICK_WARN_SHARE``."""
+    return bool(leaf.thick_share >= THICK_WARN_SHARE)
+
+
 def short_outline(leaf: LeafTraits) -> bool:
     """Whether ``leaf``'s perimeter is under ``MIN_PERIMETER_PER_LENGTH`` x its length."""
     return leaf.length_mm > 0 and leaf.perimeter_mm < MIN_PERIMETER_PER_LENGTH * leaf.length_mm
@@ -476,7 +481,7 @@ def short_outline(leaf: LeafTraits) -> bool:
 def warned(leaf: LeafTraits) -> bool:
     """Whether the measurer warns about ``leaf``: phantom volume (``thick_share``) or a
     perimeter too short for its length."""
-    return bool(leaf.thick_share >= THICK_WARN_SHARE) or short_outline(leaf)
+    return in_phantom(leaf) or short_outline(leaf)
 
 
 def inconsistent_leaves(leaves: list[LeafTraits]) -> list[str]:
@@ -922,7 +927,7 @@ def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = No
         share, median = shares[m.traits.leaf_id]
         m.traits.thick_share = share
         m.info["median_thickness_mm"] = median
-        if share >= THICK_WARN_SHARE:
+        if in_phantom(m.traits):
             msg = (f"leaf {m.traits.leaf_id}: {100 * share:.0f} % of its area lies where the "
                    f"surface is more than {THICK_FACTOR:g}x its median thickness "
                    f"({median:.1f} mm): phantom volume or a fused organ, which its traits "

@@ -730,6 +730,12 @@ JOIN_END_MM = 5.0  # the end zone whose width is read (a tapered base is narrow 
 JOIN_DIRECTION_MM = 30.0  # the end zone whose principal axis is the end's direction
 
 
+def _principal_axis(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and unit principal axis (its sign arbitrary) of ``points`` (N, 3)."""
+    mu = points.mean(axis=0)
+    return mu, np.linalg.svd(points - mu, full_matrices=False)[2][0]
+
+
 def _blade_ends(q: np.ndarray, w: np.ndarray) -> tuple[list[tuple[np.ndarray, np.ndarray,
                                                                      float]], float]:
     """Both ends of a leaf piece: (point, outward direction, width) each, mm.
@@ -755,9 +761,8 @@ def _blade_ends(q: np.ndarray, w: np.ndarray) -> tuple[list[tuple[np.ndarray, np
     for sign in (1.0, -1.0):
         ss = sign * s
         top = ss.max()
-        zone = q[ss > top - JOIN_DIRECTION_MM]
-        _, _, vz = np.linalg.svd(zone - zone.mean(axis=0), full_matrices=False)
-        d = vz[0] if vz[0] @ (sign * vt[0]) > 0 else -vz[0]
+        _, d = _principal_axis(q[ss > top - JOIN_DIRECTION_MM])
+        d = d if d @ (sign * vt[0]) > 0 else -d  # pointing out of the blade
         tip = q[ss > top - JOIN_END_MM]
         rel = tip - tip.mean(axis=0)
         width = 2.0 * float(np.percentile(geo.row_norm(rel - np.outer(rel @ d, d)), 95))
@@ -881,8 +886,7 @@ def _culm_axes(points: np.ndarray, rng: np.random.Generator
         for _r in range(4):
             w = points[idx] - o
             q = points[idx][geo.row_norm(w - np.outer(w @ d, d)) < CULM_INLIER_MM]
-            o = q.mean(axis=0)
-            d = np.linalg.svd(q - o, full_matrices=False)[2][0]
+            o, d = _principal_axis(q)
         w = points[idx] - o
         s = w @ d
         r = geo.row_norm(w - np.outer(s, d))
@@ -966,10 +970,8 @@ def _blade_bases_off_culms(labels: np.ndarray, centroids: np.ndarray, pairs: np.
         q = centroids[(labels == lab) & (geo.row_norm(centroids - c0) < BASE_DIRECTION_MM)]
         if len(q) < 10:
             continue
-        mu = q.mean(axis=0)
-        d = np.linalg.svd(q - mu, full_matrices=False)[2][0]
-        if d @ (c0 - mu) < 0:
-            d = -d
+        mu, d = _principal_axis(q)
+        d = d if d @ (c0 - mu) >= 0 else -d  # into the stem
         w = centroids[cf] - c0
         half = float(np.percentile(geo.row_norm(w - np.outer(w @ d, d)), 90)) + BASE_MARGIN_MM
         w = centroids[ids_all] - c0
