@@ -163,7 +163,7 @@ def run_case(folder: Path, case: str, res: int, k: int) -> dict:
         mesh = mesher.mesh(Volume(phi, grid.origin, grid.voxel_size))
         out.update(mesh_s=time.perf_counter() - t0, mesh_cpu_s=time.process_time() - c0,
                    faces=len(mesh.faces),
-                   watertight=mesher.last_report["topology"]["watertight"])
+                   watertight=mesher.report.figures["topology"]["watertight"])
     elif case in ("dense", "dense-numpy"):
         backend = "numba" if case == "dense" else "numpy"
         if backend == "numba":
@@ -444,8 +444,8 @@ def mesh_case(field_path: Path, repeats: int = 5) -> dict:
     return {"field": str(field_path), "grid": list(field.shape), "mesh_s": min(walls),
             "mesh_cpu_s": min(cpus), "first_s": walls[0], "first_cpu_s": cpus[0],
             "faces": len(mesh.faces), "digest": digest.hexdigest()[:12],
-            "pot": len(mesher.last_report["pot"]),
-            "watertight": mesher.last_report["topology"]["watertight"]}
+            "pot": len(mesher.report.figures["pot"]),
+            "watertight": mesher.report.figures["topology"]["watertight"]}
 
 
 def mesh_main(args) -> int:
@@ -515,7 +515,8 @@ def run_masks_case(run: Path, scan: Path, res: int, reduce: int, k: int) -> dict
     from plantscan_hull.stages import OctreeHull
 
     from plantscan_core.data import Calibration, Silhouette, Silhouettes, ViewRecord
-    from plantscan_core.pipeline import calibration_for_masks, read_mask
+    from plantscan_core.runfolder import read_mask
+    from plantscan_core.steps import calibration_for_masks
 
     probe = _RssProbe()
     records = [ViewRecord.from_dict(json.loads(line))
@@ -553,11 +554,12 @@ def run_masks_case(run: Path, scan: Path, res: int, reduce: int, k: int) -> dict
     hull_stages.prepare_views, hull_stages.carve_octree = timed_prepare, timed_carve
     t0, c0 = time.perf_counter(), time.process_time()
     # k given: the stage's default changed in session 4 (k 'auto'), the baseline's is 3.
-    vol = OctreeHull(OctreeHull.Params(resolution=res, k=k)).reconstruct(sils, cal)
+    hull = OctreeHull(OctreeHull.Params(resolution=res, k=k))
+    vol = hull.reconstruct(sils, cal)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     probe.mark("returned")
     probe.stop = True
-    st = vol.stats
+    st = {**hull.report.counts, **hull.report.figures}
     h, w = sils[0].shape
     return {"case": "run masks", "res": res, "k": k, "views": len(sils), "size": f"{w}x{h}",
             "wall_s": wall, "cpu_s": cpu, "prep_s": st["prep_seconds"],

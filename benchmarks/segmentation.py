@@ -38,7 +38,7 @@ from plantscan_segment.metrics import mask_metrics, summarise
 from plantscan_segment.undistort import distort_mask, undistort_mask
 
 from plantscan_core.data import CameraModel
-from plantscan_core.pipeline import read_mask
+from plantscan_core.runfolder import read_mask
 from plantscan_core.scanfolder import ScanFolder
 
 REAL = pathlib.Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / \

@@ -23,7 +23,6 @@ from plantscan_core.recipe import (
     resolve_recipe_path,
     validate_recipe,
 )
-from plantscan_core.stages import STAGE_BASES
 
 EXIT_USER_ERROR = 2
 
@@ -61,10 +60,8 @@ def cmd_plugins(args) -> int:
     table = Table(title="plantscan stages")
     for col in ("stage", "name", "plugin", "distribution", "version"):
         table.add_column(col)
-    for stage in STAGE_BASES:
-        for r in manager.registry:
-            if r.stage == stage:
-                table.add_row(stage, r.name, r.plugin, r.distribution, r.version)
+    for r in manager.registry:  # in pipeline order
+        table.add_row(r.stage, r.name, r.plugin, r.distribution, r.version)
     console.print(table)
     if manager.failed:
         ft = Table(title="plugins that failed to load", style="red")
@@ -175,19 +172,22 @@ def cmd_process(args) -> int:
 
 
 def profile_table(info: dict[str, Any]) -> str:
-    """Seconds (wall and CPU) and peak memory per stage of a run (run.json's info), as text.
+    """Seconds (wall and CPU), peak memory and warnings per stage of a run (run.json), as text.
 
     CPU above wall time means the stage used both cores; peak memory is the
-    process's high-water mark when the stage ended (it never goes down).
+    process's high-water mark when the stage ended (it never goes down);
+    warnings counts the warnings of the stage's report.
     """
     cpu, rss = info.get("cpu_s", {}), info.get("peak_rss_mb", {})
-    lines = [f"{'stage':<16}{'wall s':>9}{'cpu s':>9}{'peak MB':>9}  cached"]
+    lines = [f"{'stage':<16}{'wall s':>9}{'cpu s':>9}{'peak MB':>9}{'warnings':>9}  cached"]
     for stage, sec in info.get("timings_s", {}).items():
         if stage == "total":
             continue
-        cached = info.get("stages", {}).get(stage, {}).get("cached", False)
+        record = info.get("stages", {}).get(stage, {})
+        warned = len((record.get("info") or {}).get("warnings") or [])
         lines.append(f"{stage:<16}{sec:>9.2f}{cpu.get(stage, float('nan')):>9.2f}"
-                     f"{rss.get(stage, float('nan')):>9.0f}  {'yes' if cached else ''}")
+                     f"{rss.get(stage, float('nan')):>9.0f}{warned or '':>9}"
+                     f"  {'yes' if record.get('cached') else ''}")
     lines.append(f"{'total':<16}{info.get('timings_s', {}).get('total', 0.0):>9.2f}"
                  f"{cpu.get('total', float('nan')):>9.2f}{rss.get('total', float('nan')):>9.0f}")
     return "\n".join(lines)

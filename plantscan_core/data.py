@@ -586,14 +586,11 @@ class Volume:
     origin : (3,) float64 array, mm, turntable frame
         Centre of voxel (0, 0, 0).
     voxel_size : float, mm
-    stats : dict
-        Work counts of the reconstructor (voxel-view tests, cells...).
     """
 
     field: np.ndarray
     origin: np.ndarray
     voxel_size: float
-    stats: dict[str, Any] = field(default_factory=dict)
 
     @property
     def shape(self) -> tuple[int, int, int]:

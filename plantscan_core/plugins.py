@@ -15,7 +15,8 @@ import pluggy
 
 from plantscan_core import hookspecs
 from plantscan_core.errors import PluginError
-from plantscan_core.stages import STAGE_BASES, Stage
+from plantscan_core.stages import ACQUISITION_BASES, Stage
+from plantscan_core.steps import CORE_TABLE, StageTable, Step
 
 ENTRY_POINT_GROUP = "plantscan"
 STRICT_ENV = "PLANTSCAN_STRICT_PLUGINS"
@@ -62,19 +63,41 @@ def distribution_of_module(module: str) -> tuple[str, str] | None:
 
 
 class StageRegistry:
-    """(stage kind, name) -> implementation.  Passed to ``plantscan_register_stages``."""
+    """(stage kind, name) -> implementation, and the stage table.
+
+    Passed to ``plantscan_register_stages``.  ``steps`` starts as the core's
+    table (``plantscan_core.steps.CORE_TABLE``); ``add_step`` lets a plugin add
+    a step of its own, which recipes may then name.
+    """
 
     def __init__(self) -> None:
         self._items: dict[tuple[str, str], Registration] = {}
+        self.steps: StageTable = CORE_TABLE.copy()
+        self._step_plugins: dict[str, str] = {}
         self._current_plugin = "<in-process>"
         self._current_dist = "<in-process>"
 
+    @property
+    def bases(self) -> dict[str, type[Stage]]:
+        """Stage kind -> base: acquisition's, then the stage table's, in pipeline order."""
+        return {**{b.stage: b for b in ACQUISITION_BASES}, **self.steps.bases}
+
+    def add_step(self, step: Step, after: str | None = None) -> None:
+        """Add a processing step to the table, after the section ``after`` (default: last
+        before the exporters); removed with the plugin that added it."""
+        try:
+            self.steps.add(step, after)
+        except ValueError as exc:
+            raise PluginError(f"plugin {self._current_plugin!r}: {exc}") from None
+        self._step_plugins[step.section] = self._current_plugin
+
     def add(self, cls: type[Stage]) -> None:
         """Register ``cls`` under ``(cls.stage, cls.name)``."""
-        if not (isinstance(cls, type) and issubclass(cls, Stage)) or cls.stage not in STAGE_BASES:
+        bases = self.bases
+        if not (isinstance(cls, type) and issubclass(cls, Stage)) or cls.stage not in bases:
             raise PluginError(
                 f"plugin {self._current_plugin!r}: {cls!r} is not a subclass of a plantscan stage "
-                f"base ({', '.join(b.__name__ for b in STAGE_BASES.values())})"
+                f"base ({', '.join(b.__name__ for b in bases.values())})"
             )
         if not cls.name:
             raise PluginError(f"plugin {self._current_plugin!r}: {cls.__name__} has no 'name'")
@@ -93,6 +116,16 @@ class StageRegistry:
     def remove(self, stage: str, name: str) -> None:
         self._items.pop((stage, name), None)
 
+    def remove_plugin(self, plugin: str, keys: set[tuple[str, str]] | None = None) -> None:
+        """Forget what ``plugin`` registered (only ``keys`` when given) and the steps it added."""
+        for key, reg in list(self._items.items()):
+            if reg.plugin == plugin and (keys is None or key in keys):
+                del self._items[key]
+        for section, owner in list(self._step_plugins.items()):
+            if owner == plugin:
+                self.steps.remove(section)
+                del self._step_plugins[section]
+
     def get(self, stage: str, name: str) -> Registration:
         """The registration of ``name`` for ``stage``; PluginError listing the available ones."""
         try:
@@ -108,8 +141,10 @@ class StageRegistry:
         return sorted(n for (s, n) in self._items if s == stage)
 
     def __iter__(self):
-        return iter(sorted(self._items.values(), key=lambda r: (list(STAGE_BASES).index(r.stage),
-                                                                r.name)))
+        order = list(self.bases)
+        return iter(sorted(self._items.values(),
+                           key=lambda r: (order.index(r.stage) if r.stage in order else len(order),
+                                          r.name)))
 
     def __contains__(self, key: tuple[str, str]) -> bool:
         return key in self._items
@@ -137,8 +172,7 @@ class PluginManager:
                 impl(registry=self.registry)
             self.pm.check_pending()
         except BaseException:
-            for key in set(self.registry._items) - before:
-                del self.registry._items[key]
+            self.registry.remove_plugin(plugin_name, set(self.registry._items) - before)
             self.pm.unregister(plugin)
             raise
         finally:
@@ -149,9 +183,7 @@ class PluginManager:
     def unregister(self, plugin: Any) -> None:
         """Remove a plugin and every stage it registered."""
         name = self.pm.get_name(plugin)
-        for key, reg in list(self.registry._items.items()):
-            if reg.plugin == name:
-                del self.registry._items[key]
+        self.registry.remove_plugin(name)
         self.loaded = [x for x in self.loaded if x[0] != name]
         self.pm.unregister(plugin)
 

@@ -16,6 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from plantscan_core.data import ROLES
 from plantscan_core.errors import PluginError, RecipeError
+from plantscan_core.steps import CORE_TABLE, StageTable
 
 
 class _Model(BaseModel):
@@ -122,7 +123,16 @@ class PlantSpec(_Model):
 
 
 class Recipe(_Model):
-    """A whole recipe.  Processing stages are optional (a recipe may only scan)."""
+    """A whole recipe.  Processing stages are optional (a recipe may only scan).
+
+    The processing sections are the stage table's (``plantscan_core.steps``):
+    one field per core step below; a step a plugin adds to its registry's
+    table is a section too (an extra key, checked against the registry's
+    table by ``validate_recipe``: any other key is an error).
+    """
+
+    model_config = ConfigDict(extra="allow")
+    __pydantic_extra__: dict[str, StageSpec | None] = Field(init=False)
 
     name: str = "recipe"
     description: str = ""
@@ -137,15 +147,19 @@ class Recipe(_Model):
     export: list[StageSpec] = Field(default_factory=list)
 
 
-PROCESSING_SECTIONS: dict[str, str] = {
-    "calibrate": "calibrator",
-    "segment": "segmenter",
-    "reconstruct": "reconstructor",
-    "mesh": "mesher",
-    "segment_mesh": "mesh_segmenter",
-    "measure": "measurer",
-}
-"""Recipe section -> stage kind, in pipeline order."""
+PROCESSING_SECTIONS: dict[str, str] = {s.section: s.stage for s in CORE_TABLE if not s.many}
+"""Recipe section -> stage kind of the core's steps (exporters aside), in pipeline order."""
+
+
+def _table(registry) -> StageTable:
+    return registry.steps if registry is not None else CORE_TABLE
+
+
+def stage_spec(recipe: Recipe, section: str) -> StageSpec | list[StageSpec] | None:
+    """The recipe's spec of a step's ``section`` (a field, or an added step's extra key)."""
+    if section in Recipe.model_fields:
+        return getattr(recipe, section)
+    return (recipe.model_extra or {}).get(section)
 
 
 # --------------------------------------------------------------------------- overrides
@@ -201,7 +215,8 @@ def _loc(parts: tuple[Any, ...]) -> str:
     return ".".join(str(p) for p in parts)
 
 
-def _stage_specs(recipe: Recipe) -> list[tuple[str, str, StageSpec]]:
+def _stage_specs(recipe: Recipe, table: StageTable = CORE_TABLE
+                 ) -> list[tuple[str, str, StageSpec]]:
     """(recipe path, stage kind, spec) of every stage the recipe names."""
     out: list[tuple[str, str, StageSpec]] = []
     for i, cam in enumerate(recipe.scan.cameras):
@@ -211,12 +226,12 @@ def _stage_specs(recipe: Recipe) -> list[tuple[str, str, StageSpec]]:
         out.append(("scan.tilt_arm", "axis", recipe.scan.tilt_arm))
     if recipe.scan.scene is not None:
         out.append(("scan.scene", "scene", recipe.scan.scene))
-    for section, stage in PROCESSING_SECTIONS.items():
-        spec = getattr(recipe, section)
-        if spec is not None:
-            out.append((section, stage, spec))
-    for i, spec in enumerate(recipe.export):
-        out.append((f"export.{i}", "exporter", spec))
+    for step in table:
+        spec = stage_spec(recipe, step.section)
+        if step.many:
+            out += [(f"{step.section}.{i}", step.stage, s) for i, s in enumerate(spec or [])]
+        elif spec is not None:
+            out.append((step.section, step.stage, spec))
     return out
 
 
@@ -224,22 +239,31 @@ def validate_recipe(raw: Any, registry=None, source: str = "recipe") -> Recipe:
     """Validate a raw recipe dict in full; raise ``RecipeError`` with every error.
 
     With a ``registry`` (``plantscan_core.plugins.StageRegistry``) plugin names
-    and each plugin's parameters are checked too.
+    and each plugin's parameters are checked too, and the sections of the
+    steps it added are known; without one, the core's table.
     """
     if not isinstance(raw, dict):
         raise RecipeError([("", "a recipe must be a YAML mapping")], source)
+    unknown = _unknown_sections(raw, _table(registry))
     try:
         recipe = Recipe.model_validate(raw)
     except ValidationError as exc:
-        errors = [(_loc(e["loc"]), e["msg"]) for e in exc.errors()]
+        errors = unknown + [(_loc(e["loc"]), e["msg"]) for e in exc.errors()
+                            if not e["loc"] or e["loc"][0] not in dict(unknown)]
         # Still check the plugin sections that parsed, so all errors come out together.
         errors += _check_plugins_raw(raw, registry)
         raise RecipeError(errors, source) from None
-    errors = check_plugins(recipe, registry) if registry is not None else []
+    errors = unknown + (check_plugins(recipe, registry) if registry is not None else [])
     errors += _check_protocol(recipe)
     if errors:
         raise RecipeError(errors, source)
     return recipe
+
+
+def _unknown_sections(raw: dict[str, Any], table: StageTable) -> list[tuple[str, str]]:
+    known = set(Recipe.model_fields) | set(table.sections)
+    return [(str(key), f"unknown recipe section; sections: {', '.join(sorted(known))}")
+            for key in sorted(set(raw) - known, key=str)]
 
 
 def _check_protocol(recipe: Recipe) -> list[tuple[str, str]]:
@@ -260,7 +284,7 @@ def _check_protocol(recipe: Recipe) -> list[tuple[str, str]]:
 
 def check_plugins(recipe: Recipe, registry) -> list[tuple[str, str]]:
     errors: list[tuple[str, str]] = []
-    for path, stage, spec in _stage_specs(recipe):
+    for path, stage, spec in _stage_specs(recipe, _table(registry)):
         errors += _check_one(path, stage, spec.plugin, spec.params, registry)
     return errors
 
@@ -292,11 +316,13 @@ def _check_plugins_raw(raw: dict[str, Any], registry) -> list[tuple[str, str]]:
         candidates.append((f"scan.cameras.{i}", "camera", cam))
     for key, stage in (("turntable", "axis"), ("tilt_arm", "axis"), ("scene", "scene")):
         candidates.append((f"scan.{key}", stage, scan.get(key)))
-    for section, stage in PROCESSING_SECTIONS.items():
-        candidates.append((section, stage, raw.get(section)))
-    exports = raw.get("export") if isinstance(raw.get("export"), list) else []
-    for i, spec in enumerate(exports):
-        candidates.append((f"export.{i}", "exporter", spec))
+    for step in registry.steps:
+        spec = raw.get(step.section)
+        if step.many:
+            candidates += [(f"{step.section}.{i}", step.stage, s)
+                           for i, s in enumerate(spec if isinstance(spec, list) else [])]
+        else:
+            candidates.append((step.section, step.stage, spec))
     for path, stage, spec in candidates:
         if isinstance(spec, dict) and isinstance(spec.get("plugin"), str):
             errors += _check_one(path, stage, spec["plugin"], spec.get("params") or {}, registry)

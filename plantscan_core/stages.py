@@ -10,11 +10,17 @@ A plugin implements a stage with a class that has
 The class is registered with ``registry.add(cls)`` from the hook
 ``plantscan_register_stages``.  It is built as ``cls(params, context)`` where
 ``params`` is an instance of ``cls.Params`` and ``context`` a ``StageContext``.
+
+What a stage says of its work goes into ``self.report``, a ``StageReport``
+(counts, figures, warnings naming the leaf, view or file they concern); the run
+stores it with the stage's cache entry and writes it to ``run.json``.  The order
+of the processing stages is the table in ``plantscan_core.steps``.
 """
 
 from __future__ import annotations
 
 import abc
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,6 +40,7 @@ from plantscan_core.data import (
 )
 
 if TYPE_CHECKING:
+    from plantscan_core.photos import Photos
     from plantscan_core.recipe import Recipe
     from plantscan_core.scanfolder import ScanFolder
 
@@ -55,6 +62,14 @@ class StageContext:
         The scan being acquired or processed.
     run_dir : Path or None
         The run folder being written (processing only).
+    reduce : int
+        The plant photos are decoded at 1/``reduce`` of their size (the
+        recipe's ``segment.reduce`` resolved to a number): masks and the
+        cameras handed to the reconstructor are at that size.
+    photos : Photos or None
+        The plant photos at 1/``reduce`` (processing only), decoded on
+        demand; a step that declares ``photos`` in the stage table gets the
+        ones segmentation decoded, not a second decode.
     shared : dict
         Objects shared by the stages of one acquisition or run (e.g. the
         virtual scanner's scene, shared by its cameras and axes).
@@ -63,16 +78,128 @@ class StageContext:
     recipe: Recipe | None = None
     scan: ScanFolder | None = None
     run_dir: Path | None = None
+    reduce: int = 1
+    photos: Photos | None = None
     shared: dict[str, Any] = field(default_factory=dict)
+
+
+# --------------------------------------------------------------------------- reports
+_REPORT_LOCK = threading.Lock()  # segmenters report from several threads at once
+
+
+@dataclass(frozen=True)
+class StageWarning:
+    """Something a user should know about a stage's result, and what it concerns.
+
+    Attributes
+    ----------
+    code : str
+        Stable kebab-case identifier of the kind of warning (``thick-leaf``,
+        ``empty-mask``), for programs that filter or count warnings.
+    message : str
+        One sentence for a person: what was seen and what it means.
+    leaf, view : int or None
+        The leaf id (traits table) or view index (``views.jsonl``) it names.
+    file : str or None
+        The file it names (path as the user gave it, or relative to the scan).
+    """
+
+    code: str
+    message: str
+    leaf: int | None = None
+    view: int | None = None
+    file: str | None = None
+
+    def __str__(self) -> str:
+        return self.message
+
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"code": self.code, "message": self.message}
+        for name in ("leaf", "view", "file"):
+            if getattr(self, name) is not None:
+                out[name] = getattr(self, name)
+        return out
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> StageWarning:
+        return cls(str(d["code"]), str(d["message"]), d.get("leaf"), d.get("view"), d.get("file"))
+
+
+@dataclass
+class StageReport:
+    """What one stage says of its work: the one channel from a stage to the user.
+
+    Stored with the stage's cache entry, so a stage loaded from the cache reports
+    the same again; ``run.json`` holds it under ``stages.<section>.info``.
+
+    Attributes
+    ----------
+    counts : dict str -> int
+        Work counts (``views``, ``regions``, ``pot_voxels_removed``).
+    figures : dict str -> JSON value
+        Other figures, with the unit in the name (``voxel_size_mm``, ``rms_px``).
+    warnings : list of StageWarning
+    """
+
+    counts: dict[str, int] = field(default_factory=dict)
+    figures: dict[str, Any] = field(default_factory=dict)
+    warnings: list[StageWarning] = field(default_factory=list)
+
+    def count(self, name: str, n: int = 1) -> None:
+        """Add ``n`` to the count ``name`` (thread-safe)."""
+        with _REPORT_LOCK:
+            self.counts[name] = self.counts.get(name, 0) + int(n)
+
+    def figure(self, name: str, value: Any) -> None:
+        """Set the figure ``name`` (a JSON value: number, string, list, mapping)."""
+        from plantscan_core.data import plain
+
+        with _REPORT_LOCK:
+            self.figures[name] = plain(value)
+
+    def note(self, values: dict[str, Any]) -> None:
+        """Record a mapping of results: integers as counts, anything else as figures."""
+        for name, value in values.items():
+            if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
+                self.count(name, int(value))
+            else:
+                self.figure(name, value)
+
+    def warn(self, code: str, message: str, *, leaf: int | None = None,
+             view: int | None = None, file: str | None = None) -> StageWarning:
+        """Add a warning (thread-safe); returns it."""
+        w = StageWarning(code, message, None if leaf is None else int(leaf),
+                         None if view is None else int(view), None if file is None else str(file))
+        with _REPORT_LOCK:
+            self.warnings.append(w)
+        return w
+
+    def warnings_about(self, *, leaf: int | None = None, view: int | None = None,
+                       code: str | None = None) -> list[StageWarning]:
+        """The warnings that name ``leaf`` / ``view`` / have ``code`` (all given must match)."""
+        return [w for w in self.warnings
+                if (leaf is None or w.leaf == leaf) and (view is None or w.view == view)
+                and (code is None or w.code == code)]
+
+    def to_dict(self) -> dict[str, Any]:
+        from plantscan_core.data import plain
+
+        return {"counts": dict(self.counts), "figures": plain(self.figures),
+                "warnings": [w.to_dict() for w in self.warnings]}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any] | None) -> StageReport:
+        d = d or {}
+        return cls({str(k): int(v) for k, v in (d.get("counts") or {}).items()},
+                   dict(d.get("figures") or {}),
+                   [StageWarning.from_dict(w) for w in d.get("warnings") or []])
 
 
 class Stage(abc.ABC):
     """Common base: a named, parametrised implementation of one stage.
 
-    A processing stage may leave what it has to say of its last call (work
-    counts, ``"warnings"``: a list of messages) in a plain dict attribute
-    ``info``; the run writes it to ``run.json`` under ``stages.<section>.info``,
-    also when the stage's result comes from the cache.
+    ``report`` (a fresh ``StageReport`` per instance; the run builds one
+    instance per stage run) is where the stage says what it did.
     """
 
     stage: ClassVar[str] = ""
@@ -82,6 +209,7 @@ class Stage(abc.ABC):
     def __init__(self, params: StageParams | None = None, context: StageContext | None = None):
         self.params = params if params is not None else self.Params()
         self.context = context if context is not None else StageContext()
+        self.report = StageReport()
 
     @classmethod
     def version(cls) -> str:
@@ -269,6 +397,16 @@ class RunResult:
     """Everything a processing run produced, handed to exporters.
 
     Attributes are None for stages that did not run.
+
+    Attributes
+    ----------
+    reports : dict section -> StageReport
+        What every stage that ran (or came from the cache) said of its work.
+    results : dict result name -> object
+        The result of every step by the name it declares in the stage table
+        (``calibration``, ``silhouettes``...; also those of added steps).
+    info : dict
+        The run's ``run.json`` record.
     """
 
     run_dir: Path
@@ -281,7 +419,17 @@ class RunResult:
     labelled: LabelledMesh | None = None
     traits: Traits | None = None
     timings: dict[str, float] = field(default_factory=dict)
+    reports: dict[str, StageReport] = field(default_factory=dict)
+    results: dict[str, Any] = field(default_factory=dict)
     info: dict[str, Any] = field(default_factory=dict)
+
+    STEP_RESULTS: ClassVar[tuple[str, ...]] = ("calibration", "silhouettes", "volume", "mesh",
+                                               "labelled", "traits")
+    """The results that have an attribute of their own (the core steps')."""
+
+    def warnings(self) -> list[tuple[str, StageWarning]]:
+        """(section, warning) of every stage's report, in stage order."""
+        return [(section, w) for section, r in self.reports.items() for w in r.warnings]
 
 
 class Exporter(Stage):
@@ -294,19 +442,5 @@ class Exporter(Stage):
         """Write this exporter's files for ``run``; return their paths."""
 
 
-STAGE_BASES: dict[str, type[Stage]] = {
-    cls.stage: cls
-    for cls in (
-        CameraBackend,
-        MotionAxis,
-        Scene,
-        Calibrator,
-        Segmenter,
-        Reconstructor,
-        Mesher,
-        MeshSegmenter,
-        Measurer,
-        Exporter,
-    )
-}
-"""Stage kind -> abstract base, in pipeline order."""
+ACQUISITION_BASES: tuple[type[Stage], ...] = (CameraBackend, MotionAxis, Scene)
+"""The stage bases of acquisition; those of processing are the stage table's."""

@@ -6,6 +6,10 @@
 * ``tiny_scan`` — a tiny synthetic scan folder (calibration, background and
   plant views of a dark sphere) acquired by the real orchestrator with the
   tiny rig.
+* ``tiny_processing_plugin`` — the tiny rig's exact calibrator (``tiny-exact``)
+  and a dark-pixel segmenter (``tiny-dark``), so that a reconstructor or an
+  added step can be tested with the real ``process()`` on ``tiny_scan``
+  (``TINY_CALLS`` counts their calls).
 * ``--hardware`` — run tests marked ``hardware`` (skipped otherwise).
 
 The tiny rig is deliberately simple (no lens, no shadows): it exercises the
@@ -15,16 +19,31 @@ yardstick for those.
 
 from __future__ import annotations
 
+import contextlib
+import importlib.util
 import math
+import sys
+import threading
+from collections import Counter
+from collections.abc import Iterator
 from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 import pytest
 
-from plantscan_core.data import Camera, CameraModel, Pose, rotation_z
+from plantscan_core.data import Calibration, Camera, CameraModel, Pose, rotation_z
 from plantscan_core.hookspecs import hookimpl
 from plantscan_core.plugins import PluginManager, new_manager
-from plantscan_core.stages import CameraBackend, CaptureRequest, MotionAxis, StageParams
+from plantscan_core.stages import (
+    Calibrator,
+    CameraBackend,
+    CaptureRequest,
+    MotionAxis,
+    Segmenter,
+    Stage,
+    StageParams,
+)
 
 TINY_SPHERE_RADIUS_MM = 40.0
 TINY_SPHERE_CENTRE_MM = (15.0, 0.0, 80.0)
@@ -99,15 +118,80 @@ class TinyAxis(MotionAxis):
         self._pos = 0.0
 
 
-class _TinyRigPlugin:
-    @staticmethod
-    @hookimpl
-    def plantscan_register_stages(registry) -> None:
-        registry.add(TinyCamera)
-        registry.add(TinyAxis)
+def stages_plugin(*classes: type[Stage]) -> object:
+    """A plugin object whose ``plantscan_register_stages`` adds ``classes``, for
+    ``manager.register(...)`` in a test."""
+
+    class _Plugin:
+        @staticmethod
+        @hookimpl
+        def plantscan_register_stages(registry) -> None:
+            for cls in classes:
+                registry.add(cls)
+
+    return _Plugin()
 
 
-tiny_rig_plugin = _TinyRigPlugin()
+@contextlib.contextmanager
+def plugin_file(manager: PluginManager, path: Path, name: str) -> Iterator[ModuleType]:
+    """Import the one-file plugin ``path`` as module ``name`` (as an installed plugin
+    would be) and register it in ``manager`` for the ``with`` block."""
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    try:
+        spec.loader.exec_module(module)
+        manager.register(module, name=name)
+        try:
+            yield module
+        finally:
+            manager.unregister(module)
+    finally:
+        sys.modules.pop(name, None)
+
+
+tiny_rig_plugin = stages_plugin(TinyCamera, TinyAxis)
+
+TINY_CALLS: Counter[str] = Counter()
+"""Calls of the tiny processing stages: ``calibrate`` per scan, ``segment`` per view."""
+_CALLS_LOCK = threading.Lock()  # segmenters run on a thread pool
+
+
+def _count_call(what: str) -> None:
+    with _CALLS_LOCK:
+        TINY_CALLS[what] += 1
+
+
+class TinyExactCalibrator(Calibrator):
+    """The tiny rig's exact cameras (what a perfect calibrator would return)."""
+
+    name = "tiny-exact"
+
+    def calibrate(self, scan) -> Calibration:
+        _count_call("calibrate")
+        size = tuple(scan.info["rig"]["image_size"])
+        models, poses = {}, {}
+        for name in scan.info["rig"]["cameras"]:
+            cam = tiny_camera(name, 0.0, 0.0, size)
+            models[name], poses[(name, 0)] = cam.model, cam.pose
+        return Calibration(models, poses, {0: 0.0})
+
+
+class TinyDarkSegmenter(Segmenter):
+    """Plant = pixels whose red channel is under ``threshold`` (the tiny sphere is dark)."""
+
+    name = "tiny-dark"
+
+    class Params(StageParams):
+        threshold: int = 100
+
+    def segment(self, image, background, view=None):
+        _count_call("segment")
+        assert background is not None and background.shape == image.shape
+        return image[..., 2] < self.params.threshold
+
+
+tiny_processing_plugin = stages_plugin(TinyExactCalibrator, TinyDarkSegmenter)
 
 
 def tiny_recipe(image_size=(96, 64), images_per_revolution: int = 6) -> dict:
@@ -175,4 +259,5 @@ def pytest_collection_modifyitems(config, items) -> None:
 
 
 __all__ = ["make_tiny_scan", "tiny_camera", "tiny_recipe", "TinyCamera", "TinyAxis",
-           "tiny_rig_plugin"]
+           "tiny_rig_plugin", "TinyExactCalibrator", "TinyDarkSegmenter",
+           "tiny_processing_plugin", "TINY_CALLS", "stages_plugin", "plugin_file"]

@@ -34,7 +34,7 @@ import yaml
 
 from plantscan_core.data import Calibration, Camera, Mesh, Silhouettes, mask_box
 from plantscan_core.parallel import thread_map
-from plantscan_core.pipeline import read_mask as _read_mask
+from plantscan_core.runfolder import read_mask as _read_mask
 from plantscan_hull.views import signed_distance
 
 RIM_PX = 1.0

@@ -91,8 +91,8 @@ class _HullBase(Reconstructor):
         -------
         Volume
             ``field``: (k+1)-th smallest signed distance to the silhouette
-            cones, in voxels, clamped to [-1, 1] (> 0 inside); ``stats``:
-            work counts and timings.
+            cones, in voxels, clamped to [-1, 1] (> 0 inside).  Work counts,
+            timings, the box and the k used go to ``self.report``.
         """
         p = self.params
         if len(silhouettes) == 0:
@@ -129,11 +129,11 @@ class _HullBase(Reconstructor):
                 f"the plant touches the faces {', '.join(faces)} of {where} "
                 f"({grid.lo.round(1).tolist()} .. {grid.hi.round(1).tolist()} mm): the box "
                 "clips the plant; enlarge it")
-        out = stats.as_dict()
-        out.update({"views": n_views, "prep_seconds": t_prep, "bbox_seconds": t_box,
-                    "grid_shape": list(grid.shape), "voxel_size_mm": grid.voxel_size,
-                    "bbox_mm": [grid.lo.tolist(), grid.hi.tolist()], "k": k, **info})
-        return Volume(phi, grid.origin, grid.voxel_size, out)
+        self.report.note(stats.as_dict())
+        self.report.note({"views": n_views, "prep_seconds": t_prep, "bbox_seconds": t_box,
+                          "grid_shape": list(grid.shape), "voxel_size_mm": grid.voxel_size,
+                          "bbox_mm": [grid.lo.tolist(), grid.hi.tolist()], "k": k, **info})
+        return Volume(phi, grid.origin, grid.voxel_size)
 
 
 class OctreeHull(_HullBase):
@@ -222,7 +222,7 @@ class MarchingCubesMesher(Mesher):
                   if isinstance(p.pot, str) else "given", "pot_margin_mm": margin,
                   "pot_voxels_removed": removed,
                   "components_dropped": dropped, "topology": topology_report(mesh)}
-        self.last_report = report
+        self.report.note(report)
         run_dir = self.context.run_dir
         if run_dir is not None:
             from plantscan_core.scanfolder import atomic_write_text

@@ -59,7 +59,7 @@ from scipy.sparse.csgraph import (
 
 from plantscan_core.data import LabelledMesh, LeafTraits, Mesh, Traits
 from plantscan_core.parallel import thread_map
-from plantscan_core.stages import StageParams
+from plantscan_core.stages import StageParams, StageReport, StageWarning
 from plantscan_leaves import geometry as geo
 
 log = logging.getLogger(__name__)
@@ -484,7 +484,7 @@ def warned(leaf: LeafTraits) -> bool:
     return in_phantom(leaf) or short_outline(leaf)
 
 
-def inconsistent_leaves(leaves: list[LeafTraits]) -> list[str]:
+def inconsistent_leaves(leaves: list[LeafTraits]) -> list[StageWarning]:
     """Warnings for leaves whose perimeter is under ``MIN_PERIMETER_PER_LENGTH`` x their length.
 
     Whatever its shape, a leaf's outline goes from base to tip along one edge and back
@@ -496,10 +496,11 @@ def inconsistent_leaves(leaves: list[LeafTraits]) -> list[str]:
     out = []
     for lf in leaves:
         if short_outline(lf):
-            out.append(f"leaf {lf.leaf_id}: perimeter {lf.perimeter_mm:.1f} mm is under "
-                       f"{MIN_PERIMETER_PER_LENGTH:g}x its length {lf.length_mm:.1f} mm; an "
-                       "outline runs base to tip and back, so one of the two is wrong (a length "
-                       "run into another organ, or an outline of a holed leaf)")
+            out.append(StageWarning(
+                "short-outline", f"leaf {lf.leaf_id}: perimeter {lf.perimeter_mm:.1f} mm is "
+                f"under {MIN_PERIMETER_PER_LENGTH:g}x its length {lf.length_mm:.1f} mm; an "
+                "outline runs base to tip and back, so one of the two is wrong (a length "
+                "run into another organ, or an outline of a holed leaf)", lf.leaf_id))
     return out
 
 
@@ -868,21 +869,21 @@ def _submeshes(labelled: LabelledMesh, labels: list[int]):
 
 
 def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = None
-                  ) -> tuple[Traits, list[LeafMeasurement], dict]:
-    """Traits of every leaf of ``labelled`` and of the whole plant."""
+                  ) -> tuple[Traits, list[LeafMeasurement], StageReport]:
+    """Traits of every leaf of ``labelled`` and of the whole plant, and the warnings."""
     p = params or LeafGeometryParams()
-    info: dict = {"warnings": []}
+    report = StageReport()
     mesh = labelled.mesh
     if mesh.is_empty:
         msg = "mesh is empty: traits table left empty"
         log.warning(msg)
-        info["warnings"].append(msg)
-        return Traits([], plant_traits(mesh, [])), [], info
+        report.warn("empty-mesh", msg)
+        return Traits([], plant_traits(mesh, [])), [], report
     leaf_labels = labelled.leaf_labels
     if not leaf_labels:
         msg = "no leaf in the labelled mesh: traits table left empty"
         log.warning(msg)
-        info["warnings"].append(msg)
+        report.warn("no-leaf", msg)
     stem_labels = [k for k, kind in labelled.kinds.items() if kind == "stem"]
     stem_faces = np.isin(labelled.face_labels, stem_labels)
     used = np.zeros(len(mesh.vertices), bool)
@@ -894,10 +895,10 @@ def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = No
 
         tree = cKDTree(mesh.vertices[stem_vertices])
 
-    def one(leaf_id: int, sub: Mesh) -> tuple[LeafMeasurement | None, str | None]:
+    def one(leaf_id: int, sub: Mesh) -> tuple[LeafMeasurement | None, StageWarning | None]:
         if len(sub.faces) < p.min_leaf_faces:  # also a leaf label no face carries
-            return None, f"leaf {leaf_id}: {len(sub.faces)} faces (fewer than " \
-                         f"{p.min_leaf_faces}), skipped"
+            return None, StageWarning("leaf-too-small", f"leaf {leaf_id}: {len(sub.faces)} "
+                                      f"faces (fewer than {p.min_leaf_faces}), skipped", leaf_id)
         hint = None
         if tree is not None:
             probe = sub.vertices[:: max(1, len(sub.vertices) // 5000)]  # 5000 are plenty
@@ -908,9 +909,10 @@ def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = No
         except Exception as exc:  # one odd leaf must not lose the others
             msg = f"leaf {leaf_id}: not measured ({type(exc).__name__}: {exc})"
             log.warning(msg)
-            return None, msg
+            return None, StageWarning("leaf-not-measured", msg, leaf_id)
         if m is None:
-            return None, f"leaf {leaf_id}: fewer than {p.min_leaf_faces} faces, skipped"
+            return None, StageWarning("leaf-too-small", f"leaf {leaf_id}: fewer than "
+                                      f"{p.min_leaf_faces} faces, skipped", leaf_id)
         return m, None
 
     # Leaves are measured independently, on both cores: their numpy/scipy work releases
@@ -918,9 +920,8 @@ def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = No
     # same CPU, same traits).  Results keep the leaves' order.
     done = thread_map(one, leaf_labels, _submeshes(labelled, leaf_labels))
     measurements = [m for m, _ in done if m is not None]
-    info["warnings"] += [w for _, w in done if w is not None]
+    report.warnings += [w for _, w in done if w is not None]
     shares = thick_shares(mesh, labelled.face_labels, [m.traits.leaf_id for m in measurements])
-    info["thick_leaves"] = []
     for m in measurements:
         if m.traits.leaf_id not in shares:
             continue
@@ -933,10 +934,9 @@ def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = No
                    f"({median:.1f} mm): phantom volume or a fused organ, which its traits "
                    "carry (more views or tilts carve phantom volume)")
             log.warning(msg)
-            info["warnings"].append(msg)
-            info["thick_leaves"].append(m.traits.leaf_id)
-    for msg in inconsistent_leaves([m.traits for m in measurements]):
-        log.warning(msg)
-        info["warnings"].append(msg)
+            report.warn("thick-leaf", msg, leaf=m.traits.leaf_id)
+    for w in inconsistent_leaves([m.traits for m in measurements]):
+        log.warning(w.message)
+        report.warnings.append(w)
     leaves = [m.traits for m in measurements]
-    return Traits(leaves, plant_traits(mesh, leaves)), measurements, info
+    return Traits(leaves, plant_traits(mesh, leaves)), measurements, report

@@ -26,8 +26,7 @@ class CurvatureRegions(MeshSegmenter):
     Params = CurvatureRegionsParams
 
     def segment(self, mesh: Mesh) -> LabelledMesh:
-        labelled, info = segment_leaves(mesh, self.params)
-        self.info = info
+        labelled, self.report = segment_leaves(mesh, self.params)
         return labelled
 
 
@@ -38,9 +37,7 @@ class LeafGeometry(Measurer):
     Params = LeafGeometryParams
 
     def measure(self, labelled: LabelledMesh) -> Traits:
-        traits, measurements, info = measure_plant(labelled, self.params)
-        self.info = info
-        self.measurements = measurements
+        traits, _, self.report = measure_plant(labelled, self.params)
         return traits
 
 

@@ -35,7 +35,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from plantscan_core.data import LabelledMesh, Mesh
-from plantscan_core.stages import StageParams
+from plantscan_core.stages import StageParams, StageReport
 from plantscan_leaves import geometry as geo
 
 log = logging.getLogger(__name__)
@@ -233,7 +233,7 @@ def _region_shape(c: np.ndarray, normals: np.ndarray, areas: np.ndarray, labels:
 
 
 def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
-                   ) -> tuple[LabelledMesh, dict]:
+                   ) -> tuple[LabelledMesh, StageReport]:
     """Label every face of ``mesh`` as one leaf or the stem.
 
     Returns
@@ -242,16 +242,16 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
         ``face_labels`` 0 = stem (kind ``"stem"``), 1..n = leaves
         (kind ``"leaf"``), every face labelled.  An empty mesh gives an
         empty labelled mesh.
-    info : dict
-        Work counts and warnings (``regions``, ``crease_faces``, ``warnings``).
+    report : StageReport
+        Work counts (``regions``, ``crease_faces``...) and warnings.
     """
     p = params or CurvatureRegionsParams()
-    info: dict = {"warnings": []}
+    report = StageReport()
     if mesh.is_empty:
         msg = "mesh is empty: no leaf to segment"
         log.warning(msg)
-        info["warnings"].append(msg)
-        return LabelledMesh(mesh, np.zeros(0, np.int32), {}), info
+        report.warn("empty-mesh", msg)
+        return LabelledMesh(mesh, np.zeros(0, np.int32), {}), report
     v, f = mesh.vertices, mesh.faces
     nf = len(f)
     topo = geo.topology(f)
@@ -259,12 +259,12 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
         msg = (f"mesh has {topo.non_manifold_edges} non-manifold edges (used by more than two "
                "faces); they are treated as ordinary connections")
         log.warning(msg)
-        info["warnings"].append(msg)
+        report.warn("non-manifold", msg)
     normals, areas = geo.face_normals_areas(v, f)
     centroids = geo.face_centroids(v, f)
     kf = face_curvature(mesh, topo, p.smoothing_mm)
     crease = kf < -p.concave_curvature_per_mm
-    info["crease_faces"] = int(crease.sum())
+    report.counts["crease_faces"] = int(crease.sum())
 
     seeds = _regions_of(nf, topo.face_pairs, ~crease)
     seed_area = np.bincount(seeds[seeds >= 0], areas[seeds >= 0])
@@ -277,7 +277,7 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
         labels[labels < 0] = labels.max() + 1 + rest[labels < 0]
     labels = _relabel(labels)
     nlab = int(labels.max()) + 1
-    info["regions"] = nlab
+    report.counts["regions"] = nlab
 
     shape = _region_shape(centroids, normals, areas, labels, nlab)
     tube = ((shape["spread"] > p.stem_tube_ratio) & (shape["axis_alignment"] > 0.8)
@@ -292,7 +292,7 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
         edge_mm = float(np.mean(geo.row_norm(v[topo.edges[:, 0]] - v[topo.edges[:, 1]])))
         labels, n_tips = _tips_to_leaves(labels, tube, leafy, topo.face_pairs, nlab,
                                          centroids, TIP_GAP_EDGES * edge_mm)
-        info["tips_to_leaf"] = n_tips
+        report.counts["tips_to_leaf"] = n_tips
     leaf_face = leafy[labels]
     stem_face = tube[labels]
     moved = np.zeros(nf, bool)
@@ -303,7 +303,7 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
         labels, recovered = _sheets_of_stem(labels, spread < p.stem_sheet_ratio, leaf_face,
                                             stem_face, areas, topo.face_pairs,
                                             p.min_leaf_area_mm2)
-        info["sheet_faces_from_stem"] = int(np.count_nonzero(recovered))
+        report.counts["sheet_faces_from_stem"] = int(np.count_nonzero(recovered))
         leaf_face |= recovered
         stem_face &= ~recovered
     if p.petiole_tube_ratio < 1:
@@ -315,9 +315,9 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
             # test cuts further into blade bases the hull has fattened into rods
             stem_in_leaf = _stems_in_leaves(topo.face_pairs, leaf_face, centroids, normals,
                                             areas, p)
-            info["stem_faces_from_leaves"] = int(np.count_nonzero(stem_in_leaf & ~moved))
+            report.counts["stem_faces_from_leaves"] = int(np.count_nonzero(stem_in_leaf & ~moved))
             moved |= stem_in_leaf
-    info["petiole_faces"] = int(np.count_nonzero(moved))
+    report.counts["petiole_faces"] = int(np.count_nonzero(moved))
     stem_face |= moved
     leaf_face &= ~moved
     # a leaf region that lost its petiole or a stem piece may fall apart: its connected
@@ -353,7 +353,7 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
             alone[pk[b][diff]] = False
             drop &= ~(alone[:n_pieces] & small)
         if drop.any():
-            info["stem_or_ground_pieces"] = int(drop.sum())
+            report.counts["stem_or_ground_pieces"] = int(drop.sum())
             to_stem = leaf_face & drop[np.maximum(pieces, 0)]
             leaf_face &= ~to_stem
             pieces = np.where(leaf_face, pieces, -1)
@@ -369,7 +369,7 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
             n_pieces = int(pieces.max()) + 1
             piece_area = np.bincount(pieces[leaf_face], areas[leaf_face], n_pieces) / 2.0
             small = piece_area < p.min_leaf_area_mm2
-        info["blade_pieces_joined"] = n_joined
+        report.counts["blade_pieces_joined"] = n_joined
     if small.any() and (~small).any():
         merged = _merge_crumbs(np.where(leaf_face, pieces, n_pieces), np.append(small, False),
                                topo.face_pairs, n_pieces + 1)
@@ -384,17 +384,17 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
     if p.split_curvature_per_mm is not None and leaf_pieces:
         out, n_split = _split_joined_leaves(out, kf < -p.split_curvature_per_mm, areas,
                                             topo.face_pairs, p.min_leaf_area_mm2)
-        info["leaves_split"] = n_split
+        report.counts["leaves_split"] = n_split
         leaf_pieces = list(range(int(out.max())))
     if p.join_gap_mm is not None and len(leaf_pieces) > 1:
         out, n_joined = _join_broken_blades(out, centroids, areas, p.join_gap_mm)
-        info["blades_joined"] = n_joined
+        report.counts["blades_joined"] = n_joined
         leaf_pieces = list(range(int(out.max())))
     if p.base_reach_mm is not None and leaf_pieces:
         out, n_claimed = _blade_bases_off_culms(out, centroids, topo.face_pairs,
                                                 float(v[:, 2].min()) + p.ground_band_mm,
                                                 p.base_reach_mm)
-        info["base_faces_from_stem"] = n_claimed
+        report.counts["base_faces_from_stem"] = n_claimed
     for new in range(1, len(leaf_pieces) + 1):
         kinds[new] = "leaf"
     if (out == STEM_LABEL).any() or not leaf_pieces:
@@ -402,10 +402,10 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
     if not leaf_pieces:
         msg = "no leaf-like region found on the mesh (everything looks like stem or crumbs)"
         log.warning(msg)
-        info["warnings"].append(msg)
-    info["leaves"] = len(leaf_pieces)
-    info["stem_pieces"] = int(tube.sum())
-    return LabelledMesh(mesh, out, kinds), info
+        report.warn("no-leaf", msg)
+    report.counts["leaves"] = len(leaf_pieces)
+    report.counts["stem_pieces"] = int(tube.sum())
+    return LabelledMesh(mesh, out, kinds), report
 
 
 def _petioles_to_stem(spread: np.ndarray, pairs: np.ndarray, leaf_face: np.ndarray,

@@ -265,10 +265,9 @@ def _traits_section(run: RunResult) -> str:
             "could not carve, or an organ fused with the leaf); that leaf's traits carry it.</p>"
             if rows else "")
     # what any stage said (the leaf stages' warnings name leaves: shown with the traits)
-    warnings = [w for stage in run.info.get("stages", {}).values()
-                for w in stage.get("info", {}).get("warnings", [])]
-    warned = ("<h3>Warnings</h3><ul>" + "".join(f"<li>{_esc(w)}</li>" for w in warnings)
-              + "</ul>") if warnings else ""
+    warnings = run.warnings()
+    warned = ("<h3>Warnings</h3><ul>" + "".join(f"<li>{_esc(w.message)}</li>"
+                                                for _, w in warnings) + "</ul>") if warnings else ""
     return (f'<section id="traits"><h2>Traits</h2><div class="grid"><div>{leaf_table}{note}'
             f"</div><div>{plant_table}</div></div>{warned}</section>")
 

@@ -9,7 +9,7 @@ import numpy as np
 from pydantic import Field
 
 from plantscan_core.errors import DataError
-from plantscan_core.pipeline import read_mask
+from plantscan_core.runfolder import read_mask
 from plantscan_core.stages import Segmenter, StageParams
 
 

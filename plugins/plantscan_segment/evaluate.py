@@ -11,7 +11,7 @@ import numpy as np
 
 from plantscan_core.errors import PlantScanError
 from plantscan_core.parallel import thread_map
-from plantscan_core.pipeline import read_mask
+from plantscan_core.runfolder import read_mask
 from plantscan_core.scanfolder import ScanFolder
 from plantscan_segment.metrics import MaskMetrics, mask_metrics, summarise
 

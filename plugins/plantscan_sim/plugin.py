@@ -17,7 +17,7 @@ from pydantic import Field
 from plantscan_core.data import Calibration, ViewRecord
 from plantscan_core.errors import DataError, HardwareError
 from plantscan_core.hookspecs import hookimpl
-from plantscan_core.pipeline import read_mask
+from plantscan_core.runfolder import read_mask
 from plantscan_core.scanfolder import ScanFolder
 from plantscan_core.stages import (
     Calibrator,

@@ -9,48 +9,24 @@ import numpy as np
 import pytest
 
 from plantscan_core import iostats
-from plantscan_core.data import Calibration, Volume
+from plantscan_core.data import Volume
 from plantscan_core.errors import StageError
 from plantscan_core.hookspecs import hookimpl
-from plantscan_core.pipeline import process, read_mask, resolve_reduce
+from plantscan_core.pipeline import process, resolve_reduce
 from plantscan_core.recipe import validate_recipe
-from plantscan_core.stages import Calibrator, Reconstructor, Segmenter, StageParams
+from plantscan_core.runfolder import read_mask
+from plantscan_core.stages import Reconstructor, StageParams
+from plantscan_core.testing import TINY_CALLS as CALLS
 from plantscan_core.testing import (
     TINY_SPHERE_CENTRE_MM,
     TINY_SPHERE_RADIUS_MM,
+    stages_plugin,
     tiny_camera,
+    tiny_processing_plugin,
     tiny_recipe,
 )
 
-CALLS: dict[str, int] = {}
 SEEN: dict[str, object] = {}
-
-
-class ExactCalibrator(Calibrator):
-    """The tiny rig's exact cameras (what a perfect calibrator would return)."""
-
-    name = "tiny-exact"
-
-    def calibrate(self, scan):
-        CALLS["calibrate"] = CALLS.get("calibrate", 0) + 1
-        size = tuple(scan.info["rig"]["image_size"])
-        models, poses = {}, {}
-        for name in scan.info["rig"]["cameras"]:
-            cam = tiny_camera(name, 0.0, 0.0, size)
-            models[name], poses[(name, 0)] = cam.model, cam.pose
-        return Calibration(models, poses, {0: 0.0})
-
-
-class DarkSegmenter(Segmenter):
-    name = "tiny-dark"
-
-    class Params(StageParams):
-        threshold: int = 100
-
-    def segment(self, image, background, view=None):
-        CALLS["segment"] = CALLS.get("segment", 0) + 1
-        assert background is not None and background.shape == image.shape
-        return image[..., 2] < self.params.threshold
 
 
 class CountingReconstructor(Reconstructor):
@@ -65,21 +41,15 @@ class CountingReconstructor(Reconstructor):
             raise ValueError("bounding box clips the plant")
         area = float(np.mean([s.mask.mean() for s in silhouettes]))
         # what a stage says of its work (counts, warnings) goes to run.json
-        self.info = {"views": len(silhouettes), "warnings": [f"{len(silhouettes)} views"]}
+        self.report.count("views", len(silhouettes))
+        self.report.warn("few-views", f"{len(silhouettes)} views", view=silhouettes[0].view.index)
         return Volume(np.full((2, 2, 2), area, np.float32), np.zeros(3), 1.0)
 
 
 @pytest.fixture
 def manager(tiny_rig_manager):
-    mod = types.SimpleNamespace()
-
-    @hookimpl
-    def plantscan_register_stages(registry):
-        for cls in (ExactCalibrator, DarkSegmenter, CountingReconstructor):
-            registry.add(cls)
-
-    mod.plantscan_register_stages = plantscan_register_stages
-    tiny_rig_manager.register(mod, name="tiny-processing")
+    tiny_rig_manager.register(tiny_processing_plugin, name="tiny-processing")
+    tiny_rig_manager.register(stages_plugin(CountingReconstructor), name="tiny-reconstructor")
     CALLS.clear()
     return tiny_rig_manager
 
@@ -109,17 +79,23 @@ def test_masks_are_right_and_cache_follows_parameters(tiny_scan, manager, tmp_pa
     assert info["stages"]["segment"]["plugin"] == "tiny-dark"
     assert info["stages"]["segment"]["params"] == {"threshold": 100}
     assert set(info["timings_s"]) >= {"calibrate", "segment", "reconstruct", "total"}
-    assert "plant_views" in info["input_hashes"]
-    said = {"views": len(plant_views), "warnings": [f"{len(plant_views)} views"]}
+    assert {"calibrate", "segment"} <= set(info["input_hashes"])  # the scan files they read
+    said = {"counts": {"views": len(plant_views)}, "figures": {},
+            "warnings": [{"code": "few-views", "message": f"{len(plant_views)} views",
+                          "view": plant_views[0].index}]}
     assert info["stages"]["reconstruct"]["info"] == said
-    assert "info" not in info["stages"]["segment"]  # a stage with nothing to say
+    assert result.reports["reconstruct"].warnings[0].view == plant_views[0].index
+    # the run's own word on segmentation: the views and the decode reduction
+    assert info["stages"]["segment"]["info"]["counts"] == {"views": len(plant_views)}
+    assert info["stages"]["segment"]["info"]["figures"] == {"reduce": 1}
 
-    # Same recipe again: everything comes from the cache, and the stage's notes with it.
-    process(tiny_scan.root, recipe, run, manager, raw_recipe=raw)
+    # Same recipe again: everything comes from the cache, and the stage's report with it.
+    again = process(tiny_scan.root, recipe, run, manager, raw_recipe=raw)
     assert CALLS == {"calibrate": 1, "segment": len(plant_views)}
     info = json.loads((run / "run.json").read_text())
     assert all(info["stages"][s]["cached"] for s in ("calibrate", "segment", "reconstruct"))
     assert info["stages"]["reconstruct"]["info"] == said
+    assert again.reports["reconstruct"] == result.reports["reconstruct"]
 
     # New segmentation parameter: segmentation and what follows recompute, calibration does not.
     recipe2, raw2 = _recipe(manager, threshold=60)

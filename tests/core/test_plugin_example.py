@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 
 import pytest
@@ -11,23 +9,15 @@ import pytest
 from plantscan_core.acquire import acquire, plan
 from plantscan_core.errors import HardwareError
 from plantscan_core.recipe import validate_recipe
-from plantscan_core.testing import tiny_recipe
+from plantscan_core.testing import plugin_file, tiny_recipe
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "docs/examples/plantscan_dropfolder.py"
 
 
 @pytest.fixture
 def dropfolder(tiny_rig_manager):
-    spec = importlib.util.spec_from_file_location("plantscan_dropfolder", EXAMPLE)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # as an installed plugin would be
-    spec.loader.exec_module(module)
-    tiny_rig_manager.register(module, name="dropfolder")
-    try:
+    with plugin_file(tiny_rig_manager, EXAMPLE, "plantscan_dropfolder"):
         yield tiny_rig_manager
-    finally:
-        tiny_rig_manager.unregister(module)
-        sys.modules.pop(spec.name, None)
 
 
 def test_guide_embeds_the_example_file_verbatim():

@@ -320,8 +320,8 @@ def test_mesher_leaves_the_volume_as_it_was(potted_volume):
     mesher = MarchingCubesMesher(MarchingCubesMesher.Params(pot=pot))
     mesh = mesher.mesh(Volume(field, potted_volume.origin, potted_volume.voxel_size))
     assert np.array_equal(field, before)
-    assert mesher.last_report["pot_voxels_removed"] > 0
-    assert mesher.last_report["components_dropped"] >= 1
+    assert mesher.report.counts["pot_voxels_removed"] > 0
+    assert mesher.report.counts["components_dropped"] >= 1
     before.flags.writeable = False
     copied = mesher.mesh(Volume(before, potted_volume.origin, potted_volume.voxel_size))
     assert np.array_equal(mesh.vertices, copied.vertices)
@@ -372,7 +372,7 @@ def test_dense_and_octree_stages_agree(rig, potted):
                                   floor_z_mm=None))
     va, vb = a.reconstruct(potted, cal), b.reconstruct(potted, cal)
     assert np.array_equal(va.field > 0, vb.field > 0)
-    assert va.stats["voxel_view_tests"] < vb.stats["voxel_view_tests"]
+    assert a.report.counts["voxel_view_tests"] < b.report.counts["voxel_view_tests"]
 
 
 # --------------------------------------------------------------------------- bad input
@@ -415,9 +415,9 @@ def test_auto_k_grows_with_the_views(rig, potted):
     assert [resolve_k("auto", n) for n in (4, 72, 360)] == [3, 3, 9]
     assert resolve_k(5, 360) == 5
     cal, _ = rig
-    volume = OctreeHull(OctreeHull.Params(resolution=32, floor_z_mm=None)).reconstruct(potted,
-                                                                                      cal)
-    assert volume.stats["k"] == resolve_k("auto", len(potted)) == 3
+    hull = OctreeHull(OctreeHull.Params(resolution=32, floor_z_mm=None))
+    hull.reconstruct(potted, cal)
+    assert hull.report.counts["k"] == resolve_k("auto", len(potted)) == 3
 
 
 def test_a_frame_whose_floor_is_not_the_plate_is_reported(rig, potted):

@@ -106,7 +106,7 @@ def test_thick_share_names_a_leaf_grown_into_phantom_volume(caplog):
     assert share[2] == pytest.approx(truth, abs=0.03)
     # a clean leaf: only its rim faces, whose inward ray runs along the slab, can read thick
     assert share[1] < 0.01
-    assert info["thick_leaves"] == [2]
+    assert [w.leaf for w in info.warnings_about(code="thick-leaf")] == [2]
     assert "leaf 2:" in caplog.text and "phantom volume" in caplog.text
     assert Traits.from_csv(traits.to_csv()).leaves[1].thick_share == pytest.approx(share[2],
                                                                                   abs=1e-4)
@@ -123,7 +123,8 @@ def test_perimeter_under_twice_the_length_is_named():
               LeafTraits(2, blade.length_mm, blade.width_mm, blade.area_mm2, blade.perimeter_mm),
               LeafTraits(3, 154.7, 14.2, 1373.6, 98.7)]
     said = inconsistent_leaves(leaves)
-    assert len(said) == 1 and said[0].startswith("leaf 3: perimeter 98.7 mm")
+    assert len(said) == 1 and said[0].message.startswith("leaf 3: perimeter 98.7 mm")
+    assert (said[0].code, said[0].leaf) == ("short-outline", 3)
 
 
 def test_empty_mesh_gives_empty_traits(caplog):
@@ -154,7 +155,8 @@ def test_leaf_label_without_faces_is_skipped_not_fatal():
     traits, _, info = measure_plant(LabelledMesh(both, labels, {0: "stem", 1: "leaf", 2: "leaf"}))
     assert [lf.leaf_id for lf in traits.leaves] == [1]
     assert _rel(traits.leaves[0].area_mm2, leaf.area_mm2) < 0.02
-    assert any("leaf 2: 0 faces" in w for w in info["warnings"])
+    assert [w.leaf for w in info.warnings_about(code="leaf-too-small")] == [2]
+    assert any("leaf 2: 0 faces" in w.message for w in info.warnings)
 
 
 def test_holed_leaf_keeps_its_outline():

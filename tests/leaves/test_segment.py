@@ -344,7 +344,7 @@ def test_join_is_off_for_broad_leaves_and_changes_nothing_without_a_cut():
     mesh = _blades_at_a_stem()
     off, info_off = segment_leaves(mesh)
     on, info_on = segment_leaves(mesh, CurvatureRegionsParams(join_gap_mm=12.0))
-    assert "blades_joined" not in info_off and info_on["blades_joined"] == 0
+    assert "blades_joined" not in info_off.counts and info_on.counts["blades_joined"] == 0
     assert np.array_equal(off.face_labels, on.face_labels)
 
 
@@ -454,7 +454,7 @@ def test_blade_bases_off_culms_take_only_blade_faces_on_intact_blades():
     off, _ = segment_leaves(mesh, CurvatureRegionsParams(join_gap_mm=12.0))
     on, info = segment_leaves(mesh, CurvatureRegionsParams(join_gap_mm=12.0, base_reach_mm=80.0))
     moved = off.face_labels != on.face_labels
-    assert info["base_faces_from_stem"] == int(moved.sum())
+    assert info.counts["base_faces_from_stem"] == int(moved.sum())
     # B's and C's bases at z 50, off the 3 mm stem, 1 mm of slab either side
     assert (np.abs(c[moved, 2] - 50.0) < 1.0).all()
     assert (np.hypot(c[moved, 0], c[moved, 1]) < 8.0).all()

@@ -31,7 +31,7 @@ from plantscan_core.data import (  # noqa: E402
 )
 from plantscan_core.recipe import Recipe  # noqa: E402
 from plantscan_core.scanfolder import ScanFolder  # noqa: E402
-from plantscan_core.stages import RunResult  # noqa: E402
+from plantscan_core.stages import RunResult, StageReport, StageWarning  # noqa: E402
 
 HOSTILE_ID = '<script>alert("x")</script> & plant-7'
 HOSTILE_RECIPE = "recipe <img src=x onerror=alert(1)>"
@@ -171,5 +171,5 @@ def synthetic_run_in(tmp_path: Path) -> RunResult:
                      silhouettes=sils, mesh=labelled.mesh, labelled=labelled, traits=traits,
                      timings={"calibrate": 1.5, "segment": 2.25, "reconstruct": 4.0,
                               "mesh": 0.5, "segment_mesh": 0.75, "measure": 0.1},
-                     info={"stages": {"measure": {"info": {"warnings": [
-                         "leaf 0: 20 % <thick> (phantom volume)"]}}}})
+                     reports={"measure": StageReport(warnings=[StageWarning(
+                         "thick-leaf", "leaf 0: 20 % <thick> (phantom volume)", leaf=0)])})

@@ -18,7 +18,7 @@ from plantscan_segment.metrics import mask_metrics, summarise, thin_structure_ma
 
 from plantscan_core.data import ViewRecord
 from plantscan_core.errors import DataError
-from plantscan_core.pipeline import read_mask
+from plantscan_core.runfolder import read_mask
 
 
 def _views(scan):
