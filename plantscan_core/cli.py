@@ -7,6 +7,7 @@ non-zero exit status; tracebacks only with ``PLANTSCAN_DEBUG=1``.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import sys
@@ -235,6 +236,12 @@ def cmd_batch(args) -> int:
 
 
 # --------------------------------------------------------------------------- parser
+def _print_help(parser: argparse.ArgumentParser, args) -> int:
+    """A command that needs an action and got none: its own help, and a usage error."""
+    parser.print_help()
+    return EXIT_USER_ERROR
+
+
 def build_parser(manager: PluginManager | None = None) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="plantscan",
@@ -246,13 +253,13 @@ def build_parser(manager: PluginManager | None = None) -> argparse.ArgumentParse
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.set_defaults(func=cmd_plugins)
 
-    p = sub.add_parser("recipe", help="recipe tools")
-    rsub = p.add_subparsers(dest="recipe_command", metavar="ACTION")
+    recipe = sub.add_parser("recipe", help="recipe tools")
+    rsub = recipe.add_subparsers(dest="recipe_command", metavar="ACTION")
     pc = rsub.add_parser("check", help="validate a recipe in full (every error at once)")
     pc.add_argument("recipe", help="recipe YAML file or shipped recipe name")
     pc.add_argument("--set", dest="overrides", action="append", default=[], metavar="PATH=VALUE")
     pc.set_defaults(func=cmd_recipe_check)
-    p.set_defaults(func=lambda a: (p.print_help(), EXIT_USER_ERROR)[1])
+    recipe.set_defaults(func=functools.partial(_print_help, recipe))
 
     p = sub.add_parser("schema", help="print the JSON Schema of recipes")
     p.set_defaults(func=cmd_schema)
