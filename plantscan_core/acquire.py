@@ -136,6 +136,9 @@ def _scan_info(recipe: Recipe, raw_recipe: dict) -> dict:
     return {
         "plant_id": recipe.plant.id,
         "species": recipe.plant.species,
+        # the plant's and the experiment's metadata as scanned (docs/experiments.md)
+        "plant": recipe.plant.model_dump(mode="json"),
+        "experiment": recipe.experiment.model_dump(mode="json"),
         "recipe_name": recipe.name,
         "recipe": raw_recipe,
         "rig": {
@@ -327,8 +330,11 @@ def acquire(
     if scene is not None:
         scene.check(recipe)  # an impossible virtual rig is refused before the folder exists
 
+    def clock() -> str:
+        return (scene.now() if scene is not None else None) or now_iso()
+
     if scan is None:
-        scan = ScanFolder.create(out, _scan_info(recipe, raw_recipe))
+        scan = ScanFolder.create(out, {**_scan_info(recipe, raw_recipe), "created": clock()})
         context.scan = scan
 
     if scene is not None:
@@ -339,7 +345,8 @@ def acquire(
     if stop_after is not None:
         todo = todo[: max(0, stop_after)]
     with _Signals() as signals:
-        run = _Run(recipe, scan, _Rig(cameras, turntable, tilt_arm), on_role_start, signals)
+        run = _Run(recipe, scan, _Rig(cameras, turntable, tilt_arm), on_role_start, signals,
+                   clock)
         run.execute(todo, progress)
     return scan
 
@@ -348,8 +355,10 @@ class _Run:
     """State of one ``acquire`` call: where the rig is, what is exposed but not committed."""
 
     def __init__(self, recipe: Recipe, scan: ScanFolder, rig: _Rig,
-                 on_role_start: Callable[[str], None] | None, signals: _Signals) -> None:
+                 on_role_start: Callable[[str], None] | None, signals: _Signals,
+                 clock: Callable[[], str] = now_iso) -> None:
         self.signals = signals
+        self.clock = clock
         self.recipe = recipe
         self.scan = scan
         self.rig = rig
@@ -439,7 +448,7 @@ class _Run:
             view = ViewRecord(
                 index=-1, role=v.role, camera=v.camera, tilt_index=v.tilt_index,
                 tilt_deg=v.tilt_deg, angle_index=v.angle_index, commanded_angle_deg=v.angle_deg,
-                measured_angle_deg=self.measured, file=rel, captured_at=now_iso(),
+                measured_angle_deg=self.measured, file=rel, captured_at=self.clock(),
             )
             req = CaptureRequest(
                 out_path=tmp, role=v.role, camera=v.camera, tilt_index=v.tilt_index,

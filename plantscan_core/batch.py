@@ -14,7 +14,9 @@ reported with its error; the others finish.  Results::
       batch_summary.csv       one row per plant: scan, plant_id, status, error, seconds,
                               cpu_seconds, leaf_count, total_leaf_area_mm2, height_mm,
                               run_dir, worker
-      traits_all.csv          every leaf of every plant that succeeded, with scan and plant_id
+      traits_all.csv          every leaf of every plant that succeeded, with scan, plant_id,
+                              scan_time, the plant's metadata (study, genotype, treatment,
+                              replicate...; factor.NAME columns) and the leaf traits
       <scan name>/batch_error.txt   the traceback of a failed plant
 """
 
@@ -41,7 +43,10 @@ TRAITS_CSV = "traits_all.csv"
 ERROR_TXT = "batch_error.txt"
 SUMMARY_COLUMNS = ("scan", "plant_id", "status", "error", "seconds", "cpu_seconds", "leaf_count",
                    "total_leaf_area_mm2", "height_mm", "run_dir", "worker")
-TRAITS_COLUMNS = ("scan", "plant_id", *LEAF_TRAIT_COLUMNS)
+# who the plant is, from its metadata (the recipe, the scan, the sample sheet)
+METADATA_COLUMNS = ("investigation_id", "study_id", "species", "genotype", "accession",
+                    "treatment", "replicate", "sowing_date")
+TRAITS_COLUMNS = ("scan", "plant_id", "scan_time", *METADATA_COLUMNS, *LEAF_TRAIT_COLUMNS)
 
 
 @dataclass
@@ -59,7 +64,9 @@ class PlantOutcome:
     height_mm: float | None = None
     run_dir: str = ""
     worker: str = ""
+    scan_time: str = ""
     leaves: list[dict[str, Any]] = field(default_factory=list, repr=False)
+    metadata: dict[str, Any] = field(default_factory=dict, repr=False)
 
     @property
     def ok(self) -> bool:
@@ -140,7 +147,8 @@ def _worker_name() -> str:
 
 
 def process_plant(scan_dir: str, recipe_path: str, overrides: Sequence[str], run_dir: str,
-                  threads: int = 1, calibration_path: str | None = None) -> PlantOutcome:
+                  threads: int = 1, calibration_path: str | None = None,
+                  metadata: dict[str, Any] | None = None) -> PlantOutcome:
     """Process one scan; never raises for a plant's own failure (it is returned as such).
 
     Parameters
@@ -153,6 +161,8 @@ def process_plant(scan_dir: str, recipe_path: str, overrides: Sequence[str], run
         Threads a plant may use inside its stages (1 when plants already fill the cores).
     calibration_path : str, optional
         A calibration YAML used instead of calibrating (one per session).
+    metadata : dict, optional
+        The plant's resolved metadata (``Metadata.to_dict``, from a sample sheet).
     """
     t0, cpu0 = time.perf_counter(), time.process_time()
     outcome = PlantOutcome(scan=str(scan_dir), run_dir=str(run_dir), worker=_worker_name())
@@ -166,11 +176,18 @@ def process_plant(scan_dir: str, recipe_path: str, overrides: Sequence[str], run
         _limit_threads(threads)  # after the plugins imported their numerical libraries
         recipe = load_recipe(recipe_path, list(overrides), manager.registry)
         raw = apply_overrides(read_recipe_file(Path(recipe_path)), list(overrides))
-        outcome.plant_id = str(ScanFolder.open(Path(scan_dir)).info.get("plant_id")
-                               or recipe.plant.id)
+        from plantscan_core.metadata import Metadata, resolve_metadata
+
+        scan_info = ScanFolder.open(Path(scan_dir)).info
+        md = Metadata.from_dict(metadata) if metadata else resolve_metadata(
+            recipe.plant, recipe.experiment, scan_info)
+        outcome.plant_id = md.plant.id
+        outcome.metadata = md.to_dict()
+        outcome.scan_time = str(scan_info.get("created", ""))
         result = process(Path(scan_dir), recipe, Path(run_dir), manager, raw_recipe=raw,
                          overrides=list(overrides), workers=threads,
-                         calibration_path=Path(calibration_path) if calibration_path else None)
+                         calibration_path=Path(calibration_path) if calibration_path else None,
+                         metadata=md)
         if result.traits is not None:
             outcome.leaf_count = len(result.traits.leaves)
             plant = result.traits.plant
@@ -248,12 +265,20 @@ def write_summary(plants: list[PlantOutcome], path: Path) -> None:
 def write_traits(plants: list[PlantOutcome], path: Path) -> None:
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(TRAITS_COLUMNS)
+    factors = sorted({k for p in plants if p.ok
+                      for k in (p.metadata.get("plant") or {}).get("factors", {})})
+    w.writerow([*TRAITS_COLUMNS[:3 + len(METADATA_COLUMNS)], *(f"factor.{k}" for k in factors),
+                *LEAF_TRAIT_COLUMNS])
     for p in plants:
         if not p.ok:
             continue
+        plant = p.metadata.get("plant") or {}
+        experiment = p.metadata.get("experiment") or {}
+        who = [("" if (v := {**plant, **experiment}.get(c)) is None else v)
+               for c in METADATA_COLUMNS]
+        who += [plant.get("factors", {}).get(k, "") for k in factors]
         for leaf in p.leaves:
-            w.writerow([p.scan, p.plant_id, leaf["leaf_id"],
+            w.writerow([p.scan, p.plant_id, p.scan_time, *who, leaf["leaf_id"],
                         *(f"{leaf[c]:.4f}" for c in LEAF_TRAIT_COLUMNS[1:])])
     atomic_write_text(path, buf.getvalue())
 
@@ -270,6 +295,7 @@ def run_batch(
     connect_timeout_s: float = 30.0,
     task: Callable[..., PlantOutcome] = process_plant,
     calibration: Path | None = None,
+    sample_sheet: Path | None = None,
 ) -> BatchSummary:
     """Process every scan in ``scans`` with the recipe, one Dask task per plant.
 
@@ -299,6 +325,11 @@ def run_batch(
         A calibration YAML (e.g. the session's, from ``plantscan calibrate``)
         used by every plant instead of calibrating each scan; read once here,
         so a bad file fails before any work.
+    sample_sheet : Path, optional
+        CSV of plant metadata per scan or plant id (``plantscan_core.metadata``),
+        checked in full against the scans before any work: a row naming a
+        missing scan, an unknown column, a bad date, a plant id given two
+        genotypes raise ``SampleSheetError`` listing every problem.
 
     Returns
     -------
@@ -318,7 +349,12 @@ def run_batch(
     # A broken recipe would fail every plant the same way: say it once, before any work.
     from plantscan_core.plugins import get_manager
 
-    load_recipe(recipe_path, list(overrides), get_manager().registry)
+    recipe = load_recipe(recipe_path, list(overrides), get_manager().registry)
+    per_plant: list[dict[str, Any]] = [{} for _ in scans]
+    if sample_sheet is not None:
+        for kwargs, md in zip(per_plant, sheet_metadata(Path(sample_sheet), scans, recipe)):
+            if md is not None:
+                kwargs["metadata"] = md.to_dict()
     extra = {}
     if calibration is not None:
         from plantscan_core.data import Calibration
@@ -347,7 +383,7 @@ def run_batch(
         futures = {
             client.submit(task, str(scan), str(recipe_path), list(overrides), str(rd),
                           1, key=f"plantscan-{batch_id}-{i}-{scan.name}", pure=False,
-                          **extra): i
+                          **extra, **per_plant[i]): i
             for i, (scan, rd) in enumerate(zip(scans, run_dirs, strict=True))
         }
         bar = _Progress(len(futures), where) if progress else None
@@ -375,6 +411,37 @@ def run_batch(
     write_summary(plants, summary.summary_csv)
     write_traits(plants, summary.traits_csv)
     return summary
+
+
+def sheet_metadata(sheet_path: Path, scans: list[Path], recipe) -> list:
+    """Every scan's metadata with the sample sheet's row; all problems at once, before work.
+
+    ``SampleSheetError`` for a bad sheet (``load_sample_sheet``) and for two
+    scans that make one plant id two genotypes.  A scan folder that cannot be
+    read gets None (its plant fails alone, as without a sheet).
+    """
+    from plantscan_core.errors import ScanFolderError
+    from plantscan_core.metadata import (
+        SampleSheetError,
+        check_plant_consistency,
+        load_sample_sheet,
+    )
+    from plantscan_core.scanfolder import ScanFolder
+
+    sheet = load_sample_sheet(sheet_path)
+    out = []
+    for scan in scans:
+        try:
+            info = ScanFolder.open(scan).info
+        except ScanFolderError:
+            out.append(None)
+            continue
+        out.append(sheet.metadata_for(recipe.plant, recipe.experiment, scan, info))
+    errors = check_plant_consistency([(str(s), md) for s, md in zip(scans, out)
+                                      if md is not None])
+    if errors:
+        raise SampleSheetError(errors, str(sheet_path))
+    return out
 
 
 class _Progress:

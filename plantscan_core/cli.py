@@ -43,6 +43,13 @@ def _load(args, manager: PluginManager):
     return recipe, raw
 
 
+def _add_sample_sheet_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--sample-sheet", metavar="CSV",
+                   help="plant metadata per scan folder or plant id (genotype, treatment, "
+                   "replicate, sowing_date...; docs/experiments.md): overrides the recipe's "
+                   "plant: and experiment:")
+
+
 # --------------------------------------------------------------------------- commands
 def cmd_plugins(args) -> int:
     manager = get_manager()
@@ -94,6 +101,21 @@ def cmd_scan(args) -> int:
 
     manager = get_manager()
     recipe, raw = _load(args, manager)
+    if args.sample_sheet:
+        from plantscan_core.metadata import (
+            SampleSheetError,
+            apply_to_raw_recipe,
+            load_sample_sheet,
+        )
+
+        sheet = load_sample_sheet(args.sample_sheet, require_scans=False)
+        row = sheet.row_for(Path(args.out) if args.out else None, recipe.plant.id)
+        if row is None:
+            raise SampleSheetError([(args.sample_sheet, f"no row for scan folder {args.out} "
+                                     f"nor for plant_id {recipe.plant.id!r} (set it with --set "
+                                     "plant.id=...)")], args.sample_sheet)
+        raw = apply_to_raw_recipe(raw, row)
+        recipe = validate_recipe(raw, manager.registry, f"{args.recipe} + {args.sample_sheet}")
     if args.dry_run:
         try:
             from plantscan_core.timing import estimate_scan_time
@@ -156,10 +178,19 @@ def cmd_process(args) -> int:
 
     manager = get_manager()
     recipe, raw = _recipe_from_scan_or_args(args, manager)
+    metadata = None
+    if args.sample_sheet:
+        from plantscan_core.metadata import load_sample_sheet
+        from plantscan_core.scanfolder import ScanFolder
+
+        sheet = load_sample_sheet(args.sample_sheet)
+        metadata = sheet.metadata_for(recipe.plant, recipe.experiment, Path(args.scan),
+                                      ScanFolder.open(Path(args.scan)).info)
     out = Path(args.out) if args.out else Path(args.scan).with_name(Path(args.scan).name + "-run")
     result = process(Path(args.scan), recipe, out, manager, raw_recipe=raw,
                      overrides=args.overrides, progress=sys.stderr.isatty(),
-                     calibration_path=Path(args.calibration) if args.calibration else None)
+                     calibration_path=Path(args.calibration) if args.calibration else None,
+                     metadata=metadata)
     if args.profile:
         print(profile_table(result.info))
     skipped = result.info.get("skipped")
@@ -230,7 +261,8 @@ def cmd_batch(args) -> int:
     summary = run_batch([Path(s) for s in args.scans], resolve_recipe_path(args.recipe),
                         Path(args.out), overrides=args.overrides, scheduler=args.scheduler,
                         workers=args.workers, progress=sys.stderr.isatty(),
-                        calibration=Path(args.calibration) if args.calibration else None)
+                        calibration=Path(args.calibration) if args.calibration else None,
+                        sample_sheet=Path(args.sample_sheet) if args.sample_sheet else None)
     print(summary)
     return summary.exit_status  # the number of failed plants (capped at 125)
 
@@ -270,6 +302,7 @@ def build_parser(manager: PluginManager | None = None) -> argparse.ArgumentParse
     p.add_argument("--resume", action="store_true", help="continue an interrupted scan in --out")
     p.add_argument("--dry-run", action="store_true",
                    help="check the recipe and print the timing model; move nothing")
+    _add_sample_sheet_arg(p)
     p.set_defaults(func=cmd_scan)
 
     p = sub.add_parser("calibrate", help="calibrate the rig from a scan's calibration views")
@@ -284,6 +317,7 @@ def build_parser(manager: PluginManager | None = None) -> argparse.ArgumentParse
     p.add_argument("--calibration", help="use this calibration YAML instead of calibrating")
     p.add_argument("--out", help="run folder (default SCAN-run beside the scan)")
     p.add_argument("--profile", action="store_true", help="print seconds per stage")
+    _add_sample_sheet_arg(p)
     p.set_defaults(func=cmd_process)
 
     p = sub.add_parser("evaluate", help="compare a run with the virtual scanner's truth (JSON)")
@@ -305,6 +339,7 @@ def build_parser(manager: PluginManager | None = None) -> argparse.ArgumentParse
     p.add_argument("--workers", type=int, default=2, help="local workers (default 2)")
     p.add_argument("--calibration", help="use this calibration YAML for every plant instead of "
                    "calibrating each scan (one calibration per session)")
+    _add_sample_sheet_arg(p)
     p.set_defaults(func=cmd_batch)
 
     (manager or get_manager()).add_commands(sub)

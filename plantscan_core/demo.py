@@ -8,13 +8,13 @@ from pathlib import Path
 from plantscan_core.errors import RecipeError
 from plantscan_core.plugins import get_manager
 from plantscan_core.recipe import (
-    PROCESSING_SECTIONS,
     apply_overrides,
     check_plugins,
     read_recipe_file,
     resolve_recipe_path,
     validate_recipe,
 )
+from plantscan_core.steps import CORE_TABLE
 
 
 def run_demo(out: Path, overrides: list[str], recipe_name: str = "plastic-dicot") -> int:
@@ -36,7 +36,7 @@ def run_demo(out: Path, overrides: list[str], recipe_name: str = "plastic-dicot"
         raise RecipeError(scan_errors, str(path))
     missing = [e for e in errors if not e[0].startswith("scan.")]
     if missing:
-        order = list(PROCESSING_SECTIONS) + ["export"]
+        order = CORE_TABLE.sections  # pipeline order, exporters and store included
         first = min(order.index(e[0].split(".")[0]) for e in missing)
         for section in order[first:]:
             if section == "export":

@@ -25,6 +25,7 @@ from typing import Any
 from plantscan_core import __version__
 from plantscan_core.data import plain
 from plantscan_core.errors import PlantScanError, StageError
+from plantscan_core.metadata import Metadata, resolve_metadata, scan_summary
 from plantscan_core.photos import Photos
 from plantscan_core.plugins import PluginManager
 from plantscan_core.recipe import Recipe, StageSpec, stage_spec
@@ -74,7 +75,7 @@ class Run:
 
     def __init__(self, scan: ScanFolder, recipe: Recipe, run_dir: Path, manager: PluginManager,
                  raw_recipe: dict | None, overrides: list[str], progress: bool,
-                 workers: int | None) -> None:
+                 workers: int | None, metadata: Metadata | None = None) -> None:
         self.scan = scan
         self.recipe = recipe
         self.run_dir = Path(run_dir)
@@ -85,12 +86,17 @@ class Run:
         self.result = RunResult(run_dir=self.run_dir, recipe=recipe, scan=scan)
         self.keys: dict[str, str] = {}  # result name -> cache key of the step that made it
         self._photos: dict[int, Photos] = {}
+        if metadata is None:
+            metadata = resolve_metadata(recipe.plant, recipe.experiment, scan.info)
         self.info: dict[str, Any] = {
             "format": "plantscan-run/1",
             "plantscan_version": __version__,
             "created": now_iso(),
             "scan": str(scan.root.resolve()),
-            "plant_id": scan.info.get("plant_id", recipe.plant.id),
+            "plant_id": metadata.plant.id,
+            # who the plant is and when it was scanned: what the results store keeps
+            "metadata": metadata.to_dict(),
+            "scan_record": scan_summary(scan),
             "recipe": raw_recipe if raw_recipe is not None else recipe.model_dump(mode="json"),
             "overrides": list(overrides),
             "stages": {},
@@ -252,6 +258,7 @@ def process(
     calibration_path: Path | None = None,
     progress: bool = False,
     workers: int | None = None,
+    metadata: Metadata | None = None,
 ) -> RunResult:
     """Run the recipe's processing stages over ``scan_dir`` into ``run_dir``.
 
@@ -260,6 +267,8 @@ def process(
     any a plugin added); a step runs when the recipe names it and the results
     it needs exist (``run.json: skipped`` lists the others).
     ``calibration_path`` replaces the calibrate stage with a saved calibration.
+    ``metadata`` is the plant's and the experiment's (a sample sheet's row,
+    resolved by the caller); by default the recipe's and the scan's own record.
 
     Returns
     -------
@@ -271,7 +280,8 @@ def process(
         run_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise PlantScanError(f"{run_dir}: cannot create the run folder ({exc.strerror})") from exc
-    run = Run(scan, recipe, run_dir, manager, raw_recipe, list(overrides), progress, workers)
+    run = Run(scan, recipe, run_dir, manager, raw_recipe, list(overrides), progress, workers,
+              metadata)
     given = {"calibrate": calibration_path} if calibration_path is not None else {}
     steps = list(manager.registry.steps)
     named = [s for s in steps if stage_spec(recipe, s.section) or s.section in given]

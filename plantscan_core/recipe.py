@@ -16,6 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from plantscan_core.data import ROLES
 from plantscan_core.errors import PluginError, RecipeError
+from plantscan_core.metadata import ExperimentSpec, PlantSpec
 from plantscan_core.steps import CORE_TABLE, StageTable
 
 
@@ -117,11 +118,6 @@ class ScanSpec(_Model):
         return [r for r in ROLES if r in self.roles and self.roles[r].enabled]
 
 
-class PlantSpec(_Model):
-    id: str = "plant"
-    species: str = ""
-
-
 class Recipe(_Model):
     """A whole recipe.  Processing stages are optional (a recipe may only scan).
 
@@ -136,6 +132,7 @@ class Recipe(_Model):
 
     name: str = "recipe"
     description: str = ""
+    experiment: ExperimentSpec = Field(default_factory=ExperimentSpec)
     plant: PlantSpec = Field(default_factory=PlantSpec)
     scan: ScanSpec
     calibrate: StageSpec | None = None
@@ -145,6 +142,9 @@ class Recipe(_Model):
     segment_mesh: StageSpec | None = None
     measure: StageSpec | None = None
     export: list[StageSpec] = Field(default_factory=list)
+    store: StageSpec | None = Field(None, description="the results store the run is kept in "
+                                    "after the exporters (plugin sqlite or postgresql; "
+                                    "docs/experiments.md)")
 
 
 PROCESSING_SECTIONS: dict[str, str] = {s.section: s.stage for s in CORE_TABLE if not s.many}

@@ -315,6 +315,15 @@ class Scene(Stage):
     def setup(self, scan: ScanFolder) -> None:
         """Prepare the scene for a scan written to ``scan``."""
 
+    def now(self) -> str | None:
+        """The world's clock: ISO 8601 UTC time stamp for the scan and its views, or None.
+
+        None (the default) time-stamps with the real clock.  A virtual world may
+        keep its own time, so that virtual scans of a growing plant fall on the
+        days of a virtual experiment.
+        """
+        return None
+
 
 # --------------------------------------------------------------------------- processing
 class Calibrator(Stage):
@@ -440,6 +449,22 @@ class Exporter(Stage):
     @abc.abstractmethod
     def export(self, run: RunResult) -> list[Path]:
         """Write this exporter's files for ``run``; return their paths."""
+
+
+class ResultsStore(Stage):
+    """``store(run) -> summary``: keep a run's traits and metadata in a database.
+
+    The last step of a run when the recipe has a ``store:`` section.  The run
+    folder is complete (``run.json`` with ``metadata`` and ``scan_record``,
+    ``traits.csv``); storing a run again must replace it, never duplicate it,
+    and several processes may store at once.
+    """
+
+    stage = "results_store"
+
+    @abc.abstractmethod
+    def store(self, run: RunResult) -> dict[str, Any]:
+        """Store ``run``; return what was stored (``{"store": name, "leaves": n, ...}``)."""
 
 
 ACQUISITION_BASES: tuple[type[Stage], ...] = (CameraBackend, MotionAxis, Scene)

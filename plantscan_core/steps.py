@@ -47,6 +47,7 @@ from plantscan_core.stages import (
     Mesher,
     MeshSegmenter,
     Reconstructor,
+    ResultsStore,
     RunResult,
     Segmenter,
     Stage,
@@ -360,6 +361,12 @@ def _export(plugin: Exporter, run: StepRun) -> list[str]:
     return [str(p) for p in plugin.export(run.result) or []]
 
 
+def _store(plugin: ResultsStore, run: StepRun) -> dict[str, Any]:
+    summary = plugin.store(run.result)
+    run.result.info["stored"] = summary
+    return summary
+
+
 def _files(*names: str) -> Callable[[StepRun], list[Path]]:
     return lambda run: [run.path(n) for n in names]
 
@@ -383,6 +390,9 @@ CORE_STEPS: tuple[Step, ...] = (
          lambda run: Traits.load(run.path("traits.csv"), run.path("plant_traits.json")),
          needs=("labelled",), files=_files("traits.csv")),
     Step("export", Exporter, "exports", _export, lambda run: [], many=True, cached=False),
+    # last: the run folder is complete (traits, exports, run.json) when it is stored
+    Step("store", ResultsStore, "stored", _store, lambda run: None, needs=("traits",),
+         cached=False),
 )
 """The core's steps, in pipeline order."""
 

@@ -15,11 +15,13 @@ What each role shows (what a real lab's set-up holds when that role is shot):
 
 from __future__ import annotations
 
+import datetime
 import json
 import math
 import os
 import shutil
 import threading
+import time
 from pathlib import Path
 from typing import Any, Literal
 
@@ -94,6 +96,11 @@ class SimSceneParams(StageParams):
                             "the plant (not the pot) tilts about its stem base by a random "
                             "angle of this standard deviation (seeded, in cameras.jsonl)")
     check_rig: bool = Field(True, description="refuse impossible rigs before rendering")
+    clock_start: datetime.datetime | None = Field(
+        None, description="the virtual scanner's clock (ISO 8601; UTC unless it says): the "
+        "scan and its images are time-stamped from this time on (advancing with the real "
+        "clock) instead of now, so virtual scans of a growing plant fall on the days of a "
+        "virtual experiment")
 
 
 # material indices
@@ -115,6 +122,7 @@ class SimScene(Scene):
         self.renderer: Renderer | None = None
         self.rig: Rig | None = None
         self.plant: Plant | None = None
+        self._clock_t0: float | None = None
 
     # ------------------------------------------------------------------ set-up
     def check(self, recipe=None) -> None:
@@ -142,6 +150,17 @@ class SimScene(Scene):
         if p.check_rig:
             self.check_rig(plan(recipe))
         self._build_world()
+
+    def now(self) -> str | None:
+        start = self.params.clock_start
+        if start is None:
+            return None
+        if start.tzinfo is None:
+            start = start.replace(tzinfo=datetime.UTC)
+        if self._clock_t0 is None:
+            self._clock_t0 = time.monotonic()
+        t = start + datetime.timedelta(seconds=time.monotonic() - self._clock_t0)
+        return t.astimezone(datetime.UTC).isoformat(timespec="seconds")
 
     def setup(self, scan: ScanFolder) -> None:
         self.check(self.context.recipe)
