@@ -5,8 +5,9 @@
 #   libgomp1      open3d / OpenCV threading
 #   socat         the serial-stage tests (an emulator on a pseudo-terminal)
 #   chromium      the HTML report test (headless browser)
+#   postgresql    the results store tests (a throw-away server each test session starts)
 set -euo pipefail
-PKGS=(libusb-1.0-0 libgomp1 socat chromium)
+PKGS=(libusb-1.0-0 libgomp1 socat chromium postgresql)
 missing=()
 if ! command -v dpkg-query >/dev/null 2>&1; then
   echo "install-system-deps: not a Debian/Ubuntu system; make sure you have: ${PKGS[*]}"

@@ -1,0 +1,94 @@
+"""The store as the last stage of a real run, and ``plantscan store`` / ``plantscan query``.
+
+One small virtual scan is processed once per session with the cheap recipe of
+the batch tests (exact calibration and masks, a coarse hull) plus a sample
+sheet and ``store: {plugin: sqlite}``; what the store holds is compared with
+the run folder's own ``traits.csv``.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+import yaml
+from plantscan_store import Store
+
+from plantscan_core.cli import main
+from plantscan_core.data import Traits
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "batch"))
+from batch_fixtures import PROCESSING, SCAN_ARGS  # noqa: E402
+
+SHEET = ("plant_id,genotype,treatment,replicate,sowing_date,factor.watering,study_id\n"
+         "dicot-7,Col-0,drought,2,2026-05-01,30%,drought-2026\n")
+
+
+@pytest.fixture(scope="module")
+def stored_run(tmp_path_factory):
+    """(scan folder, run folder, SQLite store) of one plant processed with ``store:``."""
+    from plantscan_sim import make_scan, scan_recipe
+
+    root = tmp_path_factory.mktemp("store-run")
+    plant = ["plant.id=dicot-7", "plant.species=plastic dicot"]
+    raw = scan_recipe(seed=1, overrides=plant, **SCAN_ARGS)
+    scan = make_scan(root / "scans" / "dicot-7", seed=1, overrides=plant, **SCAN_ARGS).root
+    raw.update(PROCESSING)
+    raw["export"] = [{"plugin": "csv", "params": {"parquet": False}}]
+    raw["store"] = {"plugin": "sqlite", "params": {"path": "results.sqlite"}}
+    recipe = root / "recipe.yaml"
+    recipe.write_text(yaml.safe_dump(raw, sort_keys=False))
+    sheet = root / "sheet.csv"
+    sheet.write_text(SHEET)
+    run = root / "runs" / "dicot-7"
+    assert main(["process", str(scan), "--recipe", str(recipe), "--sample-sheet", str(sheet),
+                 "--out", str(run)]) == 0
+    return scan, run, root / "runs" / "results.sqlite", sheet
+
+
+def test_a_processed_run_lands_in_the_store_with_its_sheet_metadata(stored_run):
+    scan, run, db, _ = stored_run
+    traits = Traits.load(run / "traits.csv", run / "plant_traits.json")
+    info = json.loads((run / "run.json").read_text())
+    assert info["stored"]["leaves"] == len(traits.leaves) > 0
+    with Store(db) as store:
+        leaves = store.leaf_traits(study="drought-2026", genotype="Col-0")
+        plants = store.plant_traits()
+    assert list(leaves.leaf_id) == [leaf.leaf_id for leaf in traits.leaves]
+    assert list(leaves.area_mm2) == pytest.approx([leaf.area_mm2 for leaf in traits.leaves])
+    row = plants.iloc[0]
+    assert (row.plant_id, row.treatment, row.replicate, row["factor.watering"]) == \
+        ("dicot-7", "drought", 2, "30%")
+    assert row.total_leaf_area_mm2 == pytest.approx(traits.plant["total_leaf_area_mm2"])
+    # the scan time is the scan's own (UTC), not the time of processing
+    created = pd.Timestamp(yaml.safe_load((scan / "scan.yaml").read_text())["created"])
+    assert row.scan_time == created.tz_convert(None)
+    # every leaf has its centroid (for matching leaves between days)
+    assert leaves.centroid_z_mm.notna().all()
+
+
+def test_store_and_query_commands_on_both_backends(stored_run, store_target, tmp_path, capsys):
+    _, run, _, sheet = stored_run
+    for _ in range(2):  # stored twice: once in the store
+        assert main(["store", str(run.parent), "--db", store_target,
+                     "--sample-sheet", str(sheet)]) == 0
+    assert "the store holds 1 runs of 1 plants" in capsys.readouterr().out
+    out = tmp_path / "leaves.parquet"
+    assert main(["query", "--db", store_target, "--level", "leaf", "--genotype", "Col-0",
+                 "--out", str(out)]) == 0
+    df = pd.read_parquet(out)
+    traits = Traits.load(run / "traits.csv")
+    assert list(df.area_mm2) == pytest.approx([leaf.area_mm2 for leaf in traits.leaves])
+    assert set(df.study_id) == {"drought-2026"}
+    assert main(["query", "--db", store_target, "--genotype", "Ler"]) == 0
+    assert "no rows match" in capsys.readouterr().out
+    assert main(["query", "--db", store_target, "--since", "May 4th"]) == 1
+    assert "'May 4th' is not a date (YYYY-MM-DD)" in capsys.readouterr().err
+
+
+def test_store_refuses_a_folder_without_runs(tmp_path, capsys):
+    assert main(["store", str(tmp_path), "--db", str(tmp_path / "r.sqlite")]) == 1
+    assert "neither a run folder nor a folder of run folders" in capsys.readouterr().err
