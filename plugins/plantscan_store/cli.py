@@ -58,10 +58,29 @@ def cmd_query(args) -> int:
     with Store(args.db) as store:
         filters = _filters(args)
         try:
+            if args.isa_tab:
+                from plantscan_store.isatab import export_isatab, validate_isatab
+
+                files = export_isatab(store, Path(args.isa_tab), **filters)
+                validate_isatab(Path(args.isa_tab))
+                print(f"{args.isa_tab}: ISA-Tab, {len(files)} files: "
+                      + ", ".join(p.name for p in files))
+                return 0
+            if args.report:
+                from plantscan_store.report import write_experiment_report
+
+                out = write_experiment_report(store, Path(args.report), trait=args.trait,
+                                              **filters)
+                print(f"{out}: experiment report")
+                return 0
             if args.level == "leaf":
                 df = store.leaf_traits(**filters)
-            else:
+            elif args.level == "plant":
                 df = store.plant_traits(**filters)
+            else:
+                from plantscan_store.timeseries import leaf_series
+
+                df = leaf_series(store.leaf_traits(**filters))
         except ValueError as exc:
             raise PlantScanError(f"query: {exc}") from None
     if args.out:
@@ -95,9 +114,11 @@ def _print(df, level: str) -> None:
     keep = ["study_id", "plant_id", "genotype", "treatment", "scan_time"]
     if level == "leaf":
         keep += ["leaf_id", "length_mm", "width_mm", "area_mm2", "perimeter_mm", "quality_flag"]
-    else:
+    elif level == "plant":
         keep += [c for c in ("leaf_count", "total_leaf_area_mm2", "height_mm") if c in df]
         keep += ["plant_quality_flag", "warnings"]
+    else:
+        keep += ["track", "leaf_id", "length_mm", "area_mm2", "quality_flag"]
     table = Table()
     for c in keep:
         table.add_column(c)
@@ -128,10 +149,12 @@ def add_commands(subparsers) -> None:
                    help="store the readable runs and list the others (exit 1)")
     p.set_defaults(func=cmd_store)
 
-    p = subparsers.add_parser("query", help="traits from a results store: print, CSV, Parquet")
+    p = subparsers.add_parser("query", help="traits from a results store: print, CSV, Parquet, "
+                              "ISA-Tab, experiment report")
     _db_arg(p)
-    p.add_argument("--level", choices=("leaf", "plant"), default="plant",
-                   help="one row per leaf, or per plant scan (default)")
+    p.add_argument("--level", choices=("leaf", "plant", "timeseries"), default="plant",
+                   help="one row per leaf, per plant scan (default), or per leaf with its "
+                   "track: the same leaf across the scans of its plant")
     p.add_argument("--investigation", help="MIAPPE investigation id")
     p.add_argument("--study", action="append", help="MIAPPE study id (repeatable)")
     p.add_argument("--plant", action="append", help="plant id (repeatable)")
@@ -144,4 +167,10 @@ def add_commands(subparsers) -> None:
     p.add_argument("--runs", choices=("latest", "all"), default="latest",
                    help="each scan's latest stored run (default) or every run")
     p.add_argument("--out", help="write the table: .csv, .tsv or .parquet")
+    p.add_argument("--isa-tab", metavar="DIR", help="write a MIAPPE/ISA-Tab export of the "
+                   "matching runs into DIR (checked against its stated columns)")
+    p.add_argument("--report", metavar="HTML", help="write the experiment report: growth "
+                   "curves per plant and per treatment group, quality flags shown")
+    p.add_argument("--trait", default="total_leaf_area_mm2",
+                   help="plant-level trait of the report (default total_leaf_area_mm2)")
     p.set_defaults(func=cmd_query)

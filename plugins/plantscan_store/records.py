@@ -145,10 +145,13 @@ def recipe_hash_of(stages: dict[str, Any]) -> str:
     """Hash of what the run computed with: each stage's plugin and parameters.
 
     Plugin versions and the plant's metadata are left out: re-processing a scan
-    with the same recipe replaces its earlier run in the store.
+    with the same recipe replaces its earlier run in the store.  So are the
+    exporters and the store itself: they change no measurement (and the store
+    step is not yet in ``run.json`` while it runs).
     """
     spec = {name: {"plugin": s.get("plugin"), "params": s.get("params")}
-            for name, s in sorted(stages.items()) if isinstance(s, dict)}
+            for name, s in sorted(stages.items())
+            if isinstance(s, dict) and name != "store" and not name.startswith("export")}
     return hashlib.sha256(json.dumps(spec, sort_keys=True, default=str).encode()).hexdigest()
 
 

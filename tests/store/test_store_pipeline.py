@@ -68,6 +68,10 @@ def test_a_processed_run_lands_in_the_store_with_its_sheet_metadata(stored_run):
     assert row.scan_time == created.tz_convert(None)
     # every leaf has its centroid (for matching leaves between days)
     assert leaves.centroid_z_mm.notna().all()
+    # the same run stored again from its folder (as after a batch) is the same run
+    assert main(["store", str(run), "--db", str(db)]) == 0
+    with Store(db) as store:
+        assert store.counts()["runs"] == 1
 
 
 def test_store_and_query_commands_on_both_backends(stored_run, store_target, tmp_path, capsys):

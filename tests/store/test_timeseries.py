@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 import pytest
-
 from plantscan_store.timeseries import match_leaves, plant_rotation, plant_series
 
 
