@@ -13,6 +13,7 @@ the top-left pixel at ``(0, 0)``.
 from __future__ import annotations
 
 import csv
+import datetime
 import io
 import math
 from collections.abc import Iterable, Sequence
@@ -475,7 +476,8 @@ class Calibration:
 
 
 def _plain(obj: Any) -> Any:
-    """Turn numpy scalars/arrays nested in dicts/lists into plain Python for YAML/JSON."""
+    """Turn numpy scalars/arrays (and dates: ISO 8601 text) nested in dicts/lists into plain
+    Python for YAML/JSON (YAML reads ``sowing_date: 2026-05-01`` as a date)."""
     if isinstance(obj, dict):
         return {str(k): _plain(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
@@ -484,6 +486,8 @@ def _plain(obj: Any) -> Any:
         return obj.tolist()
     if isinstance(obj, np.generic):
         return obj.item()
+    if isinstance(obj, (datetime.date, datetime.time)):
+        return obj.isoformat()
     return obj
 
 

@@ -135,3 +135,36 @@ def test_two_scans_cannot_make_one_plant_two_genotypes():
     c = resolve_metadata(PlantSpec(id="P1", genotype="Ler"), ExperimentSpec(study_id="T"))
     assert check_plant_consistency([("scan-a", a), ("scan-b", b), ("scan-c", c)]) == [
         ("scan-b", "plant 'P1' has genotype 'Ler' but 'Col-0' in scan-a")]
+
+
+def test_batch_checks_the_sheet_against_every_scan_before_any_work(tmp_path):
+    from plantscan_core.batch import sheet_metadata
+    from plantscan_core.recipe import validate_recipe
+
+    a = _scan(tmp_path / "day1" / "A", "P1", genotype="Col-0")
+    b = _scan(tmp_path / "day2" / "A", "P1")
+    sheet = tmp_path / "sheet.csv"
+    # the second day's scan is given another genotype: the same plant cannot change
+    sheet.write_text("scan,genotype\nday2/A,Ler\n")
+    recipe = validate_recipe(tiny_recipe())
+    with pytest.raises(SampleSheetError) as err:
+        sheet_metadata(sheet, [a, b], recipe)
+    assert err.value.errors == [(str(b), f"plant 'P1' has genotype 'Ler' but 'Col-0' in {a}")]
+    sheet.write_text("scan,treatment\nday2/A,drought\nday1/A,drought\n")
+    got = sheet_metadata(sheet, [a, b, tmp_path / "not-a-scan"], recipe)
+    assert [(m.plant.genotype, m.plant.treatment) for m in got[:2]] == [("Col-0", "drought"),
+                                                                       ("", "drought")]
+    assert got[2] is None  # an unreadable scan fails alone later, as without a sheet
+
+
+def test_yaml_dates_in_a_raw_recipe_go_into_run_json_as_text():
+    # `sowing_date: 2026-05-01` unquoted is a date to YAML; run.json keeps the raw recipe
+    import json
+
+    from plantscan_core.data import plain
+
+    raw = {"plant": {"sowing_date": dt.date(2026, 5, 1)},
+           "scan": {"scene": {"params": {"clock_start": dt.datetime(2026, 5, 6, 8, 30)}}}}
+    assert json.loads(json.dumps(plain(raw))) == {
+        "plant": {"sowing_date": "2026-05-01"},
+        "scan": {"scene": {"params": {"clock_start": "2026-05-06T08:30:00"}}}}

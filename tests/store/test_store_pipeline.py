@@ -1,9 +1,10 @@
 """The store as the last stage of a real run, and ``plantscan store`` / ``plantscan query``.
 
-One small virtual scan is processed once per session with the cheap recipe of
-the batch tests (exact calibration and masks, a coarse hull) plus a sample
-sheet and ``store: {plugin: sqlite}``; what the store holds is compared with
-the run folder's own ``traits.csv``.
+One small virtual scan is made with a sample sheet (``plantscan scan
+--sample-sheet``: the metadata go into ``scan.yaml``) and processed once per
+module with the cheap recipe of the batch tests (exact calibration and masks, a
+coarse hull) and ``store: {plugin: sqlite}``; what the store holds is compared
+with the run folder's own ``traits.csv`` and the sheet.
 """
 
 from __future__ import annotations
@@ -23,19 +24,21 @@ from plantscan_core.data import Traits
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "batch"))
 from batch_fixtures import PROCESSING, SCAN_ARGS  # noqa: E402
 
+CLOCK = "2026-05-06T08:30:00Z"  # the virtual scanner's clock: day 5 of the experiment
 SHEET = ("plant_id,genotype,treatment,replicate,sowing_date,factor.watering,study_id\n"
          "dicot-7,Col-0,drought,2,2026-05-01,30%,drought-2026\n")
 
 
 @pytest.fixture(scope="module")
 def stored_run(tmp_path_factory):
-    """(scan folder, run folder, SQLite store) of one plant processed with ``store:``."""
-    from plantscan_sim import make_scan, scan_recipe
+    """(scan folder, run folder, SQLite store, sheet) of one plant scanned with a sample sheet
+    (``plantscan scan --sample-sheet``) and processed with the recipe's ``store:``."""
+    from plantscan_sim import scan_recipe
 
     root = tmp_path_factory.mktemp("store-run")
-    plant = ["plant.id=dicot-7", "plant.species=plastic dicot"]
-    raw = scan_recipe(seed=1, overrides=plant, **SCAN_ARGS)
-    scan = make_scan(root / "scans" / "dicot-7", seed=1, overrides=plant, **SCAN_ARGS).root
+    raw = scan_recipe(seed=1, overrides=["plant.id=dicot-7", "plant.species=plastic dicot",
+                                         f"scan.scene.params.clock_start={CLOCK}"],
+                      **SCAN_ARGS)
     raw.update(PROCESSING)
     raw["export"] = [{"plugin": "csv", "params": {"parquet": False}}]
     raw["store"] = {"plugin": "sqlite", "params": {"path": "results.sqlite"}}
@@ -43,9 +46,11 @@ def stored_run(tmp_path_factory):
     recipe.write_text(yaml.safe_dump(raw, sort_keys=False))
     sheet = root / "sheet.csv"
     sheet.write_text(SHEET)
+    scan = root / "scans" / "dicot-7"
+    assert main(["scan", "--recipe", str(recipe), "--out", str(scan),
+                 "--sample-sheet", str(sheet)]) == 0
     run = root / "runs" / "dicot-7"
-    assert main(["process", str(scan), "--recipe", str(recipe), "--sample-sheet", str(sheet),
-                 "--out", str(run)]) == 0
+    assert main(["process", str(scan), "--out", str(run)]) == 0  # the scan's own recipe
     return scan, run, root / "runs" / "results.sqlite", sheet
 
 
@@ -63,9 +68,12 @@ def test_a_processed_run_lands_in_the_store_with_its_sheet_metadata(stored_run):
     assert (row.plant_id, row.treatment, row.replicate, row["factor.watering"]) == \
         ("dicot-7", "drought", 2, "30%")
     assert row.total_leaf_area_mm2 == pytest.approx(traits.plant["total_leaf_area_mm2"])
-    # the scan time is the scan's own (UTC), not the time of processing
-    created = pd.Timestamp(yaml.safe_load((scan / "scan.yaml").read_text())["created"])
-    assert row.scan_time == created.tz_convert(None)
+    # the scan time is the scan's own (the virtual scanner's clock, UTC), not processing's
+    assert row.scan_time == pd.Timestamp("2026-05-06 08:30:00")
+    assert row.days_after_sowing == pytest.approx(5 + 8.5 / 24)
+    recorded = yaml.safe_load((scan / "scan.yaml").read_text())
+    assert recorded["plant"]["genotype"] == "Col-0" and recorded["plant"]["replicate"] == 2
+    assert recorded["experiment"]["study_id"] == "drought-2026"
     # every leaf has its centroid (for matching leaves between days)
     assert leaves.centroid_z_mm.notna().all()
     # the same run stored again from its folder (as after a batch) is the same run
