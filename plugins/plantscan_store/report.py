@@ -134,8 +134,9 @@ def write_experiment_report(store: Store, out: Path, *, trait: str = "total_leaf
     rows = []
     for (study, plant), p in series.groupby(["study_id", "plant_id"], sort=True):
         last = p.iloc[-1]
-        bad = [f for f in p.plant_quality_flag if isinstance(f, str) and f != "ok"]
-        flag_cell = ", ".join(f'<span class="flag-{f}">{f}</span>' for f in bad) or "ok/none"
+        counts = p.plant_quality_flag.fillna("none").value_counts()
+        flag_cell = ", ".join(f'<span class="flag-{f}">{f}</span> {n}'
+                              for f, n in sorted(counts.items()))
         rows.append(
             f"<tr><td class=t>{_esc(study)}</td><td class=t>{_esc(plant)}</td>"
             f"<td class=t>{_esc(last.genotype)}</td><td class=t>{_esc(last.treatment)}</td>"

@@ -71,7 +71,7 @@ def test_experiment_report_and_commands(experiment, store_target, tmp_path, caps
     page = out.read_text()
     assert "plantscan experiment: S1" in page and "8 plants, 24 scans" in page
     assert "quality flags: fail 1, ok 23" in page
-    assert 'class="flag-fail">fail' in page  # the flagged plant is named in the table
+    assert '<span class="flag-fail">fail</span> 1' in page  # the flagged plant's row says so
     # offline: plotly.js inline once; outside it no script source and no URL
     from plotly.offline import get_plotlyjs
 
