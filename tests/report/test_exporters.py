@@ -310,3 +310,21 @@ def test_exported_files_stay_in_the_run_folder(synthetic_run):
     for name in ("ply", "obj", "glb", "csv", "colmap", "html-report"):
         for p in build(name, synthetic_run).export(synthetic_run):
             assert Path(p).resolve().is_relative_to(synthetic_run.run_dir.resolve())
+
+
+def test_parquet_rows_carry_the_scan_time_and_the_plants_metadata(synthetic_run):
+    pa = pytest.importorskip("pyarrow.parquet", reason="pyarrow not installed: no Parquet")
+    synthetic_run.info = {
+        "scan_record": {"acquired_at": "2026-05-06T08:30:00+00:00"},
+        "metadata": {"plant": {"id": "P17", "genotype": "Col-0", "treatment": "drought",
+                               "replicate": 2, "sowing_date": "2026-05-01",
+                               "factors": {"watering": "30%"}},
+                     "experiment": {"study_id": "drought-2026"}}}
+    build("csv", synthetic_run).export(synthetic_run)
+    table = pa.read_table(synthetic_run.run_dir / "traits.parquet").to_pydict()
+    n = len(synthetic_run.traits.leaves)
+    assert table["plant_id"] == ["P17"] * n  # the resolved id (sample sheet) wins
+    assert table["scan_time"] == ["2026-05-06T08:30:00+00:00"] * n
+    assert (table["study_id"], table["genotype"], table["replicate"]) == \
+        (["drought-2026"] * n, ["Col-0"] * n, [2] * n)
+    assert table["factor.watering"] == ["30%"] * n
