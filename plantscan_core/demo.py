@@ -29,6 +29,8 @@ def run_demo(out: Path, overrides: list[str], recipe_name: str = "plastic-dicot"
     manager = get_manager()
     path = resolve_recipe_path(recipe_name)
     raw = apply_overrides(read_recipe_file(path), overrides)
+    if not raw.get("store"):  # the demo keeps its run in the zero-set-up SQLite store
+        raw["store"] = {"plugin": "sqlite", "params": {"path": "results.sqlite"}}
     recipe = validate_recipe(raw, None, str(path))
     errors = check_plugins(recipe, manager.registry)
     scan_errors = [e for e in errors if e[0].startswith("scan.")]
@@ -81,4 +83,8 @@ def run_demo(out: Path, overrides: list[str], recipe_name: str = "plastic-dicot"
     else:
         print("demo: no trait errors (the leaf stages did not run)")
     print(f"demo: evaluation {run_dir / 'evaluation.json'}")
+    stored = result.info.get("stored")
+    if stored:
+        print(f"demo: {stored['leaves']} leaves of {stored['plant_id']} stored in "
+              f"{stored['store']}; try: plantscan query --db {stored['store']} --level leaf")
     return 0

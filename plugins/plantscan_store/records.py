@@ -27,6 +27,7 @@ from plantscan_core.metadata import (
     Metadata,
     PlantSpec,
     SampleSheet,
+    resolve_metadata,
     scan_summary,
 )
 from plantscan_store.schema import QUALITY_FLAGS
@@ -242,7 +243,6 @@ def record_from_run_dir(run_dir: Path, sample_sheet: SampleSheet | None = None) 
     if not traits_csv.exists():
         raise DataError(f"{run_dir}: the run has no traits.csv (did the measure stage run?)")
     scan_dir = Path(info.get("scan", ""))
-    scan_info: dict[str, Any] | None = None
     if info.get("scan_record"):
         scan = ScanRecord.from_dict(info["scan_record"])
     else:
@@ -251,24 +251,23 @@ def record_from_run_dir(run_dir: Path, sample_sheet: SampleSheet | None = None) 
                             "scan_record (re-process the scan with this plantscan)")
         scan = scan_record_of(scan_dir)
     recipe = info.get("recipe") or {}
-    if sample_sheet is not None or not info.get("metadata"):
+    if info.get("metadata"):
+        # what the run resolved (recipe < scan < the sheet it was processed with) ...
+        metadata = Metadata.from_dict(info["metadata"])
+        if sample_sheet is not None:  # ... corrected by this sheet's row
+            row = sample_sheet.row_for(scan_dir, metadata.plant.id)
+            metadata = resolve_metadata(metadata.plant, metadata.experiment, None, row)
+    else:  # a run folder from before run.json recorded its metadata
+        scan_info = None
         if (scan_dir / "scan.yaml").exists():
             from plantscan_core.scanfolder import ScanFolder
 
             scan_info = ScanFolder.open(scan_dir).info
-        base_plant = PlantSpec.model_validate(recipe.get("plant") or {})
-        base_exp = ExperimentSpec.model_validate(recipe.get("experiment") or {})
-        if info.get("metadata"):
-            recorded = Metadata.from_dict(info["metadata"])
-            base_plant, base_exp = recorded.plant, recorded.experiment
-        if sample_sheet is not None:
-            metadata = sample_sheet.metadata_for(base_plant, base_exp, scan_dir, scan_info)
-        else:
-            from plantscan_core.metadata import resolve_metadata
-
-            metadata = resolve_metadata(base_plant, base_exp, scan_info)
-    else:
-        metadata = Metadata.from_dict(info["metadata"])
+        plant = PlantSpec.model_validate(recipe.get("plant") or {})
+        experiment = ExperimentSpec.model_validate(recipe.get("experiment") or {})
+        metadata = (sample_sheet.metadata_for(plant, experiment, scan_dir, scan_info)
+                    if sample_sheet is not None else
+                    resolve_metadata(plant, experiment, scan_info))
     leaves = read_leaves(traits_csv)
     labelled = run_dir / "labelled.npz"
     if labelled.exists():
