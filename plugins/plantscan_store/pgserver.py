@@ -90,6 +90,7 @@ class TempPostgres:
     def start(self) -> TempPostgres:
         self._run(str(self.bindir / "initdb"), "-D", str(self.data), "-U", USER,
                   "--auth=trust", "-E", "UTF8", "--no-sync", "--locale=C")
+        # durable commits as on a real server (fsync on, the default)
         options = (f"-p {self.port} -k {self.root} -c listen_addresses=127.0.0.1 "
                    "-c max_connections=50 -c shared_buffers=32MB")
         self._run(str(self.bindir / "pg_ctl"), "-D", str(self.data), "-l", str(self.log),
@@ -100,8 +101,9 @@ class TempPostgres:
     def stop(self) -> None:
         if self._started:
             try:
-                self._run(str(self.bindir / "pg_ctl"), "-D", str(self.data), "-m", "fast",
-                          "-w", "stop", timeout=60)
+                # immediate: no shutdown checkpoint (a throw-away cluster, deleted next)
+                self._run(str(self.bindir / "pg_ctl"), "-D", str(self.data), "-m",
+                          "immediate", "-w", "stop", timeout=60)
             finally:
                 self._started = False
         shutil.rmtree(self.root, ignore_errors=True)

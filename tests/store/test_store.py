@@ -119,8 +119,8 @@ WRITER = textwrap.dedent("""
     print("ready", flush=True)
     while not go.exists():
         time.sleep(0.01)
-    # plants 0-59 are written by both workers (the same runs), 60+ by one each
-    plants = list(range(60)) + list(range(100 * (worker + 1), 100 * (worker + 1) + 40))
+    # plants 0-29 are written by both workers (the same runs), the others by one each
+    plants = list(range(30)) + list(range(100 * (worker + 1), 100 * (worker + 1) + 20))
     for p in plants:
         store.put(make_record(plant=p, n_leaves=5))  # one transaction per run, as workers do
     print("done", flush=True)
@@ -141,12 +141,12 @@ def test_two_writers_at_once_lose_nothing_and_store_shared_runs_once(store_targe
         assert w.returncode == 0 and out.strip() == "done"
     with Store(store_target) as store:
         counts = store.counts()
-        # 60 shared plants once + 40 own plants per worker, 5 leaves each
+        # 30 shared plants once + 20 own plants per worker, 5 leaves each
         assert (counts["plants"], counts["scans"], counts["runs"], counts["leaves"]) == \
-            (140, 140, 140, 700)
+            (70, 70, 70, 350)
         leaves = store.leaf_traits()
     expected = {(f"P{p:04d}", i, leaf_area(p, 0, i)) for p in
-                [*range(60), *range(100, 140), *range(200, 240)] for i in range(5)}
+                [*range(30), *range(100, 120), *range(200, 220)] for i in range(5)}
     assert set(zip(leaves.plant_id, leaves.leaf_id, leaves.area_mm2)) == expected
 
 
