@@ -1,16 +1,22 @@
 """The ``plantscan`` command.
 
-Every error meant for the user prints as ``path: message`` on stderr with a
-non-zero exit status; tracebacks only with ``PLANTSCAN_DEBUG=1``.
+Every error prints as ``path: message`` on stderr, never as a traceback: exit
+status 2 for an error in the user's input, 1 for an internal error (a bug).  The
+traceback goes to ``run.log`` in the command's run or scan folder (the
+temporary folder otherwise), and to the screen with ``--debug`` or
+``PLANTSCAN_DEBUG=1``.
 """
 
 from __future__ import annotations
 
 import argparse
+import datetime
 import functools
 import json
 import os
 import sys
+import tempfile
+import traceback
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +32,7 @@ from plantscan_core.recipe import (
 )
 
 EXIT_USER_ERROR = 2
+EXIT_INTERNAL_ERROR = 1
 
 
 def _add_recipe_args(p: argparse.ArgumentParser, required: bool = True) -> None:
@@ -274,11 +281,24 @@ def _print_help(parser: argparse.ArgumentParser, args) -> int:
     return EXIT_USER_ERROR
 
 
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
 def build_parser(manager: PluginManager | None = None) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="plantscan",
         description="Turntable 3D scanning and leaf measurement for plant phenotyping.")
     parser.add_argument("--version", action="version", version=f"plantscan {__version__}")
+    parser.add_argument("--debug", action="store_true",
+                        help="print the traceback of an error (always written to run.log)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
     p = sub.add_parser("plugins", help="list loaded and failed plugins by stage")
@@ -336,7 +356,7 @@ def build_parser(manager: PluginManager | None = None) -> argparse.ArgumentParse
     _add_recipe_args(p)
     p.add_argument("--out", default="plantscan-batch", help="output folder for runs + summary")
     p.add_argument("--scheduler", help="address of a running Dask scheduler (default: local)")
-    p.add_argument("--workers", type=int, default=2, help="local workers (default 2)")
+    p.add_argument("--workers", type=positive_int, default=2, help="local workers (default 2)")
     p.add_argument("--calibration", help="use this calibration YAML for every plant instead of "
                    "calibrating each scan (one calibration per session)")
     _add_sample_sheet_arg(p)
@@ -346,8 +366,67 @@ def build_parser(manager: PluginManager | None = None) -> argparse.ArgumentParse
     return parser
 
 
+RUN_LOG = "run.log"
+
+
+def _log_folder(args: argparse.Namespace | None) -> Path:
+    """Where ``run.log`` goes: the run or scan folder of the command when it exists."""
+    for name in ("out", "run", "scan"):
+        value = getattr(args, name, None) if args is not None else None
+        if isinstance(value, str) and Path(value).is_dir():
+            return Path(value)
+    return Path(tempfile.gettempdir())
+
+
+def write_run_log(folder: Path, argv: list[str], exc: BaseException) -> Path | None:
+    """Append the traceback of ``exc`` to ``folder/run.log``; None when it cannot be written.
+
+    Never raises: a full disk or a read-only folder must not hide the error itself.
+    """
+    path = Path(folder) / RUN_LOG
+    text = (f"--- {datetime.datetime.now().isoformat(timespec='seconds')} plantscan "
+            f"{__version__}: plantscan {' '.join(argv)}\n"
+            + "".join(traceback.format_exception(exc)))
+    try:
+        with open(path, "a", encoding="utf-8") as f:
+            f.write(text)
+        return path
+    except Exception:  # noqa: BLE001 - the log is a courtesy; the message on stderr is the error
+        return None
+
+
+def _report(exc: BaseException, argv: list[str], args, debug: bool) -> None:
+    """Print ``exc`` for a user, its traceback to run.log (and to the screen with --debug)."""
+    log = write_run_log(_log_folder(args), argv, exc)
+    where = f" (traceback in {log})" if log is not None else ""
+    if isinstance(exc, RecipeError):
+        for path, msg in exc.errors:
+            print(f"{path}: {msg}" if path else f"{exc.source}: {msg}", file=sys.stderr)
+        print(f"{exc.source}: {len(exc.errors)} error(s)", file=sys.stderr)
+    elif isinstance(exc, PlantScanError):
+        print(f"plantscan: error: {exc}", file=sys.stderr)
+        cause = exc.__cause__
+        if cause is not None and not isinstance(cause, PlantScanError):
+            print(f"  caused by {type(cause).__name__}: {cause}", file=sys.stderr)
+    else:
+        print(f"plantscan: internal error: {type(exc).__name__}: {exc}", file=sys.stderr)
+        print("  hint: this is a bug in plantscan or one of its plugins, not in your input; "
+              f"please report it with run.log{where} (--debug prints it)", file=sys.stderr)
+    if debug:
+        traceback.print_exception(exc, file=sys.stderr)
+
+
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
+    """Run the command; every error is a message on stderr, never a traceback (--debug).
+
+    Exit status: 0 done, 2 an error in the user's input or setup (the message names the
+    file, line, view or parameter), 1 an internal error (a bug: traceback in run.log),
+    130 interrupted.
+    """
+    argv = sys.argv[1:] if argv is None else list(argv)
+    debug = bool(os.environ.get("PLANTSCAN_DEBUG")) or "--debug" in argv
+    argv = [a for a in argv if a != "--debug"]
+    args = None
     try:
         parser = build_parser()
         args = parser.parse_args(argv)
@@ -355,22 +434,17 @@ def main(argv: list[str] | None = None) -> int:
             parser.print_help()
             return EXIT_USER_ERROR
         return int(args.func(args) or 0)
-    except RecipeError as exc:
-        for path, msg in exc.errors:
-            print(f"{path}: {msg}" if path else f"{exc.source}: {msg}", file=sys.stderr)
-        print(f"{exc.source}: {len(exc.errors)} error(s)", file=sys.stderr)
-        return EXIT_USER_ERROR
     except PlantScanError as exc:
-        if os.environ.get("PLANTSCAN_DEBUG"):
-            raise
-        print(f"plantscan: error: {exc}", file=sys.stderr)
-        cause = exc.__cause__
-        if cause is not None and not isinstance(cause, PlantScanError):
-            print(f"  caused by {type(cause).__name__}: {cause}", file=sys.stderr)
-        return 1
+        _report(exc, argv, args, debug)
+        return EXIT_USER_ERROR
     except KeyboardInterrupt:
         print("plantscan: interrupted; everything finished so far is kept", file=sys.stderr)
         return 130
+    except SystemExit:
+        raise  # argparse's own exit (status 2 for a bad argument, 0 for --help)
+    except BaseException as exc:  # noqa: BLE001 - the top level: no traceback reaches a user
+        _report(exc, argv, args, debug)
+        return EXIT_INTERNAL_ERROR
 
 
 if __name__ == "__main__":

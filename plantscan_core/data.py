@@ -463,16 +463,16 @@ class Calibration:
 
     @classmethod
     def load(cls, path: Path) -> Calibration:
-        import yaml
-
+        """Read a calibration file, every number checked (``plantscan_core.calibfile``)."""
+        from plantscan_core.calibfile import check_calibration_dict
         from plantscan_core.errors import DataError
+        from plantscan_core.userfiles import load_yaml
 
-        try:
-            return cls.from_dict(yaml.safe_load(Path(path).read_text()))
-        except FileNotFoundError:
-            raise DataError(f"{path}: calibration file not found") from None
-        except (KeyError, TypeError, ValueError, yaml.YAMLError) as exc:
-            raise DataError(f"{path}: not a plantscan calibration ({exc})") from exc
+        if not Path(path).exists():
+            raise DataError(f"{path}: calibration file not found")
+        raw = load_yaml(path)
+        check_calibration_dict(raw, str(path))
+        return cls.from_dict(raw)
 
 
 def _plain(obj: Any) -> Any:
@@ -811,9 +811,14 @@ class Traits:
 
 
 def mean_relative_error(truth: Iterable[float], measured: Iterable[float]) -> float:
-    """The seed's ε = mean(|truth − measurement| / truth)."""
+    """The seed's ε = mean(|truth − measurement| / truth).
+
+    Pairs whose truth is not a positive finite number (a closed external mesh has
+    perimeter 0) have no relative error and are left out; NaN when none is left.
+    """
     t = np.asarray(list(truth), dtype=float)
     m = np.asarray(list(measured), dtype=float)
-    if t.size == 0:
+    defined = np.isfinite(t) & (t > 0)
+    if not defined.any():
         return float("nan")
-    return float(np.mean(np.abs(t - m) / t))
+    return float(np.mean(np.abs(t[defined] - m[defined]) / t[defined]))

@@ -11,17 +11,18 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Literal
 
-import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import ConfigDict, Field, ValidationError, field_validator
 
+from plantscan_core.bounds import CheckedModel, FiniteFloat, ImageSidePx
 from plantscan_core.data import ROLES
 from plantscan_core.errors import PluginError, RecipeError
 from plantscan_core.metadata import ExperimentSpec, PlantSpec
 from plantscan_core.steps import CORE_TABLE, StageTable
+from plantscan_core.userfiles import InputFileError, load_yaml, parse_yaml
 
 
-class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+class _Model(CheckedModel):
+    pass
 
 
 class StageSpec(_Model):
@@ -52,7 +53,7 @@ class RoleSpec(_Model):
     """How one role of the protocol is captured; unset fields fall back to the scan's."""
 
     enabled: bool = True
-    tilts_deg: list[float] | None = None
+    tilts_deg: list[FiniteFloat] | None = Field(default=None, min_length=1)
     images_per_revolution: int | None = Field(default=None, ge=1, le=3600)
 
 
@@ -72,9 +73,9 @@ class ScanSpec(_Model):
     turntable: StageSpec
     tilt_arm: StageSpec | None = None
     scene: StageSpec | None = None
-    tilts_deg: list[float] = Field(default_factory=lambda: [0.0], min_length=1)
+    tilts_deg: list[FiniteFloat] = Field(default_factory=lambda: [0.0], min_length=1)
     images_per_revolution: int = Field(default=36, ge=1, le=3600)
-    image_size: tuple[int, int] = (1200, 800)
+    image_size: tuple[ImageSidePx, ImageSidePx] = (1200, 800)
     image_format: Literal["png", "jpg"] = "png"
     jpeg_quality: int = Field(default=95, ge=1, le=100)
     roles: dict[str, RoleSpec] = Field(default_factory=_default_roles)
@@ -172,9 +173,9 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     if not keys:
         raise RecipeError([("--set", f"{text!r}: empty path")])
     try:
-        parsed = yaml.safe_load(value) if value.strip() else ""
-    except yaml.YAMLError as exc:
-        raise RecipeError([(path, f"--set value {value!r} is not valid YAML: {exc}")]) from exc
+        parsed = parse_yaml(value, "--set") if value.strip() else ""
+    except InputFileError as exc:
+        raise RecipeError([(path, f"--set value {value!r}: {exc.detail}")], "--set") from None
     return keys, parsed
 
 
@@ -271,9 +272,14 @@ def _check_protocol(recipe: Recipe) -> list[tuple[str, str]]:
     scan = recipe.scan
     if len(scan.tilts_deg) > 1 and scan.tilt_arm is None:
         errors.append(("scan.tilt_arm", f"{len(scan.tilts_deg)} tilts need a tilt_arm axis"))
-    for t in scan.tilts_deg:
-        if not -90.0 <= t <= 90.0:
-            errors.append(("scan.tilts_deg", f"tilt {t} outside [-90, 90] deg"))
+    # Checked here, not in the model, so that a bad tilt does not hide the other protocol errors.
+    tilt_lists = [("scan.tilts_deg", scan.tilts_deg)] + [
+        (f"scan.roles.{role}.tilts_deg", spec.tilts_deg) for role, spec in scan.roles.items()
+        if spec.tilts_deg is not None]
+    for where, tilts in tilt_lists:
+        for i, t in enumerate(tilts):
+            if not -90.0 <= t <= 90.0:
+                errors.append((f"{where}.{i}", f"tilt {t:g} outside [-90, 90] deg"))
     if "plant" in scan.roles and scan.roles["plant"].enabled and "background" in scan.roles:
         bg, pl = set(scan.role_tilts("background")), set(scan.role_tilts("plant"))
         if scan.roles["background"].enabled and not pl <= bg:
@@ -330,17 +336,13 @@ def _check_plugins_raw(raw: dict[str, Any], registry) -> list[tuple[str, str]]:
 
 
 def read_recipe_file(path: Path) -> dict[str, Any]:
+    """The raw recipe mapping of a YAML file (UTF-8, bounded; ``RecipeError`` naming file:line)."""
     path = Path(path)
     try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise RecipeError([("", "file not found")], str(path)) from None
-    except OSError as exc:
-        raise RecipeError([("", f"cannot read: {exc}")], str(path)) from exc
-    try:
-        raw = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise RecipeError([("", f"not valid YAML: {exc}")], str(path)) from exc
+        raw = load_yaml(path)
+    except InputFileError as exc:
+        where = f"{path}:{exc.line}" if exc.line is not None else str(path)
+        raise RecipeError([("", exc.detail)], where) from None
     return raw if raw is not None else {}
 
 

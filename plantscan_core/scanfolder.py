@@ -22,19 +22,39 @@ import os
 import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path, PurePosixPath
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import yaml
+from pydantic import ConfigDict, Field, ValidationError
 
+from plantscan_core.bounds import AngleDeg, CheckedModel
 from plantscan_core.data import ROLES, ViewRecord
 from plantscan_core.errors import DataError, ScanFolderError
+from plantscan_core.userfiles import InputFileError, load_yaml, parse_json_line, read_bytes
 
 SCAN_YAML = "scan.yaml"
 VIEWS_JSONL = "views.jsonl"
 IMAGES_DIR = "images"
 GROUND_TRUTH_DIR = "ground_truth"
 FORMAT = "plantscan-scan/1"
+
+
+class ViewLine(CheckedModel):
+    """The checks on one line of ``views.jsonl`` (read into a ``ViewRecord``)."""
+
+    model_config = ConfigDict(extra="ignore")  # lines of newer versions may carry more
+
+    index: int = Field(ge=0, le=10_000_000)
+    role: Literal[ROLES]  # type: ignore[valid-type]
+    camera: str = Field(min_length=1, max_length=200)
+    tilt_index: int = Field(ge=0, le=100_000)
+    tilt_deg: float = Field(ge=-90.0, le=90.0)
+    angle_index: int = Field(ge=0, le=10_000_000)
+    commanded_angle_deg: AngleDeg
+    measured_angle_deg: AngleDeg | None = None
+    file: str = Field(min_length=1, max_length=4096)
+    captured_at: str = ""
 
 
 def _fsync_dir(path: Path) -> None:
@@ -126,9 +146,9 @@ class ScanFolder:
         if not meta.exists():
             raise ScanFolderError(f"{meta}: missing; {root} is not a plantscan scan folder")
         try:
-            info = yaml.safe_load(meta.read_text()) or {}
-        except yaml.YAMLError as exc:
-            raise ScanFolderError(f"{meta}: not valid YAML ({exc})") from exc
+            info = load_yaml(meta) or {}
+        except InputFileError as exc:
+            raise ScanFolderError(str(exc)) from None
         if not isinstance(info, dict):
             raise ScanFolderError(f"{meta}: must be a mapping")
         scan = cls(root, info, [])
@@ -136,24 +156,47 @@ class ScanFolder:
         return scan
 
     def _read_views(self) -> list[ViewRecord]:
+        """The manifest's views; a torn last line is left out (``torn_line`` says which)."""
         path = self.root / VIEWS_JSONL
+        self.torn_line: int | None = None
         if not path.exists():
             return []
-        data = path.read_bytes()
+        try:
+            data = read_bytes(path)
+        except InputFileError as exc:
+            raise ScanFolderError(str(exc)) from None
         lines = data.split(b"\n")
-        torn = lines[-1] != b""  # last line without newline: a crash during the append
+        if lines[-1] != b"":  # last line without newline: a crash during the append
+            self.torn_line = len(lines)
         views: list[ViewRecord] = []
-        for n, line in enumerate(lines[:-1] if not torn else lines[:-1], start=1):
+        first_line: dict[tuple[str, Any], int] = {}
+        for n, line in enumerate(lines[:-1], start=1):
             if not line.strip():
                 continue
             try:
-                d = json.loads(line)
+                d = parse_json_line(line, path, n)
+                if not isinstance(d, dict):
+                    raise ValueError("a view line is a JSON object")
+                ViewLine.model_validate(d)
                 view = ViewRecord.from_dict(d)
+            except InputFileError as exc:
+                raise ScanFolderError(str(exc)) from None
+            except ValidationError as exc:
+                problems = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}"
+                                     for e in exc.errors())
+                raise ScanFolderError(f"{path}:{n}: malformed view line ({problems})") from None
             except (ValueError, KeyError, TypeError) as exc:
                 raise ScanFolderError(f"{path}:{n}: malformed view line ({exc})") from exc
-            if view.role not in ROLES:
-                raise ScanFolderError(f"{path}:{n}: unknown role {view.role!r}")
             self._check_relative(view.file, f"{path}:{n}")
+            # Two lines for one index, protocol stop or file would both write masks/<index>.png
+            # or count one image twice: refused, naming both lines.
+            for what, value in (("index", view.index), ("view", view.key),
+                                ("file", PurePosixPath(view.file).as_posix())):
+                earlier = first_line.setdefault((what, value), n)
+                if earlier != n:
+                    raise ScanFolderError(
+                        f"{path}:{n}: repeats the {what} {value!r} of line {earlier} (a copied "
+                        "or merged manifest?); remove one of the two lines")
             views.append(view)
         return views
 
@@ -248,11 +291,63 @@ class ScanFolder:
         return f"ScanFolder({str(self.root)!r}, {len(self._views)} views)"
 
 
+JPEG_SUFFIXES = (".jpg", ".jpeg", ".jpe", ".jfif")
+
+# EXIF orientation -> the transform OpenCV's imread applies (verified pixel for pixel).
+_ORIENT = {2: lambda a: a[:, ::-1], 3: lambda a: a[::-1, ::-1], 4: lambda a: a[::-1],
+           5: lambda a: a.swapaxes(0, 1), 6: lambda a: a.swapaxes(0, 1)[:, ::-1],
+           7: lambda a: a.swapaxes(0, 1)[::-1, ::-1], 8: lambda a: a.swapaxes(0, 1)[::-1]}
+
+
+def _decode_jpeg(path: Path, reduce: int, grayscale: bool) -> np.ndarray:
+    """Decode a JPEG strictly: a truncated or corrupt file is an error, never grey fill.
+
+    libjpeg repairs a damaged stream with grey (or garbage) blocks and only
+    warns on stderr, which OpenCV's ``imread`` passes by; libjpeg-turbo through
+    ``simplejpeg`` with ``strict=True`` raises on the same warnings.  Output is
+    identical to ``cv2.imread`` (same DCT scaling, upsampling and EXIF orientation;
+    tests/core/test_scanfolder.py checks it pixel for pixel).
+    """
+    import simplejpeg
+
+    data = path.read_bytes()
+    try:
+        h, w, _, _ = simplejpeg.decode_jpeg_header(data)
+        img = simplejpeg.decode_jpeg(data, "GRAY" if grayscale else "BGR",
+                                     min_height=-(-h // reduce), min_width=-(-w // reduce),
+                                     strict=True)
+    except ValueError as exc:
+        raise DataError(f"{path}: corrupt or truncated JPEG ({exc}); the image cannot be "
+                        "trusted: capture it again, or set segment.bad_images: skip") from None
+    if grayscale:
+        img = img[..., 0]
+    orientation = _exif_orientation(data)
+    if orientation in _ORIENT:
+        img = np.ascontiguousarray(_ORIENT[orientation](img))
+    return img
+
+
+def _exif_orientation(data: bytes) -> int:
+    """The EXIF orientation tag of a JPEG (1 when absent); reads the header only."""
+    if b"Exif" not in data[:65536]:
+        return 1
+    import io
+
+    from PIL import Image
+
+    try:
+        with Image.open(io.BytesIO(data)) as im:
+            return int(im.getexif().get(0x0112, 1))
+    except (OSError, ValueError, SyntaxError):
+        return 1
+
+
 def read_image(path: Path, reduce: int = 1, grayscale: bool = False) -> np.ndarray:
     """Decode an image file as ``(H, W, 3) uint8`` BGR (``(H, W)`` with ``grayscale``).
 
     Every decode of a scan image goes through here, so ``iostats`` counts them.
-    ``DataError`` naming the file when it is missing or undecodable.
+    ``DataError`` naming the file when it is missing, truncated or corrupt
+    (JPEG through ``_decode_jpeg``; PNG's CRCs make OpenCV refuse a damaged one).
     """
     import cv2
 
@@ -269,7 +364,10 @@ def read_image(path: Path, reduce: int = 1, grayscale: bool = False) -> np.ndarr
     path = Path(path)
     if not path.exists():
         raise DataError(f"{path}: image file not found")
-    img = cv2.imread(str(path), flags[reduce])
+    if path.suffix.lower() in JPEG_SUFFIXES:
+        img = _decode_jpeg(path, reduce, grayscale)
+    else:
+        img = cv2.imread(str(path), flags[reduce])
     iostats.count_decode(path)
     if img is None:
         raise DataError(f"{path}: cannot decode image (corrupt or unsupported format)")

@@ -27,8 +27,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict
 
+from plantscan_core.bounds import CheckedModel
 from plantscan_core.data import (
     Calibration,
     LabelledMesh,
@@ -45,10 +45,8 @@ if TYPE_CHECKING:
     from plantscan_core.scanfolder import ScanFolder
 
 
-class StageParams(BaseModel):
-    """Base of every plugin's ``Params``: unknown keys are errors."""
-
-    model_config = ConfigDict(extra="forbid")
+class StageParams(CheckedModel):
+    """Base of every plugin's ``Params``: unknown keys are errors, every float is finite."""
 
 
 @dataclass

@@ -17,15 +17,18 @@ frame is COLMAP's: the pot fit assumes +Z up, so the recipe turns it off.
 from __future__ import annotations
 
 import argparse
+import math
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from plantscan_core.bounds import MAX_IMAGE_SIDE_PX
 from plantscan_core.data import Calibration, CameraModel, Pose, ViewRecord
 from plantscan_core.errors import DataError
 from plantscan_core.scanfolder import ScanFolder, atomic_write_bytes, now_iso
+from plantscan_core.userfiles import read_text
 
 SUPPORTED = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
 FOCAL_RTOL = 0.02  # a real pixel aspect ratio is within 1e-3 of 1; 2 % is a mistyped line
@@ -40,47 +43,81 @@ class ColmapImage:
     name: str
 
 
-def _lines(path: Path) -> list[tuple[int, str]]:
+# Parameters of each supported COLMAP camera model, in the order of cameras.txt.
+MODEL_PARAMS = {"SIMPLE_PINHOLE": ("f", "cx", "cy"), "PINHOLE": ("fx", "fy", "cx", "cy"),
+                "SIMPLE_RADIAL": ("f", "cx", "cy", "k"), "RADIAL": ("f", "cx", "cy", "k1", "k2"),
+                "OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2")}
+MAX_ABS = 1e9  # no focal, centre, distortion or translation of a real model is larger
+
+
+def _read(path: Path) -> list[str]:
     if not path.exists():
         raise DataError(f"{path}: not found (a COLMAP text model needs cameras.txt and "
                         "images.txt; export it with `colmap model_converter --output_type TXT`)")
-    return [(n, line) for n, line in enumerate(path.read_text().splitlines(), start=1)
+    return read_text(path).splitlines()
+
+
+def _lines(path: Path) -> list[tuple[int, str]]:
+    return [(n, line) for n, line in enumerate(_read(path), start=1)
             if line.strip() and not line.lstrip().startswith("#")]
+
+
+def _numbers(tokens: list[str], where: str, what: str) -> np.ndarray:
+    """``tokens`` as finite floats of at most ``MAX_ABS``; ``DataError`` naming the value."""
+    try:
+        values = np.array([float(t) for t in tokens], dtype=float)
+    except ValueError as exc:
+        raise DataError(f"{where}: {what}: {exc}") from None
+    bad = [t for t, v in zip(tokens, values) if not (np.isfinite(v) and abs(v) <= MAX_ABS)]
+    if bad:
+        raise DataError(f"{where}: {what} must be finite numbers of at most {MAX_ABS:g}, "
+                        f"got {', '.join(bad)}")
+    return values
 
 
 def read_cameras(path: Path) -> dict[int, CameraModel]:
     """cameras.txt -> plantscan camera models (pixel centres converted)."""
     out = {}
+    first: dict[int, int] = {}
     for n, line in _lines(path):
         parts = line.split()
+        if len(parts) < 4:
+            raise DataError(f"{path}:{n}: malformed camera line (expected CAMERA_ID MODEL "
+                            f"WIDTH HEIGHT PARAMS..., got {len(parts)} fields)")
         try:
             cam_id, model, w, h = int(parts[0]), parts[1], int(parts[2]), int(parts[3])
-            p = [float(x) for x in parts[4:]]
-        except (IndexError, ValueError) as exc:
+        except ValueError as exc:
             raise DataError(f"{path}:{n}: malformed camera line ({exc})") from None
         where = f"{path}:{n} (camera {cam_id}, {model})"
-        aspect = 1.0
-        if model == "SIMPLE_PINHOLE":
-            f, cx, cy, d1, d2 = p[0], p[1], p[2], 0.0, 0.0
-        elif model == "PINHOLE":
-            fx, fy, cx, cy = p[:4]
-            f, aspect, d1, d2 = fx, _aspect(fx, fy, where), 0.0, 0.0
-        elif model == "SIMPLE_RADIAL":
-            f, cx, cy, d1, d2 = p[0], p[1], p[2], p[3], 0.0
-        elif model == "RADIAL":
-            f, cx, cy, d1, d2 = p[:5]
-        elif model == "OPENCV":
-            fx, fy, cx, cy, d1, d2, p1, p2 = p[:8]
-            f, aspect = fx, _aspect(fx, fy, where)
-            if abs(p1) > 1e-9 or abs(p2) > 1e-9:
-                raise DataError(
-                    f"{where}: tangential distortion (p1={p1:g}, p2={p2:g}) is not in "
-                    "plantscan's camera model (f, cu, cv, d1, d2); undistort the images "
-                    "first (`colmap image_undistorter`) and import the PINHOLE model")
-        else:
+        if model not in MODEL_PARAMS:
             raise DataError(f"{where}: camera model not supported; valid: {', '.join(SUPPORTED)}")
-        out[cam_id] = CameraModel(f=f, cu=cx - 0.5, cv=cy - 0.5, d1=d1, d2=d2, width=w, height=h,
-                                  aspect=aspect)
+        names = MODEL_PARAMS[model]
+        if len(parts) - 4 != len(names):
+            raise DataError(f"{where}: {len(parts) - 4} parameters, the model has "
+                            f"{len(names)} ({' '.join(names)})")
+        if not (0 < w <= MAX_IMAGE_SIDE_PX and 0 < h <= MAX_IMAGE_SIDE_PX):
+            raise DataError(f"{where}: image size {w}x{h} px out of range "
+                            f"(1..{MAX_IMAGE_SIDE_PX})")
+        if cam_id in first:
+            raise DataError(f"{where}: camera id {cam_id} is defined again (first at line "
+                            f"{first[cam_id]})")
+        first[cam_id] = n
+        p = dict(zip(names, _numbers(parts[4:], where, "parameters")))
+        for focal in ("f", "fx", "fy"):
+            if focal in p and p[focal] <= 0:
+                raise DataError(f"{where}: focal length {focal}={p[focal]:g} must be > 0")
+        aspect = 1.0
+        f = p.get("f", p.get("fx"))
+        if "fy" in p:
+            aspect = _aspect(p["fx"], p["fy"], where)
+        d1, d2 = p.get("k", p.get("k1", 0.0)), p.get("k2", 0.0)
+        if abs(p.get("p1", 0.0)) > 1e-9 or abs(p.get("p2", 0.0)) > 1e-9:
+            raise DataError(
+                f"{where}: tangential distortion (p1={p['p1']:g}, p2={p['p2']:g}) is not in "
+                "plantscan's camera model (f, cu, cv, d1, d2); undistort the images "
+                "first (`colmap image_undistorter`) and import the PINHOLE model")
+        out[cam_id] = CameraModel(f=float(f), cu=float(p["cx"]) - 0.5, cv=float(p["cy"]) - 0.5,
+                                  d1=float(d1), d2=float(d2), width=w, height=h, aspect=aspect)
     if not out:
         raise DataError(f"{path}: no camera")
     return out
@@ -94,13 +131,32 @@ def _aspect(fx: float, fy: float, where: str) -> float:
     return fy / fx
 
 
+def _looks_like_image_line(parts: list[str]) -> bool:
+    """IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME: not a (X, Y, POINT3D_ID) triple list."""
+    if len(parts) < 10:
+        return False
+    try:
+        int(parts[0]), [float(x) for x in parts[1:8]], int(parts[8])
+    except ValueError:
+        return False
+    return len(parts) % 3 != 0 or not _is_number(parts[9])
+
+
+def _is_number(token: str) -> bool:
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
+
+
 def read_images(path: Path) -> list[ColmapImage]:
-    """images.txt -> posed images (the 2D point lines are skipped)."""
-    out = []
-    lines = path.read_text().splitlines() if path.exists() else None
-    if lines is None:
-        _lines(path)  # raises the not-found error
+    """images.txt -> posed images (the 2D point lines are skipped, their shape checked)."""
+    lines = _read(path)
     body = [(n, ln) for n, ln in enumerate(lines, start=1) if not ln.lstrip().startswith("#")]
+    out = []
+    first_id: dict[int, int] = {}
+    first_name: dict[str, int] = {}
     # Pairs of lines; the second (2D points) may be empty, so pair by position.
     i = 0
     while i < len(body):
@@ -109,14 +165,34 @@ def read_images(path: Path) -> list[ColmapImage]:
             i += 1
             continue
         parts = line.split()
+        if len(parts) < 10:
+            raise DataError(f"{path}:{n}: malformed image line (expected IMAGE_ID QW QX QY QZ "
+                            f"TX TY TZ CAMERA_ID NAME, got {len(parts)} fields)")
         try:
-            img = ColmapImage(int(parts[0]), np.array(parts[1:5], dtype=float),
-                              np.array(parts[5:8], dtype=float), int(parts[8]),
-                              " ".join(parts[9:]))
-        except (IndexError, ValueError) as exc:
+            image_id, camera_id = int(parts[0]), int(parts[8])
+        except ValueError as exc:
             raise DataError(f"{path}:{n}: malformed image line ({exc})") from None
-        if not img.name:
-            raise DataError(f"{path}:{n}: image line without a file name")
+        where = f"{path}:{n} (image {image_id})"
+        q = _numbers(parts[1:5], where, "quaternion QW QX QY QZ")
+        t = _numbers(parts[5:8], where, "translation TX TY TZ")
+        if np.linalg.norm(q) < 1e-6:
+            raise DataError(f"{where}: the quaternion {' '.join(parts[1:5])} is zero (no "
+                            "rotation); check the line")
+        img = ColmapImage(image_id, q, t, camera_id, " ".join(parts[9:]))
+        if image_id in first_id:
+            raise DataError(f"{where}: image id {image_id} is used again (first at line "
+                            f"{first_id[image_id]})")
+        if img.name in first_name:
+            raise DataError(f"{where}: image name {img.name!r} is listed again (first at line "
+                            f"{first_name[img.name]})")
+        first_id[image_id], first_name[img.name] = n, n
+        if i + 1 < len(body):
+            m, points = body[i + 1]
+            if _looks_like_image_line(points.split()):
+                raise DataError(
+                    f"{path}:{m}: an image line where the 2D points line of image {image_id} "
+                    f"(line {n}) belongs: every image takes two lines (leave the second empty "
+                    "when it has no points); the model would lose every other image")
         out.append(img)
         i += 2
     if not out:
@@ -166,8 +242,8 @@ def import_colmap(sparse_dir: Path, images_dir: Path, out: Path, masks_dir: Path
     import cv2
 
     sparse_dir, images_dir, out = Path(sparse_dir), Path(images_dir), Path(out)
-    if scale <= 0:
-        raise ValueError(f"scale must be > 0 mm per model unit, got {scale}")
+    if not (math.isfinite(scale) and 0 < scale <= MAX_ABS):
+        raise DataError(f"--scale: must be a finite number > 0 (mm per model unit), got {scale}")
     cameras = read_cameras(sparse_dir / "cameras.txt")
     images = read_images(sparse_dir / "images.txt")
     missing_cam = sorted({im.camera_id for im in images} - set(cameras))

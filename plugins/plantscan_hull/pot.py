@@ -17,9 +17,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 from scipy import ndimage
 
+from plantscan_core.bounds import CheckedModel
 from plantscan_core.data import Volume
 
 # A slice is disc-like when its area fills this fraction of the disc through its
@@ -42,10 +43,8 @@ MIN_POT_RADIUS_VOXELS = 3.0
 STEM_RADIUS_FRACTION = 0.25
 
 
-class TaperedCylinder(BaseModel):
+class TaperedCylinder(CheckedModel):
     """A vertical tapered cylinder (pot, carrier), mm, turntable frame."""
-
-    model_config = ConfigDict(extra="forbid")
 
     z_bottom_mm: float
     z_top_mm: float

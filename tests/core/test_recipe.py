@@ -54,7 +54,7 @@ def test_protocol_errors(tiny_rig_manager):
         validate_recipe(raw, tiny_rig_manager.registry)
     msgs = dict(info.value.errors)
     assert "3 tilts need a tilt_arm axis" in msgs["scan.tilt_arm"]
-    assert "120" in msgs["scan.tilts_deg"]
+    assert "120" in msgs["scan.tilts_deg.2"]
 
 
 def test_overrides_apply_and_are_validated(tiny_rig_manager):
