@@ -41,6 +41,7 @@ import dataclasses
 import errno
 import os
 import signal
+import sys
 import threading
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -49,6 +50,7 @@ from typing import Any
 
 from plantscan_core.data import ViewRecord
 from plantscan_core.errors import HardwareError, PlantScanError, ScanFolderError
+from plantscan_core.lock import FolderLock
 from plantscan_core.plugins import PluginManager
 from plantscan_core.recipe import Recipe
 from plantscan_core.scanfolder import IMAGES_DIR, ScanFolder, now_iso
@@ -297,10 +299,22 @@ def acquire(
     KeyboardInterrupt
         Ctrl-C or SIGTERM: axes stopped, exposed images kept, devices closed.
     """
+    lock = FolderLock(Path(out), "scan folder")
+    try:
+        return _acquire(recipe, Path(out), manager, lock, raw_recipe, resume, stop_after,
+                        on_role_start, progress)
+    finally:
+        lock.release()
+
+
+def _acquire(recipe: Recipe, out: Path, manager: PluginManager, lock: FolderLock,
+             raw_recipe: dict | None, resume: bool, stop_after: int | None,
+             on_role_start: Callable[[str], None] | None, progress: bool) -> ScanFolder:
+    """``acquire``, with ``lock`` taken before the folder is opened or created."""
     raw_recipe = raw_recipe if raw_recipe is not None else recipe.model_dump(mode="json")
-    out = Path(out)
     scan = None
     if resume:
+        _take(lock)
         scan = ScanFolder.open(out)
         old = scan.info.get("recipe") or {}
         if _protocol_of(old) != _protocol_of(raw_recipe):
@@ -334,6 +348,7 @@ def acquire(
         return (scene.now() if scene is not None else None) or now_iso()
 
     if scan is None:
+        _take(lock)
         scan = ScanFolder.create(out, {**_scan_info(recipe, raw_recipe), "created": clock()})
         context.scan = scan
 
@@ -349,6 +364,13 @@ def acquire(
                    clock)
         run.execute(todo, progress)
     return scan
+
+
+def _take(lock: FolderLock) -> None:
+    """Take the scan folder's lock; say so when an earlier scan there was killed."""
+    lock.acquire()
+    if lock.stale_message():
+        print(f"plantscan: warning: {lock.stale_message()}", file=sys.stderr)
 
 
 class _Run:
