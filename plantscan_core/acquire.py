@@ -299,7 +299,7 @@ def acquire(
     KeyboardInterrupt
         Ctrl-C or SIGTERM: axes stopped, exposed images kept, devices closed.
     """
-    lock = FolderLock(Path(out), "scan folder")
+    lock = FolderLock(Path(out), "scan folder", ScanFolderError)
     try:
         return _acquire(recipe, Path(out), manager, lock, raw_recipe, resume, stop_after,
                         on_role_start, progress)

@@ -15,8 +15,9 @@ from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-MAX_MAGNITUDE = 1e9
-"""No quantity of a tabletop scanner, in mm, deg, s, px or a ratio, is larger (1000 km)."""
+MAX_MAGNITUDE = 1e15
+"""No user number is larger: a product of two stays far from overflow (1e30, float64 holds
+1e308), and 1e12 still reads as "instantaneous" (an emulator's acceleration in deg/s²)."""
 
 MAX_LENGTH_MM = 100_000.0
 """A rig, a plant and a camera distance fit in 100 m."""

@@ -23,6 +23,7 @@ from typing import Any
 from plantscan_core import __version__
 from plantscan_core.errors import PlantScanError, RecipeError
 from plantscan_core.plugins import PluginManager, get_manager
+from plantscan_core.preflight import FORCE_ENV, check_recipe, recipe_estimates, recipe_plan
 from plantscan_core.recipe import (
     apply_overrides,
     read_recipe_file,
@@ -123,7 +124,9 @@ def cmd_scan(args) -> int:
                                      "plant.id=...)")], args.sample_sheet)
         raw = apply_to_raw_recipe(raw, row)
         recipe = validate_recipe(raw, manager.registry, f"{args.recipe} + {args.sample_sheet}")
+    _set_force(args)
     if args.dry_run:
+        _print_estimates(recipe, manager)
         try:
             from plantscan_core.timing import estimate_scan_time
         except ImportError:
@@ -133,6 +136,7 @@ def cmd_scan(args) -> int:
         return 0
     if args.out is None:
         raise PlantScanError("--out: required (the scan folder to write)")
+    check_recipe(recipe, manager.registry)  # before any motor moves
     interactive = recipe.scan.scene is None and sys.stdin.isatty()
 
     def on_role_start(role: str) -> None:
@@ -193,6 +197,8 @@ def cmd_process(args) -> int:
         sheet = load_sample_sheet(args.sample_sheet)
         metadata = sheet.metadata_for(recipe.plant, recipe.experiment, Path(args.scan),
                                       ScanFolder.open(Path(args.scan)).info)
+    _set_force(args)
+    check_recipe(recipe, manager.registry, _captured_size(Path(args.scan)))
     out = Path(args.out) if args.out else Path(args.scan).with_name(Path(args.scan).name + "-run")
     result = process(Path(args.scan), recipe, out, manager, raw_recipe=raw,
                      overrides=args.overrides, progress=sys.stderr.isatty(),
@@ -208,6 +214,32 @@ def cmd_process(args) -> int:
     else:
         print(f"{out}: run written")
     return 0
+
+
+def _set_force(args) -> None:
+    if getattr(args, "force", False):
+        os.environ[FORCE_ENV] = "1"  # the stages' own checks (and Dask workers) see it too
+
+
+def _print_estimates(recipe, manager) -> None:
+    for est in recipe_estimates(recipe, manager.registry, recipe_plan(recipe)):
+        print(f"estimate: {est.describe()}")
+
+
+def _captured_size(scan_dir: Path) -> tuple[int, int] | None:
+    """Width and height of a scan's first plant image (header only), or None."""
+    from PIL import Image, UnidentifiedImageError
+
+    from plantscan_core.scanfolder import ScanFolder
+
+    scan = ScanFolder.open(scan_dir)
+    for view in scan.views_by_role("plant")[:1]:
+        try:
+            with Image.open(scan.root / view.file) as im:
+                return im.size
+        except (OSError, UnidentifiedImageError):
+            return None  # the segment stage names the file
+    return None
 
 
 def profile_table(info: dict[str, Any]) -> str:
@@ -261,6 +293,7 @@ def cmd_demo(args) -> int:
 
 
 def cmd_batch(args) -> int:
+    _set_force(args)
     try:
         from plantscan_core.batch import run_batch
     except ImportError as exc:
@@ -290,6 +323,11 @@ def positive_int(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
     return value
+
+
+def _add_force(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--force", action="store_true",
+                   help="go on when the memory estimate says the machine cannot hold a stage")
 
 
 def build_parser(manager: PluginManager | None = None) -> argparse.ArgumentParser:
@@ -323,6 +361,7 @@ def build_parser(manager: PluginManager | None = None) -> argparse.ArgumentParse
     p.add_argument("--dry-run", action="store_true",
                    help="check the recipe and print the timing model; move nothing")
     _add_sample_sheet_arg(p)
+    _add_force(p)
     p.set_defaults(func=cmd_scan)
 
     p = sub.add_parser("calibrate", help="calibrate the rig from a scan's calibration views")
@@ -338,6 +377,7 @@ def build_parser(manager: PluginManager | None = None) -> argparse.ArgumentParse
     p.add_argument("--out", help="run folder (default SCAN-run beside the scan)")
     p.add_argument("--profile", action="store_true", help="print seconds per stage")
     _add_sample_sheet_arg(p)
+    _add_force(p)
     p.set_defaults(func=cmd_process)
 
     p = sub.add_parser("evaluate", help="compare a run with the virtual scanner's truth (JSON)")
@@ -357,6 +397,7 @@ def build_parser(manager: PluginManager | None = None) -> argparse.ArgumentParse
     p.add_argument("--out", default="plantscan-batch", help="output folder for runs + summary")
     p.add_argument("--scheduler", help="address of a running Dask scheduler (default: local)")
     p.add_argument("--workers", type=positive_int, default=2, help="local workers (default 2)")
+    _add_force(p)
     p.add_argument("--calibration", help="use this calibration YAML for every plant instead of "
                    "calibrating each scan (one calibration per session)")
     _add_sample_sheet_arg(p)

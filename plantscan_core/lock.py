@@ -65,6 +65,7 @@ class FolderLock:
     ----------
     folder : Path, created when missing.
     what : str, what the folder is, for messages ("run folder", "scan folder").
+    error : the error class raised when the folder cannot be created or locked.
 
     Attributes
     ----------
@@ -73,7 +74,9 @@ class FolderLock:
         releasing the lock (killed), else None.
     """
 
-    def __init__(self, folder: Path, what: str = "folder") -> None:
+    def __init__(self, folder: Path, what: str = "folder",
+                 error: type[PlantScanError] = PlantScanError) -> None:
+        self.error = error  # raised when the folder cannot be created or locked
         self.folder = Path(folder)
         self.what = what
         self.path = self.folder / LOCK_FILE
@@ -85,7 +88,7 @@ class FolderLock:
             self.folder.mkdir(parents=True, exist_ok=True)
             fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
         except OSError as exc:
-            raise PlantScanError(f"{self.folder}: cannot write the {self.what} "
+            raise self.error(f"{self.folder}: cannot write the {self.what} "
                                  f"({exc.strerror})") from exc
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -93,7 +96,7 @@ class FolderLock:
             holder = _read_record(fd)
             os.close(fd)
             if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-                raise PlantScanError(f"{self.path}: cannot lock the {self.what} "
+                raise self.error(f"{self.path}: cannot lock the {self.what} "
                                      f"({exc.strerror})") from exc
             raise FolderBusyError(
                 f"{self.folder}: another plantscan is writing this {self.what} "

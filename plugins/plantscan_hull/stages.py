@@ -13,6 +13,7 @@ from pydantic import Field, field_validator
 
 from plantscan_core.data import Calibration, Mesh, Silhouettes, Volume
 from plantscan_core.errors import DataError
+from plantscan_core.preflight import WorkEstimate, WorkPlan, check
 from plantscan_core.stages import Mesher, Reconstructor, StageParams
 from plantscan_hull.bbox import BoundingBoxError, auto_box, touching_faces
 from plantscan_hull.carve import Grid, carve_dense, carve_octree
@@ -44,6 +45,34 @@ def resolve_k(k: int | str, n_views: int) -> int:
     if k == "auto":
         return max(K_AUTO_MIN, round(K_AUTO_FRACTION * n_views))
     return int(k)
+
+
+# The hull's memory, measured (tests/hull/test_hull_memory.py checks the model at 256^3 and
+# 512^3 against the peak RSS of a real carve): the float32 field plus one bool mask of the grid
+# (the thin-part rescue, the clipping test) at once, 5 bytes per voxel; the int16 distance
+# tables, 2 bytes per pixel of each view's plant box; and, the first time a process carves,
+# ~130 MB for loading the compiled kernels.
+HULL_BYTES_PER_VOXEL = 5
+HULL_BYTES_PER_TABLE_PX = 2
+KERNEL_LOAD_BYTES = 130_000_000
+# Time: the carve at 512^3 with 360 views of 1500x1000 px takes ~17 s wall and 1024^3 ~167 s on
+# this 2-core machine (docs/benchmarks/hull.md): about linear in voxels at a given view set.
+HULL_SECONDS_AT_512 = 17.0
+
+
+def hull_peak_bytes(grid_shape: tuple[int, int, int], table_pixels: int,
+                    kernels_loaded: bool = False) -> int:
+    """Estimated peak memory of a carve above what the process held before it, bytes.
+
+    Parameters
+    ----------
+    grid_shape : (3,) voxels of the grid.
+    table_pixels : pixels of the views' distance tables (plant box + margin, summed).
+    kernels_loaded : the compiled kernels are already in the process (a second carve).
+    """
+    voxels = int(np.prod(grid_shape, dtype=np.int64))
+    return (HULL_BYTES_PER_VOXEL * voxels + HULL_BYTES_PER_TABLE_PX * int(table_pixels)
+            + (0 if kernels_loaded else KERNEL_LOAD_BYTES))
 
 
 class HullParams(StageParams):
@@ -84,6 +113,19 @@ class _HullBase(Reconstructor):
     def _carve(self, views, grid: Grid):  # pragma: no cover - abstract
         raise NotImplementedError
 
+    @classmethod
+    def estimate(cls, params: HullParams, plan: WorkPlan) -> WorkEstimate:
+        """Memory and time before the stage starts: the grid a cube unless ``bbox`` is given
+        (the found box is only smaller), the tables whole images unless the masks are known."""
+        if params.bbox is not None:
+            shape = Grid.from_box(params.bbox[:3], params.bbox[3:], params.resolution).shape
+        else:
+            shape = (params.resolution,) * 3
+        pixels = plan.plant_pixels
+        if pixels is None:
+            pixels = plan.plant_views * plan.image_size[0] * plan.image_size[1]
+        return _hull_estimate(cls.name, shape, pixels, plan.plant_views)
+
     def reconstruct(self, silhouettes: Silhouettes, calibration: Calibration) -> Volume:
         """Carve the k-tolerant visual hull of ``silhouettes``.
 
@@ -117,6 +159,9 @@ class _HullBase(Reconstructor):
             lo, hi = np.array(p.bbox[:3]), np.array(p.bbox[3:])
         t_box = time.perf_counter() - t0 - t_prep
         grid = Grid.from_box(lo, hi, p.resolution)
+        # The grid is known now: refuse before the big allocation when it cannot fit.
+        table_px = sum(int(v.sd.size) for v in views)
+        check([_hull_estimate(self.name, grid.shape, table_px, len(views))])
         phi, stats = self._carve(views, grid)
         n_views = len(views)
         del views  # the tables (1.3 GB for 360 views at 2592x1728) are not needed any more
@@ -134,6 +179,17 @@ class _HullBase(Reconstructor):
                           "grid_shape": list(grid.shape), "voxel_size_mm": grid.voxel_size,
                           "bbox_mm": [grid.lo.tolist(), grid.hi.tolist()], "k": k, **info})
         return Volume(phi, grid.origin, grid.voxel_size)
+
+
+def _hull_estimate(name: str, shape: tuple[int, ...], table_pixels: int,
+                   n_views: int) -> WorkEstimate:
+    voxels = int(np.prod(shape, dtype=np.int64))
+    return WorkEstimate(
+        stage=f"reconstruct ({name})",
+        what=f"a {'x'.join(str(n) for n in shape)} grid and {n_views} views",
+        peak_bytes=hull_peak_bytes(tuple(shape), table_pixels),  # type: ignore[arg-type]
+        seconds=HULL_SECONDS_AT_512 * voxels / 512**3,
+        parameter="reconstruct.params.resolution")
 
 
 class OctreeHull(_HullBase):

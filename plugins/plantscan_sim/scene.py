@@ -31,6 +31,7 @@ from pydantic import Field
 
 from plantscan_core.data import Camera, Pose, ViewRecord, plain, rotation_z
 from plantscan_core.errors import DataError, RecipeError, ScanFolderError
+from plantscan_core.preflight import WorkEstimate, WorkPlan
 from plantscan_core.scanfolder import ScanFolder, atomic_write_bytes, atomic_write_text
 from plantscan_core.stages import CaptureRequest, Scene, StageParams
 from plantscan_sim.geometry import TriMesh, box, frustum, grid_faces, revolve, tube
@@ -108,6 +109,9 @@ M_BACKDROP, M_PLATE, M_CARRIER, M_POT, M_SOIL, M_PANEL, M_BOARD, M_POST, M_STEM 
 M_LEAF0 = 9
 
 
+RENDER_BYTES_PER_PX = 24  # a lower bound: the float32 RGB image (12 B/px) and one copy
+
+
 class SimScene(Scene):
     """The virtual scanner's world (``scan.scene: {plugin: sim}``)."""
 
@@ -123,6 +127,16 @@ class SimScene(Scene):
         self.rig: Rig | None = None
         self.plant: Plant | None = None
         self._clock_t0: float | None = None
+
+    @classmethod
+    def estimate(cls, params, plan: WorkPlan) -> WorkEstimate | None:
+        """At least one float32 RGB render of a view and one copy of it (24 B/px)."""
+        if plan.capture_size is None:
+            return None
+        w, h = plan.capture_size
+        return WorkEstimate(stage="scan.scene (sim)", what=f"rendering one {w}x{h} px image",
+                            peak_bytes=RENDER_BYTES_PER_PX * w * h, seconds=None,
+                            parameter="scan.image_size")
 
     # ------------------------------------------------------------------ set-up
     def check(self, recipe=None) -> None:

@@ -54,6 +54,25 @@ def test_set_override_with_acceleration_1e308(capsys):
     assert "scan.turntable.params.acceleration_deg_s2: " in err and "out of range" in err
 
 
+def test_scan_with_images_too_large_for_the_machine(capsys, tmp_path):
+    """60000x40000 px passes the format's limit; the memory estimate refuses it before any motor
+    moves or the scan folder exists."""
+    out = tmp_path / "scan"
+    err = _check(capsys, "scan", "--recipe", "plastic-dicot", "--set",
+                 "scan.image_size=[60000,40000]", "--out", str(out))
+    assert "scan.scene (sim): rendering one 60000x40000 px image needs about 57.6 GB" in err
+    assert "lower scan.image_size" in err and "--force" in err
+    assert not out.exists()
+
+
+def test_scan_dry_run_prints_the_estimates_of_resolution_1024(capsys):
+    assert main(["scan", "--recipe", "plastic-dicot", "--dry-run",
+                 "--set", "reconstruct.params.resolution=1024"]) == 0
+    out = capsys.readouterr().out
+    assert "estimate: reconstruct (octree-hull): a 1024x1024x1024 grid and 72 views needs about" \
+        in out
+
+
 # --------------------------------------------------------------------------- text files
 def _recipe_file(tmp_path, data: bytes):
     f = tmp_path / "r.yaml"
