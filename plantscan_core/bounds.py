@@ -44,6 +44,11 @@ ImageSidePx = Annotated[int, Field(ge=1, le=MAX_IMAGE_SIDE_PX)]
 """A width or height of an image, px."""
 
 
+def error_path(parts: tuple[Any, ...]) -> str:
+    """A pydantic error location as a recipe path: ``scan.tilts_deg.0``; odd keys quoted."""
+    return ".".join(str(p) if str(p).isprintable() and str(p) else repr(p) for p in parts)
+
+
 def _check_magnitude(value: Any) -> None:
     if isinstance(value, float):
         if abs(value) > MAX_MAGNITUDE:

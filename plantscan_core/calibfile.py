@@ -21,6 +21,7 @@ from plantscan_core.bounds import (
     FiniteFloat,
     LengthMM,
     TiltDeg,
+    error_path,
 )
 from plantscan_core.errors import DataError
 
@@ -106,6 +107,6 @@ def check_calibration_dict(raw: Any, source: str) -> None:
     try:
         CalibrationEntry.model_validate(raw)
     except ValidationError as exc:
-        lines = [f"{source}: " + ".".join(str(p) for p in e["loc"]) + f": {e['msg']}"
-                 if e["loc"] else f"{source}: {e['msg']}" for e in exc.errors()]
+        lines = [f"{source}: {error_path(e['loc'])}: {e['msg']}" if e["loc"] else
+                 f"{source}: {e['msg']}" for e in exc.errors()]
         raise DataError("\n".join(lines)) from None

@@ -13,7 +13,7 @@ from typing import Any, Literal
 
 from pydantic import ConfigDict, Field, ValidationError, field_validator
 
-from plantscan_core.bounds import CheckedModel, FiniteFloat, ImageSidePx
+from plantscan_core.bounds import CheckedModel, FiniteFloat, ImageSidePx, error_path
 from plantscan_core.data import ROLES
 from plantscan_core.errors import PluginError, RecipeError
 from plantscan_core.metadata import ExperimentSpec, PlantSpec
@@ -175,7 +175,8 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     try:
         parsed = parse_yaml(value, "--set") if value.strip() else ""
     except InputFileError as exc:
-        raise RecipeError([(path, f"--set value {value!r}: {exc.detail}")], "--set") from None
+        raise RecipeError([(error_path(tuple(keys)), f"--set value {value!r}: {exc.detail}")],
+                          "--set") from None
     return keys, parsed
 
 
@@ -187,7 +188,7 @@ def apply_overrides(raw: dict[str, Any], overrides: list[str]) -> dict[str, Any]
         node: Any = raw
         for i, key in enumerate(keys):
             last = i == len(keys) - 1
-            where = ".".join(keys[: i + 1])
+            where = error_path(tuple(keys[: i + 1]))
             if isinstance(node, list):
                 if not key.isdigit() or int(key) >= len(node):
                     errors.append((where, f"no list item {key} (list has {len(node)})"))
@@ -212,8 +213,7 @@ def apply_overrides(raw: dict[str, Any], overrides: list[str]) -> dict[str, Any]
 
 
 # --------------------------------------------------------------------------- validation
-def _loc(parts: tuple[Any, ...]) -> str:
-    return ".".join(str(p) for p in parts)
+_loc = error_path
 
 
 def _stage_specs(recipe: Recipe, table: StageTable = CORE_TABLE

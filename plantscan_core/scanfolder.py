@@ -28,7 +28,7 @@ import numpy as np
 import yaml
 from pydantic import ConfigDict, Field, ValidationError
 
-from plantscan_core.bounds import AngleDeg, CheckedModel
+from plantscan_core.bounds import AngleDeg, CheckedModel, error_path
 from plantscan_core.data import ROLES, ViewRecord
 from plantscan_core.errors import DataError, ScanFolderError
 from plantscan_core.userfiles import InputFileError, load_yaml, parse_json_line, read_bytes
@@ -182,7 +182,7 @@ class ScanFolder:
             except InputFileError as exc:
                 raise ScanFolderError(str(exc)) from None
             except ValidationError as exc:
-                problems = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}"
+                problems = "; ".join(f"{error_path(e['loc'])}: {e['msg']}"
                                      for e in exc.errors())
                 raise ScanFolderError(f"{path}:{n}: malformed view line ({problems})") from None
             except (ValueError, KeyError, TypeError) as exc:

@@ -87,11 +87,11 @@ def parse_yaml(text: str, path: Path | str) -> Any:
         value = yaml.safe_load(text)
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
-        what = " ".join(str(p) for p in (exc.context, exc.problem) if p)
+        what = " ".join(" ".join(str(p).split()) for p in (exc.context, exc.problem) if p)
         raise InputFileError(path, f"not valid YAML: {what or exc}",
                              mark.line + 1 if mark is not None else None) from None
-    except yaml.YAMLError as exc:
-        raise InputFileError(path, f"not valid YAML: {exc}") from None
+    except yaml.YAMLError as exc:  # ReaderError: a control character; one line, no position
+        raise InputFileError(path, "not valid YAML: " + " ".join(str(exc).split())) from None
     except RecursionError:
         raise InputFileError(path, f"nested deeper than {MAX_YAML_DEPTH} levels") from None
     check_shape(value, path)
