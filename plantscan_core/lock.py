@@ -18,12 +18,15 @@ from __future__ import annotations
 import datetime
 import errno
 import fcntl
+import functools
+import inspect
 import json
 import os
 import socket
 import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from plantscan_core.errors import PlantScanError
 
@@ -158,3 +161,26 @@ def _describe(record: dict[str, Any]) -> str:
         return "a process that left no record"
     return (f"pid {record.get('pid')} on {record.get('host')} since {record.get('since')}: "
             f"{record.get('command')}")
+
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def one_writer(folder_argument: str, what: str) -> Callable[[F], F]:
+    """Decorate a function that writes the folder given as ``folder_argument``: it runs
+    holding that folder's ``FolderLock`` (a stale record is reported on stderr)."""
+
+    def decorate(fn: F) -> F:
+        signature = inspect.signature(fn)
+
+        @functools.wraps(fn)
+        def locked(*args: Any, **kwargs: Any) -> Any:
+            folder = signature.bind(*args, **kwargs).arguments[folder_argument]
+            with FolderLock(Path(folder), what) as lock:
+                if lock.stale_message():
+                    print(f"plantscan: warning: {lock.stale_message()}", file=sys.stderr)
+                return fn(*args, **kwargs)
+
+        return locked  # type: ignore[return-value]
+
+    return decorate

@@ -12,6 +12,7 @@ of 18 MP images — and the scan's ``views.jsonl`` by content.  Each step's
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import os
 import resource
@@ -25,6 +26,7 @@ from typing import Any
 from plantscan_core import __version__
 from plantscan_core.data import plain
 from plantscan_core.errors import PlantScanError, StageError
+from plantscan_core.lock import one_writer
 from plantscan_core.metadata import Metadata, resolve_metadata, scan_summary
 from plantscan_core.photos import Photos
 from plantscan_core.plugins import PluginManager
@@ -169,8 +171,12 @@ class Run:
             step_run = dataclasses.replace(step_run, context=context)
         plugin = self.manager.build(step.stage, spec.plugin, spec.params, context)
         params = plugin.params.model_dump(mode="json")
-        key = sha({"stage": step.stage, "plugin": spec.plugin, "version": plugin.version(),
-                   "params": params, "inputs": inputs_key})
+        identity = {"stage": step.stage, "plugin": spec.plugin, "version": plugin.version(),
+                    "params": params, "inputs": inputs_key}
+        input_files = getattr(plugin, "input_files", None)
+        if input_files is not None:  # files a stage reads besides the scan's images: by content
+            identity["files"] = [file_content_hash(p) for p in input_files(self.scan)]
+        key = sha(identity)
         record = {"plugin": spec.plugin, "version": plugin.version(), "params": params,
                   "key": key}
         self.info["stages"][section] = record
@@ -187,8 +193,14 @@ class Run:
                 if step.cached:
                     self._store(section, key, plugin.report)
         except BaseException as exc:
-            self.manager.on_stage_error(step.stage, plugin, context, exc)
-            self._write_info()
+            # The handler never raises: a full disk or a broken observer must not replace the
+            # stage's own error (which names what went wrong) with its own.
+            try:
+                self.manager.on_stage_error(step.stage, plugin, context, exc)
+                self._write_info()
+            except Exception as handler_exc:  # noqa: BLE001
+                print(f"plantscan: warning: could not record the failure of {section} in "
+                      f"{self.run_dir / 'run.json'} ({handler_exc})", file=sys.stderr)
             if isinstance(exc, (KeyboardInterrupt, SystemExit)):
                 raise
             raise StageError(section, spec.plugin, str(exc) or type(exc).__name__) from exc
@@ -247,6 +259,16 @@ class Run:
         atomic_write_text(self.run_dir / "run.json", json.dumps(plain(self.info), indent=2))
 
 
+def file_content_hash(path: Path) -> str:
+    """SHA-256 of a file's content ("missing" when absent: the stage then names the file)."""
+    try:
+        with open(path, "rb") as f:
+            return hashlib.file_digest(f, "sha256").hexdigest()
+    except FileNotFoundError:
+        return "missing"
+
+
+@one_writer("run_dir", "run folder")
 def process(
     scan_dir: Path,
     recipe: Recipe,
@@ -282,6 +304,11 @@ def process(
         raise PlantScanError(f"{run_dir}: cannot create the run folder ({exc.strerror})") from exc
     run = Run(scan, recipe, run_dir, manager, raw_recipe, list(overrides), progress, workers,
               metadata)
+    if scan.torn_line is not None:
+        torn = (f"{scan.root / 'views.jsonl'}:{scan.torn_line}: torn last line (a crash while it "
+                "was appended) left out: that view is not processed (scan --resume captures it)")
+        run.info.setdefault("warnings", []).append(torn)
+        print(f"plantscan: warning: {torn}", file=sys.stderr)
     given = {"calibrate": calibration_path} if calibration_path is not None else {}
     steps = list(manager.registry.steps)
     named = [s for s in steps if stage_spec(recipe, s.section) or s.section in given]

@@ -188,10 +188,17 @@ class FixedCalibrator(Calibrator):
     class Params(StageParams):
         path: str = "calibration.yaml"
 
-    def calibrate(self, scan) -> Calibration:
+    def _path(self, scan) -> Path:
         path = Path(self.params.path)
-        if not path.is_absolute():
-            path = Path(scan.root) / path
+        return path if path.is_absolute() else Path(scan.root) / path
+
+    def input_files(self, scan) -> list[Path]:
+        """The calibration file: the run's cache key hashes its content (a re-import with
+        another calibration is a new calibration)."""
+        return [self._path(scan)]
+
+    def calibrate(self, scan) -> Calibration:
+        path = self._path(scan)
         cal = Calibration.load(path)
         views = scan.views
         missing = sorted({v.camera for v in views} - set(cal.models))

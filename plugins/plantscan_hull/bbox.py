@@ -123,7 +123,10 @@ def auto_box(views: Sequence[ViewField], k: int, margin_mm: float, coarse: int =
                 f"the silhouettes put the plant down to z = {lo0[2]:.0f} mm, {depth:.0f} mm "
                 f"below reconstruct.params.floor_z_mm = {floor_z:g} mm (the top of the "
                 "turntable plate in a plantscan calibration), and nothing below the floor is "
-                "kept: the plant would be cut off there. If this calibration's z = 0 is not "
+                "kept: the plant would be cut off there. The calibration's height gauge is "
+                "the first suspect: a wrong calibrate.params.lowest_corner_height_mm (the "
+                "board's lowest corner above the plate) shifts every camera up or down by the "
+                "error; check it and calibrate again. If this calibration's z = 0 is not "
                 "the plate (a calibration imported from another rig or program), set "
                 "reconstruct.params.floor_z_mm to the plate's height, or to null")
         lo0[2] = max(lo0[2], floor_z)

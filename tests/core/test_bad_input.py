@@ -300,3 +300,86 @@ def test_relative_error_of_a_trait_whose_truth_is_zero():
     with np.errstate(all="raise"):
         assert mean_relative_error([0.0, 10.0], [5.0, 11.0]) == pytest.approx(0.1)
         assert np.isnan(mean_relative_error([0.0], [5.0]))
+
+
+# --------------------------------------------------------------------------- processing
+def test_process_of_a_scan_with_a_torn_last_view_line(tiny_rig_manager, tmp_path, capsys):
+    from plantscan_core.pipeline import process
+    from plantscan_core.recipe import validate_recipe
+    from plantscan_core.testing import make_tiny_scan
+
+    scan = make_tiny_scan(tmp_path / "scan", tiny_rig_manager)
+    with open(scan.root / "views.jsonl", "a") as f:
+        f.write('{"index": 99, "role": "pla')
+    raw = tiny_recipe()
+    result = process(scan.root, validate_recipe(raw, tiny_rig_manager.registry), tmp_path / "run",
+                     tiny_rig_manager)
+    n = len(scan.views) + 1
+    assert f"views.jsonl:{n}: torn last line" in capsys.readouterr().err
+    assert any(f"views.jsonl:{n}: torn" in w for w in result.info["warnings"])
+    assert json.loads((tmp_path / "run" / "run.json").read_text())["warnings"]
+
+
+def test_stage_error_on_a_full_disk_keeps_the_stage_message(tiny_rig_manager, tmp_path,
+                                                            monkeypatch, capsys):
+    """ENOSPC while the error handler writes run.json: the stage's own error still comes out."""
+    import errno
+
+    from plantscan_core import pipeline
+    from plantscan_core.errors import StageError
+    from plantscan_core.hookspecs import hookimpl
+    from plantscan_core.recipe import validate_recipe
+    from plantscan_core.stages import Calibrator
+    from plantscan_core.testing import make_tiny_scan
+
+    class BrokenCalibrator(Calibrator):
+        name = "tiny-broken"
+
+        def calibrate(self, scan):
+            raise DataError("no board found in view 3")
+
+    class Plugin:
+        @hookimpl
+        def plantscan_register_stages(self, registry):
+            registry.add(BrokenCalibrator)
+
+    tiny_rig_manager.register(Plugin(), name="broken")
+    scan = make_tiny_scan(tmp_path / "scan", tiny_rig_manager)
+    raw = {**tiny_recipe(), "calibrate": {"plugin": "tiny-broken"}}
+    recipe = validate_recipe(raw, tiny_rig_manager.registry)
+
+    def disk_full(self):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(pipeline.Run, "_write_info", disk_full)
+    with pytest.raises(StageError, match="no board found in view 3"):
+        pipeline.process(scan.root, recipe, tmp_path / "run", tiny_rig_manager)
+    assert "No space left on device" in capsys.readouterr().err
+
+
+def test_fixed_calibration_file_replaced_between_runs(tiny_rig_manager, tmp_path):
+    """Re-importing a scan with another calibration.yaml, same --out: the calibration is new."""
+    import os
+
+    import plantscan_calib.plugin as calib_plugin
+
+    from plantscan_core.pipeline import process
+    from plantscan_core.recipe import validate_recipe
+    from plantscan_core.testing import make_tiny_scan, tiny_camera
+
+    tiny_rig_manager.register(calib_plugin, name="calib")
+    scan = make_tiny_scan(tmp_path / "scan", tiny_rig_manager)
+    recipe = validate_recipe({**tiny_recipe(), "calibrate": {"plugin": "fixed"}},
+                             tiny_rig_manager.registry)
+    cal_file = scan.root / "calibration.yaml"
+    runs = []
+    for distance_mm in (0.0, 5.0):
+        cams = {n: tiny_camera(n, 0.0, 0.0, (96, 64)) for n in ("cam0", "cam1")}
+        Calibration({n: c.model for n, c in cams.items()},
+                    {(n, 0): Pose(c.pose.R, c.pose.t + [0, 0, distance_mm])
+                     for n, c in cams.items()}, {0: 0.0}).save(cal_file)
+        os.utime(cal_file, ns=(0, 0))  # same size and time stamp: only the content differs
+        runs.append(process(scan.root, recipe, tmp_path / "run", tiny_rig_manager))
+    assert not runs[1].info["stages"]["calibrate"]["cached"]
+    assert runs[1].calibration.poses[("cam0", 0)].t[2] == pytest.approx(
+        runs[0].calibration.poses[("cam0", 0)].t[2] + 5.0)

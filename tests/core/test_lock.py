@@ -7,10 +7,15 @@ import os
 import signal
 import subprocess
 import sys
+import time
+from pathlib import Path
 
 import pytest
+import yaml
 
+from plantscan_core.hookspecs import hookimpl
 from plantscan_core.lock import LOCK_FILE, FolderBusyError, FolderLock
+from plantscan_core.stages import Calibrator
 
 HOLDER = """
 import sys, time
@@ -103,3 +108,73 @@ acquire(validate_recipe(raw, manager.registry), {str(out)!r}, manager, raw_recip
     err = capsys.readouterr().err
     assert f"the previous writer (pid {proc.pid} " in err and "(killed?)" in err
     assert len(scan.views) == (2 + 1 + 6) * 2  # calibration, background, plant; 2 cameras
+
+
+SLOW_PROCESS = """
+import sys, time
+from plantscan_core.hookspecs import hookimpl
+from plantscan_core.pipeline import process
+from plantscan_core.plugins import new_manager
+from plantscan_core.recipe import load_recipe
+from plantscan_core.testing import tiny_rig_plugin
+import test_lock
+
+manager = new_manager()
+manager.register(tiny_rig_plugin, name="tiny-rig")
+manager.register(test_lock, name="slow")
+process(sys.argv[1], load_recipe(sys.argv[2], registry=manager.registry), sys.argv[3], manager)
+"""
+
+
+class SlowCalibrator(Calibrator):
+    """Holds its run folder for a minute (long enough to be killed mid-run)."""
+
+    name = "tiny-slow"
+
+    def calibrate(self, scan):
+        print("calibrating", flush=True)
+        time.sleep(60)
+        raise AssertionError("should have been killed")
+
+
+@hookimpl
+def plantscan_register_stages(registry):
+    registry.add(SlowCalibrator)
+
+
+def test_two_process_runs_into_one_folder_then_kill_9(tmp_path, tiny_rig_manager, monkeypatch,
+                                                     capsys):
+    """The second ``plantscan process`` into a busy --out is refused (status 2, holder named);
+    after kill -9 of the holder the next run says the lock was stale and runs."""
+    from plantscan_core import plugins
+    from plantscan_core.cli import main
+    from plantscan_core.testing import make_tiny_scan, tiny_recipe
+
+    scan = make_tiny_scan(tmp_path / "scan", tiny_rig_manager)
+    raw = tiny_recipe()
+    raw["calibrate"] = {"plugin": "tiny-slow"}
+    recipe = tmp_path / "slow.yaml"
+    recipe.write_text(yaml.safe_dump(raw))
+    out = tmp_path / "run"
+    holder = subprocess.Popen(
+        [sys.executable, "-c", SLOW_PROCESS, str(scan.root), str(recipe), str(out)],
+        stdout=subprocess.PIPE, text=True, cwd=Path(__file__).parent,
+        env={**os.environ, "PYTHONPATH": str(Path(__file__).parent)})
+    try:
+        assert holder.stdout.readline().strip() == "calibrating"
+        tiny_rig_manager.register(sys.modules[__name__], name="slow")
+        monkeypatch.setattr(plugins, "_default", tiny_rig_manager)
+        raw["calibrate"] = None  # the second run would not even need the slow stage
+        quick = tmp_path / "quick.yaml"
+        quick.write_text(yaml.safe_dump(raw))
+        assert main(["process", str(scan.root), "--recipe", str(quick), "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert f"{out}: another plantscan is writing this run folder (pid {holder.pid}" in err
+        holder.send_signal(signal.SIGKILL)
+        holder.wait(timeout=10)
+    finally:
+        if holder.poll() is None:
+            holder.kill()
+    assert main(["process", str(scan.root), "--recipe", str(quick), "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert f"the previous writer (pid {holder.pid} " in err and "(killed?)" in err
