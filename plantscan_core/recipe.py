@@ -41,6 +41,11 @@ class SegmentSpec(StageSpec):
                     "4x less memory per step); masks and the hull then work at that size. "
                     "auto: the largest reduction that keeps the image's long side >= "
                     "2400 px (18 MP -> 2, 3000x2000 and smaller -> 1; docs/decisions.md)")
+    bad_images: Literal["error", "skip"] = Field(
+        default="error",
+        description="a plant image that cannot be trusted (truncated, corrupt, or another size "
+                    "than its camera's other images): stop with an error naming it, or skip "
+                    "that view with a warning (run.json quality.views_skipped says how many)")
 
 
 class CameraSpec(StageSpec):

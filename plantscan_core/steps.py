@@ -20,6 +20,8 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import sys
+import threading
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,6 +42,7 @@ from plantscan_core.data import (
 )
 from plantscan_core.errors import DataError, PlantScanError
 from plantscan_core.runfolder import MASKS_DIR, read_mask, write_mask, write_ply
+from plantscan_core.scanfolder import atomic_write_text
 from plantscan_core.stages import (
     Calibrator,
     Exporter,
@@ -254,22 +257,71 @@ def _mask_paths(run: StepRun) -> list[Path]:
     return [run.path(MASKS_DIR) / f"{v.index:05d}.png" for v in plant_views(run.scan)]
 
 
+def _skip_marks(run: StepRun) -> list[Path]:
+    """Where a view skipped as a bad image (``segment.bad_images: skip``) says why."""
+    return [run.path(MASKS_DIR) / f"{v.index:05d}.skipped" for v in plant_views(run.scan)]
+
+
+def _skips_bad_images(run: StepRun) -> bool:
+    recipe = run.context.recipe
+    return bool(recipe is not None and recipe.segment is not None
+                and recipe.segment.bad_images == "skip")
+
+
+def _skipped(run: StepRun) -> list[bool]:
+    if not _skips_bad_images(run):
+        return [False] * len(plant_views(run.scan))
+    return [m.exists() and not p.exists() for p, m in zip(_mask_paths(run), _skip_marks(run))]
+
+
+def _segment_outputs(run: StepRun) -> list[Path]:
+    """The files of a segmentation: each view's mask, or the mark of a skipped view."""
+    return [m if gone else p
+            for p, m, gone in zip(_mask_paths(run), _skip_marks(run), _skipped(run))]
+
+
 def _segment_inputs(run: StepRun) -> Any:
     photos = run.context.photos
     used = sorted({(v.camera, v.tilt_index) for v in photos.views} & set(photos.plates))
     return [views_fingerprint(run.scan, photos.views),
             views_fingerprint(run.scan, [photos.plates[k] for k in used]),
-            {"reduce": photos.reduce}]
+            {"reduce": photos.reduce}] + ([{"bad_images": "skip"}] if _skips_bad_images(run)
+                                          else [])
 
 
 def _segment(plugin: Segmenter, run: StepRun) -> Silhouettes:
     photos = run.context.photos
-    paths = _mask_paths(run)
+    paths, marks = _mask_paths(run), _skip_marks(run)
+    skip_bad = _skips_bad_images(run)
     plugin.report.figure("reduce", photos.reduce)
+    sizes: dict[str, tuple[tuple[int, ...], ViewRecord]] = {}
+    size_lock = threading.Lock()
 
-    def one(i: int) -> Silhouette:
+    def decoded(i: int) -> np.ndarray:
+        """Photo ``i``, refused when another size than its camera's first photo."""
         v = photos.views[i]
         image = photos.image(i)
+        with size_lock:
+            first_shape, first = sizes.setdefault(v.camera, (image.shape, v))
+        if image.shape != first_shape:
+            raise DataError(
+                f"{run.scan.path_of(v)}: view {v.index} is {image.shape[1]}x{image.shape[0]} "
+                f"px but view {first.index} of the same camera {v.camera!r} is "
+                f"{first_shape[1]}x{first_shape[0]} px (a replaced or cropped image?)")
+        return image
+
+    def one(i: int) -> Silhouette | None:
+        v = photos.views[i]
+        try:
+            image = decoded(i)
+        except DataError as exc:
+            if not skip_bad:
+                raise
+            paths[i].unlink(missing_ok=True)
+            atomic_write_text(marks[i], f"{exc}\n")
+            _warn_skipped(plugin.report, v, str(exc))
+            return None
+        marks[i].unlink(missing_ok=True)
         plate = photos.background(v)
         photos.check_plate(v, image, plate)
         try:
@@ -290,14 +342,24 @@ def _segment(plugin: Segmenter, run: StepRun) -> Silhouettes:
         return silhouette
 
     run.path(MASKS_DIR).mkdir(parents=True, exist_ok=True)
-    silhouettes = Silhouettes(run.map(one, len(photos.views), "segmenting"))
+    made = run.map(one, len(photos.views), "segmenting")
+    silhouettes = Silhouettes([s for s in made if s is not None])
     plugin.report.count("views", len(silhouettes))
+    if len(made) > len(silhouettes):
+        plugin.report.count("views_skipped", len(made) - len(silhouettes))
     return silhouettes
 
 
+def _warn_skipped(report, view: ViewRecord, reason: str) -> None:
+    report.warn("bad-image", f"view {view.index} ({view.file}) skipped: {reason}",
+                view=view.index, file=view.file)
+    print(f"plantscan: warning: view {view.index} ({view.file}) skipped: {reason}",
+          file=sys.stderr)
+
+
 def _load_silhouettes(run: StepRun) -> Silhouettes:
-    return Silhouettes([Silhouette(v, read_mask(p))
-                        for v, p in zip(plant_views(run.scan), _mask_paths(run))])
+    return Silhouettes([Silhouette(v, read_mask(p)) for v, p, gone in
+                        zip(plant_views(run.scan), _mask_paths(run), _skipped(run)) if not gone])
 
 
 # --------------------------------------------------------------------------- reconstruct
@@ -377,7 +439,7 @@ CORE_STEPS: tuple[Step, ...] = (
          files=_files("calibration.yaml"), scan_inputs=_calibration_views,
          from_file=_calibration_from_file, file_option="--calibration"),
     Step("segment", Segmenter, "silhouettes", _segment, _load_silhouettes,
-         files=_mask_paths, scan_inputs=_segment_inputs),
+         files=_segment_outputs, scan_inputs=_segment_inputs),
     Step("reconstruct", Reconstructor, "volume", _reconstruct,
          lambda run: Volume.load(run.path("volume.npz")),
          needs=("calibration", "silhouettes"), files=_files("volume.npz")),

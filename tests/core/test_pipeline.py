@@ -215,3 +215,48 @@ def test_observer_hooks_see_every_stage(tiny_scan, manager, tmp_path):
         manager.unregister(obs)
     assert seen == [("calibrator", "tiny-exact", False), ("segmenter", "tiny-dark", False),
                     ("reconstructor", "tiny-count", False)]
+
+
+@pytest.mark.parametrize("bad_images", ["error", "skip"])
+def test_truncated_plant_image_is_named_or_skipped(tiny_scan, manager, tmp_path, capsys,
+                                                   bad_images):
+    """A truncated image stops the run naming it, or (segment.bad_images: skip) is left out
+    with a warning and a count in the segment report, on a cached run too."""
+    recipe, raw = _recipe(manager)
+    raw["segment"]["bad_images"] = bad_images
+    recipe = validate_recipe(raw, manager.registry)
+    victim = tiny_scan.views_by_role("plant")[2]
+    image = tiny_scan.root / victim.file
+    image.write_bytes(image.read_bytes()[:200])
+    if bad_images == "error":
+        with pytest.raises(StageError, match=rf"{victim.file}: cannot decode image"):
+            process(tiny_scan.root, recipe, tmp_path / "run", manager, raw_recipe=raw)
+        return
+    n = len(tiny_scan.views_by_role("plant"))
+    for cached in (False, True):
+        result = process(tiny_scan.root, recipe, tmp_path / "run", manager, raw_recipe=raw)
+        assert result.info["stages"]["segment"]["cached"] is cached
+        assert len(result.silhouettes) == n - 1
+        assert victim.index not in [s.view.index for s in result.silhouettes]
+        said = result.info["stages"]["segment"]["info"]
+        assert said["counts"]["views"] == n - 1 and said["counts"]["views_skipped"] == 1
+        assert [(w["code"], w["view"]) for w in said["warnings"]] == [("bad-image", victim.index)]
+        assert said["warnings"][0]["message"].startswith(
+            f"view {victim.index} ({victim.file}) skipped: ")
+        if not cached:
+            assert f"view {victim.index} ({victim.file}) skipped" in capsys.readouterr().err
+
+
+def test_plant_image_of_another_size_than_its_cameras_others(tiny_scan, manager, tmp_path):
+    import cv2
+
+    recipe, raw = _recipe(manager)
+    victim = tiny_scan.views_by_role("plant")[3]
+    image = tiny_scan.root / victim.file
+    cv2.imwrite(str(image), cv2.resize(cv2.imread(str(image)), (80, 60)))
+    with pytest.raises(StageError, match=rf"px but view \d+ of the same camera "
+                                         rf"'{victim.camera}' is") as info:
+        process(tiny_scan.root, recipe, tmp_path / "run", manager, raw_recipe=raw)
+    # Views decode in parallel: the odd one is named first or second, beside a good one.
+    assert "80x60 px" in str(info.value) and "96x64 px" in str(info.value)
+    assert f"view {victim.index} " in str(info.value)
