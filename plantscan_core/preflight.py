@@ -26,7 +26,7 @@ FORCE_ENV = "PLANTSCAN_FORCE"
 WARN_FRACTION = 0.5
 """Warn when a stage's peak is above this share of the memory available."""
 
-WARN_SECONDS = 300.0
+WARN_SECONDS = 120.0
 """Warn when a stage is estimated to take longer than this."""
 
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import logging
 import re
+import termios
 import threading
 import time
 from typing import Literal
@@ -28,6 +29,10 @@ from pydantic import Field
 
 from plantscan_core.errors import HardwareError
 from plantscan_core.stages import MotionAxis, StageParams
+
+# A vanished USB-serial adapter surfaces as any of these; pyserial's ``in_waiting`` raises
+# termios.error (not an OSError) when the pty is gone mid-poll.
+LINK_ERRORS = (serial.SerialException, OSError, termios.error)
 
 log = logging.getLogger(__name__)
 
@@ -174,7 +179,7 @@ class GrblConnection:
         try:
             self.ser.write(data)
             self.ser.flush()
-        except (serial.SerialException, OSError) as exc:
+        except LINK_ERRORS as exc:
             raise GrblError(f"grbl {self.port}: serial link lost while writing ({exc})") from exc
 
     def _readline(self, deadline: float) -> str | None:
@@ -187,7 +192,7 @@ class GrblConnection:
                 return None
             try:
                 chunk = self.ser.read(self.ser.in_waiting or 1)
-            except (serial.SerialException, OSError) as exc:
+            except LINK_ERRORS as exc:
                 raise GrblError(f"grbl {self.port}: serial link lost ({exc})") from exc
             self._buf += chunk
 
