@@ -268,7 +268,7 @@ def validate_recipe(raw: Any, registry=None, source: str = "recipe") -> Recipe:
 
 def _unknown_sections(raw: dict[str, Any], table: StageTable) -> list[tuple[str, str]]:
     known = set(Recipe.model_fields) | set(table.sections)
-    return [(str(key), f"unknown recipe section; sections: {', '.join(sorted(known))}")
+    return [(error_path((key,)), f"unknown recipe section; sections: {', '.join(sorted(known))}")
             for key in sorted(set(raw) - known, key=str)]
 
 
