@@ -28,7 +28,8 @@ cal = ring_calibration(f=800.0, size=(640, 480), elevations=(0.0, 30.0))
 sils = render(cal, views(18, (0.0, 30.0)), [Sphere((0.0, 0.0, 0.0), 30.0)])
 box = [-40.0, -40.0, -40.0, 40.0, 40.0, 40.0]
 table_px = sum(int(v.sd.size) for v in prepare_views(list(sils), cal))
-OctreeHull(OctreeHull.Params(resolution=32, bbox=box, floor_z_mm=None, k=1)).reconstruct(sils, cal)
+# 64: every level of the octree runs, so every kernel is compiled (or loaded) before measuring
+OctreeHull(OctreeHull.Params(resolution=64, bbox=box, floor_z_mm=None, k=1)).reconstruct(sils, cal)
 before = int(open("/proc/self/statm").read().split()[1]) * resource.getpagesize()
 volume = OctreeHull(OctreeHull.Params(resolution=int(sys.argv[1]), bbox=box, floor_z_mm=None,
                                       k=1)).reconstruct(sils, cal)

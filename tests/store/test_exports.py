@@ -85,5 +85,5 @@ def test_experiment_report_and_commands(experiment, store_target, tmp_path, caps
     # the synthetic leaves do not move between days: each keeps its track
     assert {(r["track"], r["leaf_id"]) for r in rows} == {(str(i + 1), str(i))
                                                           for i in range(20)}
-    assert main(["query", "--db", store_target, "--report", str(out), "--trait", "nope"]) == 1
+    assert main(["query", "--db", store_target, "--report", str(out), "--trait", "nope"]) == 2
     assert "no plant trait 'nope' in the store" in capsys.readouterr().err

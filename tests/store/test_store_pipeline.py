@@ -97,10 +97,10 @@ def test_store_and_query_commands_on_both_backends(stored_run, store_target, tmp
     assert set(df.study_id) == {"drought-2026"}
     assert main(["query", "--db", store_target, "--genotype", "Ler"]) == 0
     assert "no rows match" in capsys.readouterr().out
-    assert main(["query", "--db", store_target, "--since", "May 4th"]) == 1
+    assert main(["query", "--db", store_target, "--since", "May 4th"]) == 2
     assert "'May 4th' is not a date (YYYY-MM-DD)" in capsys.readouterr().err
 
 
 def test_store_refuses_a_folder_without_runs(tmp_path, capsys):
-    assert main(["store", str(tmp_path), "--db", str(tmp_path / "r.sqlite")]) == 1
+    assert main(["store", str(tmp_path), "--db", str(tmp_path / "r.sqlite")]) == 2
     assert "neither a run folder nor a folder of run folders" in capsys.readouterr().err
