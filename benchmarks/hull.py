@@ -236,16 +236,16 @@ def kernel_bench(folder: Path, res: int, k: int, rounds: int = 3) -> dict:
     voxels, cells, packed = [], [], []
     voxel_group, classify_group = kernels.voxel_group, kernels.classify_group
 
-    def keep_voxels(pk, tree, centres, valid, *a, **kw):
-        out = voxel_group(pk, tree, centres, valid, *a, **kw)
+    def keep_voxels(pk, tree, centres, valid, consts, stats=None):
+        out = voxel_group(pk, tree, centres, valid, consts, stats)
         packed[:] = [pk]
-        voxels.append((tree, np.ascontiguousarray(centres), valid, out))
+        voxels.append((tree, np.ascontiguousarray(centres), valid, consts, out))
         return out
 
-    def keep_cells(pk, tree, centres, valid, half, s, *a, **kw):
-        decision, child = classify_group(pk, tree, centres, valid, half, s, *a, **kw)
-        if half == s:  # the last cell level: children of 2 voxels
-            cells.append((tree, np.ascontiguousarray(centres), valid, a, kw, decision, child))
+    def keep_cells(pk, tree, centres, valid, consts, stats=None):
+        decision, child = classify_group(pk, tree, centres, valid, consts, stats)
+        if consts.half_size == consts.voxel_size:  # the last cell level: children of 2 voxels
+            cells.append((tree, np.ascontiguousarray(centres), valid, consts, decision, child))
         return decision, child
 
     kernels.voxel_group, kernels.classify_group = keep_voxels, keep_cells
@@ -253,35 +253,26 @@ def kernel_bench(folder: Path, res: int, k: int, rounds: int = 3) -> dict:
         carve_octree(views, grid, k, 32, backend="numba", min_seen=min_seen)
     finally:
         kernels.voxel_group, kernels.classify_group = voxel_group, classify_group
-    params, tables = packed[0]
-    s, chunk, out = grid.voxel_size, kernels.GROUP_CHUNK, {"res": res}
+    chunk, out = kernels.GROUP_CHUNK, {"res": res}
     for rnd in range(rounds):
         c0, tests, same = time.process_time(), 0, True
-        for tree, centres, valid, ref in voxels:
+        for tree, centres, valid, consts, ref in voxels:
             values = np.full(len(ref), np.float32(-1.0))
             for a in range(0, len(centres), chunk):
-                tests += kernels._voxel_range(
-                    a, min(len(centres), a + chunk), centres, valid, tree.start, tree.views,
-                    tree.n_out, tree.n_in, s, params, tables, k, min_seen, values)
+                tests += kernels._voxel_range(a, min(len(centres), a + chunk), centres, valid,
+                                              tree, consts, packed[0], values)
             same &= bool(np.array_equal(values.view(np.int32), ref.view(np.int32)))
         dt = time.process_time() - c0
         out[f"voxel_ns_round{rnd + 1}"] = round(1e9 * dt / tests, 2)
         c0, n_cell, same_cells = time.process_time(), 0, True
-        for tree, centres, valid, a, kw, ref, child in cells:
-            n8 = 8 * len(centres)
-            scratch = kernels._offsets(np.repeat(np.diff(tree.start), 8))
-            decision = np.zeros(n8, np.int8)
-            counts = [np.zeros(n8, np.int32) for _ in range(5)]
-            amb = np.empty(scratch[-1], np.int16)
-            slack, lip = a[1], a[3]  # as ``carve`` calls it: k, slack, min_seen, lip, ...
+        for tree, centres, valid, consts, ref, child in cells:
+            counts = kernels.cell_counts(8 * len(centres),
+                                         kernels._offsets(np.repeat(np.diff(tree.start), 8)))
             for b in range(0, len(centres), chunk):
-                n_cell += kernels._classify_range(
-                    b, min(len(centres), b + chunk), centres, valid, tree.start, tree.views,
-                    tree.n_out, tree.n_in, tree.n_off, scratch, s, s, params, tables, k, slack,
-                    min_seen, lip, a[5] if len(a) > 5 else kw.get("bilinear_px", 0.0),
-                    decision, *counts, amb)
-            split = kernels._split_tree(decision, *counts, amb, scratch)
-            same_cells &= bool(np.array_equal(decision, ref)
+                n_cell += kernels._classify_range(b, min(len(centres), b + chunk), centres,
+                                                  valid, tree, consts, packed[0], counts)
+            split = kernels._split_tree(counts)
+            same_cells &= bool(np.array_equal(counts.decision, ref)
                                and np.array_equal(split.views, child.views))
         dt = time.process_time() - c0
         out[f"cell_ns_round{rnd + 1}"] = round(1e9 * dt / n_cell, 2)

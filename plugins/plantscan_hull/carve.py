@@ -46,14 +46,6 @@ CELL_SLACK_PX = 1.5
 CELL_BILINEAR_MAX_PX = (CELL_SLACK_PX - SD_STEP) / (DISTANCE_LIPSCHITZ * (math.sqrt(2.0) - 1.0))
 # Views processed between two compactions of the still-undecided points.
 COMPACT_EVERY = 8
-# Branch and bound at the fine voxels (numba path): the table read at each split
-# 2-voxel cell's centre bounds its 8 voxels' values from below; a view that cannot
-# change a voxel's clamped (k+1)-th smallest value is not read for it.  Same field,
-# 27-38 % of the voxel reads skipped, but measured slower on the benchmark machine
-# (512^3: 41 vs 36 s CPU; 256^3: 7.9-9.9 vs 7.7-8.3 s): the centre reads and the
-# unpredictable skip branch cost more than the reads they save.  Off by default;
-# see docs/benchmarks/hull.md (session 4).
-VOXEL_BOUNDS = False
 
 
 @dataclass
@@ -102,9 +94,6 @@ class CarveStats:
 
     voxel_view_tests: int = 0
     cell_view_tests: int = 0
-    # Voxel-view pairs skipped because a bound from the cell's centre showed the view
-    # cannot change the voxel's value (numba path, ``VOXEL_BOUNDS``).
-    voxel_view_bounded: int = 0
     cells_per_level: dict[int, int] = field(default_factory=dict)
     # Mean number of views the split cells of a level left ambiguous (numba path).
     split_views_per_level: dict[int, float] = field(default_factory=dict)
@@ -117,7 +106,6 @@ class CarveStats:
     def as_dict(self) -> dict:
         return {"voxel_view_tests": self.voxel_view_tests,
                 "cell_view_tests": self.cell_view_tests,
-                "voxel_view_bounded": self.voxel_view_bounded,
                 "cells_per_level": {str(k): v for k, v in self.cells_per_level.items()},
                 "split_views_per_level": {str(k): round(v, 1)
                                           for k, v in self.split_views_per_level.items()},
@@ -302,7 +290,11 @@ BACKENDS = ("auto", "numpy", "numba")
 
 
 class _Kernels:
-    """The two hot loops, from numpy (reference) or numba (compiled)."""
+    """The views and the voxel loop, from numpy (reference) or numba (compiled).
+
+    The compiled path classifies cells with inherited view decisions (``_carve_tree``);
+    ``classify_cells`` is the numpy path's.
+    """
 
     def __init__(self, views: Sequence[ViewField], backend: str, min_seen: int = 0):
         from plantscan_hull import kernels
@@ -322,17 +314,15 @@ class _Kernels:
 
     def voxel_field(self, points, voxel_size, k, stats):
         if self._packed is not None:
-            return self._kernels.voxel_field(self._packed, points, voxel_size, k, stats,
-                                             self.min_seen)
+            return self._kernels.voxel_field(
+                self._packed, points, self._kernels.carve_consts(voxel_size, k, self.min_seen),
+                stats)
         return voxel_field(self.views, points, voxel_size, k, stats, self.min_seen)
 
-    def classify_cells(self, centres, half_size, voxel_size, k, stats):
-        if self._packed is not None:
-            return self._kernels.classify_cells(self._packed, centres, half_size, voxel_size, k,
-                                                CELL_SLACK_PX, stats, self.min_seen,
-                                                DISTANCE_LIPSCHITZ, CELL_BILINEAR_MAX_PX)
-        return classify_cells(self.views, centres, half_size, voxel_size, k, stats,
-                              self.min_seen)
+    def cell_consts(self, half_size: float, voxel_size: float, k: int):
+        """The compiled cell kernels' constants of a level of cells of half-side ``half_size``."""
+        return self._kernels.carve_consts(voxel_size, k, self.min_seen, half_size,
+                                          CELL_SLACK_PX, DISTANCE_LIPSCHITZ, CELL_BILINEAR_MAX_PX)
 
 
 # --------------------------------------------------------------------------- thin parts
@@ -431,7 +421,8 @@ def carve_octree(views: Sequence[ViewField], grid: Grid, k: int, top_cell: int =
         cells = cells[np.all(cells < shape, axis=1)]
         stats.cells_per_level[size] = len(cells)
         centres = grid.centres(cells + (size - 1) / 2.0)
-        decision = kern.classify_cells(centres, size * s / 2.0, s, k, stats)
+        decision = classify_cells(kern.views, centres, size * s / 2.0, s, k, stats,
+                                  kern.min_seen)
         full = cells[decision == 1]
         if len(full):
             r = np.arange(size)
@@ -473,9 +464,9 @@ def _carve_tree(kern: _Kernels, grid: Grid, k: int, top_cell: int, keep_thin: bo
     t_level = time.perf_counter()
     stats.cells_per_level[size] = len(cells)
     decision, tree = kernels.classify_tree(
-        kern._packed, kernels.Tree(len(kern.views)), np.zeros(len(cells), dtype=np.int64),
-        grid.centres(cells + (size - 1) / 2.0), size * s / 2.0, s, k, CELL_SLACK_PX,
-        kern.min_seen, DISTANCE_LIPSCHITZ, stats, CELL_BILINEAR_MAX_PX)
+        kern._packed, kernels.root_tree(len(kern.views)), np.zeros(len(cells), dtype=np.int64),
+        grid.centres(cells + (size - 1) / 2.0), kern.cell_consts(size * s / 2.0, s, k), stats)
+    voxel_consts = kernels.carve_consts(s, k, kern.min_seen)
     while True:
         kernels._fill_cells(phi, np.ascontiguousarray(cells[decision == 1]), size,
                             np.float32(1.0))
@@ -490,8 +481,7 @@ def _carve_tree(kern: _Kernels, grid: Grid, k: int, top_cell: int, keep_thin: bo
         if size == 2:  # top_cell == 2: the voxels of the split cells, in one go
             valid = _fine_valid(split, shape)
             stats.cells_per_level[1] = stats.fine_voxels = int(valid.sum())
-            values = kernels.voxel_group(kern._packed, tree, centres, valid, s, k,
-                                         kern.min_seen, stats, _bound_lipschitz())
+            values = kernels.voxel_group(kern._packed, tree, centres, valid, voxel_consts, stats)
             del tree
             return _scatter(phi, split, values, valid, keep_thin, thin_value, stats, t_level, t0)
         if size == 4:
@@ -501,8 +491,7 @@ def _carve_tree(kern: _Kernels, grid: Grid, k: int, top_cell: int, keep_thin: bo
         size //= 2
         stats.cells_per_level[size] = int(valid.sum())
         decision, tree = kernels.classify_group(
-            kern._packed, tree, centres, valid, size * s / 2.0, s, k, CELL_SLACK_PX,
-            kern.min_seen, DISTANCE_LIPSCHITZ, stats, CELL_BILINEAR_MAX_PX)
+            kern._packed, tree, centres, valid, kern.cell_consts(size * s / 2.0, s, k), stats)
     # The split 4-voxel cells: their children (2-voxel cells) are classified and the
     # voxels of the split ones carved batch by batch, so the view lists of the last split
     # level exist for one batch at a time (the whole level's: 1.6-2.1 GB at 1024^3).
@@ -517,21 +506,20 @@ def _carve_tree(kern: _Kernels, grid: Grid, k: int, top_cell: int, keep_thin: bo
         valid = np.all(cells < shape, axis=1)
         n_cells += int(valid.sum())
         decision, sub = kernels.classify_group(
-            kern._packed, kernels._sub_tree(tree, b0, b1), centres[b0:b1], valid, s, s, k,
-            CELL_SLACK_PX, kern.min_seen, DISTANCE_LIPSCHITZ, stats, CELL_BILINEAR_MAX_PX)
+            kern._packed, kernels._sub_tree(tree, b0, b1), centres[b0:b1], valid,
+            kern.cell_consts(s, s, k), stats)
         kernels._fill_cells(phi, np.ascontiguousarray(cells[decision == 1]), 2,
                             np.float32(1.0))
-        fine = cells[decision == 2]
-        n_split += len(fine)
+        split_2 = cells[decision == 2]
+        n_split += len(split_2)
         n_listed += int(sub.start[-1])
         t2 = time.perf_counter()
         t_cells += t2 - t1
-        if len(fine):
-            fine_valid = _fine_valid(fine, shape)
-            values.append(kernels.voxel_group(kern._packed, sub, grid.centres(fine + 0.5),
-                                              fine_valid, s, k, kern.min_seen, stats,
-                                              _bound_lipschitz()))
-            splits.append(fine)
+        if len(split_2):
+            fine_valid = _fine_valid(split_2, shape)
+            values.append(kernels.voxel_group(kern._packed, sub, grid.centres(split_2 + 0.5),
+                                              fine_valid, voxel_consts, stats))
+            splits.append(split_2)
             valids.append(fine_valid)
         del sub
         t_voxels += time.perf_counter() - t2
@@ -546,11 +534,6 @@ def _carve_tree(kern: _Kernels, grid: Grid, k: int, top_cell: int, keep_thin: bo
     stats.cells_per_level[1] = stats.fine_voxels = int(valid.sum())
     return _scatter(phi, split, np.concatenate(values), valid, keep_thin, thin_value, stats,
                     time.perf_counter() - t_voxels, t0)
-
-
-def _bound_lipschitz() -> float:
-    """The tables' Lipschitz constant for the fine voxels' bounds; 0 turns them off."""
-    return DISTANCE_LIPSCHITZ if VOXEL_BOUNDS else 0.0
 
 
 def _fine_valid(split: np.ndarray, shape: np.ndarray) -> np.ndarray:

@@ -1,11 +1,19 @@
-"""Compiled (numba) versions of the two hot loops of ``carve``.
+"""Compiled (numba) versions of the hot loops of ``carve``.
 
 Same arithmetic as ``carve.voxel_field`` and ``carve.classify_cells`` (the
 numpy reference), fused over views per point so a point stops being tested
 as soon as its fate is sealed.  Only for the seed's camera model
 (``CameraModel`` itself: pinhole + d1, d2); another model falls back to the
 numpy path, which calls the model's own projection.  Tested against the numpy
-path and ``dense-hull`` in ``tests/hull/test_carve.py``.
+path and ``dense-hull`` in ``tests/hull/test_carve.py``; the field of the
+octree is pinned to the bit in ``tests/hull/test_field_digest.py``.
+
+What the kernels share travels in records, never as positional scalars:
+``Packed`` (the views' parameter rows and distance tables), ``CarveConsts``
+(the constants of one carve level), ``Tree`` (the cells' lists of views still
+ambiguous), ``CellCounts`` (a level's decisions), and inside a kernel
+``ViewRow`` (one view's constants), ``Block`` (a chunk of parents) and
+``Passes`` (the scratch of the vectorised passes).
 """
 
 from __future__ import annotations
@@ -36,6 +44,8 @@ _W, _H, _GAIN, _U0, _V0, _TW, _TH, _BOX, _OFF, _FY = 17, 18, 19, 20, 21, 22, 23,
 _NPARAM = 30
 # Outcomes of the conservative cell test in one view (``_cell_test``).
 CELL_OFF, CELL_EDGE, CELL_OUT, CELL_IN, CELL_AMB = 0, 1, 2, 3, 4
+# Decisions on a cell.
+REMOVED, FULL, SPLIT = 0, 1, 2
 # Fixed-point step of the distance tables (px), a compile-time constant of the kernels.
 _SD_STEP = np.float32(SD_STEP)
 _SQRT2 = float(np.sqrt(2.0))
@@ -48,13 +58,67 @@ CHUNK = 2048
 # than 256 on the benchmark plant, single-threaded; 64 and 4096 are slower).
 GROUP_CHUNK = 1024
 
+Packed = namedtuple("Packed", ["params", "tables"])
+Packed.__doc__ = """The views as the kernels read them (``pack``).
+
+params : (V, 30) float64 array, one row per view (layout ``_R`` .. ``_FY``)
+tables : (N,) int16 array, every view's distance table (row ``_OFF`` is its offset)
+"""
+
+CarveConsts = namedtuple("CarveConsts", ["half_size", "voxel_size", "k", "min_seen", "slack",
+                                         "lip", "bil_r"])
+CarveConsts.__doc__ = """The constants of one carve level (``carve_consts``).
+
+half_size : float, mm -- half the side of the level's cells (0 for single voxels)
+voxel_size : float, mm
+k : int -- a point outside in more than k views is removed
+min_seen : int -- a point seen by fewer views is removed
+slack : float, px -- slack of the cell test reading the nearest pixel
+lip : float -- Lipschitz constant of the distance tables (px per px)
+bil_r : float, px -- largest footprint radius read bilinearly by the cell test
+"""
+
+
+def carve_consts(voxel_size: float, k: int, min_seen: int, half_size: float = 0.0,
+                 slack: float = 0.0, lip: float = 0.0, bil_r: float = 0.0) -> CarveConsts:
+    """A ``CarveConsts`` with the types the kernels are compiled for (one signature)."""
+    return CarveConsts(float(half_size), float(voxel_size), int(k), int(min_seen), float(slack),
+                       float(lip), float(bil_r))
+
+
+Tree = namedtuple("Tree", ["start", "views", "n_out", "n_in", "n_off"])
+Tree.__doc__ = """Octree carve state: per live cell, the views it left ambiguous.
+
+start, views : CSR lists of the ambiguous views of each cell (int64 offsets, int16
+    view indices in the packed, interleaved order)
+n_out, n_in, n_off : (M,) int32 -- views already decided out, in, off the image
+"""
+
+
+def root_tree(n_views: int) -> Tree:
+    """The ``Tree`` of one cell holding the whole grid: every view ambiguous."""
+    zero = np.zeros(1, np.int32)
+    return Tree(np.array([0, n_views], dtype=np.int64), np.arange(n_views, dtype=np.int16),
+                zero, zero.copy(), zero.copy())
+
+
+CellCounts = namedtuple("CellCounts", ["decision", "n_out", "n_in", "n_off", "n_amb", "amb",
+                                       "amb_start"])
+CellCounts.__doc__ = """What a level's cell kernels found, per cell.
+
+decision : (M,) int8 -- REMOVED, FULL or SPLIT
+n_out, n_in, n_off, n_amb : (M,) int32 -- views out, in, off, ambiguous
+amb, amb_start : scratch lists of the ambiguous views (cell i's at amb_start[i]..,
+    its first n_amb[i] entries, in the global view order)
+"""
+
 
 def supported(views: Sequence[ViewField]) -> bool:
     """True when numba is installed and every camera uses the seed's model."""
     return HAVE_NUMBA and all(type(v.camera.model) is CameraModel for v in views)
 
 
-def pack(views: Sequence[ViewField]) -> tuple[np.ndarray, np.ndarray]:
+def pack(views: Sequence[ViewField]) -> Packed:
     """(V, 30) float64 parameter rows and one int16 buffer holding the distance tables.
 
     When every view's ``sd`` already lives in one buffer (``prepare_views``
@@ -86,7 +150,7 @@ def pack(views: Sequence[ViewField]) -> tuple[np.ndarray, np.ndarray]:
         rows[i, _BOX:_BOX + 4] = v.box
         rows[i, _OFF] = offsets[i]
         rows[i, _FY] = m.fy
-    return rows, tables
+    return Packed(rows, tables)
 
 
 def _offsets_in_shared_buffer(views: Sequence[ViewField]) -> np.ndarray | None:
@@ -112,6 +176,15 @@ ViewRow = namedtuple("ViewRow", [
     "r00", "r01", "r02", "r10", "r11", "r12", "r20", "r21", "r22", "t0", "t1", "t2",
     "f", "fy", "cu", "cv", "d1", "d2", "u_hi", "v_hi", "gain",
     "u0", "v0", "tw", "th", "off", "bu0", "bv0", "bu1", "bv1"])
+# A chunk of parent cells lo..hi of a sibling kernel: per parent, the position of the next
+# view in its list (``cursor``) and how many of its children are still live (``alive``).
+Block = namedtuple("Block", ["lo", "hi", "cursor", "alive"])
+# Scratch of the vectorised passes over the children of a block in one view: centres X, Y,
+# Z (camera frame), table index IDX and fractions FX, FY of the (bilinear) reading, its 4
+# corners A..D; cells: outcome RES, MARGIN, bilinear or not BIL; voxels: depth / (f voxel)
+# ZF, seen ON, value DD; SEL the parents taking the view.
+Passes = namedtuple("Passes", ["X", "Y", "Z", "IDX", "FX", "FY", "A", "B", "C", "D", "RES",
+                               "MARGIN", "BIL", "ZF", "ON", "DD", "SEL"])
 
 if HAVE_NUMBA:
 
@@ -160,10 +233,11 @@ if HAVE_NUMBA:
             out[ch, 2] = vr.r20 * sx + vr.r21 * sy + vr.r22 * sz
 
     @njit(cache=True, inline="always")
-    def _takes_view(cursor, c, p_start, p_views, i, j):
-        # Whether view j is next in parent i's list (global view order); advances its cursor.
+    def _takes_view(cursor, c, start, views, i, j):
+        # Whether view j is next in parent i's list ``start``, ``views`` (global view
+        # order); advances its cursor ``cursor[c]``.
         t = cursor[c]
-        if t >= p_start[i + 1] or p_views[t] != j:
+        if t >= start[i + 1] or views[t] != j:
             return False
         cursor[c] = t + 1
         return True
@@ -216,7 +290,7 @@ if HAVE_NUMBA:
         return np.float32(tables[vr.off + iv * w + iu]) * _SD_STEP
 
     @njit(cache=True, inline="always")
-    def _cell_test(vr, tables, xc, yc, zc, rho, voxel_size, lip, slack, bil_r):
+    def _cell_test(vr, tables, xc, yc, zc, rho, cc):
         # A cell (voxel centres within rho mm of its centre xc, yc, zc, camera frame) in
         # one view: CELL_OFF its footprint is off the image (not seen), CELL_EDGE partly
         # off (or the camera within reach), CELL_OUT / CELL_IN every voxel of it beyond
@@ -236,24 +310,39 @@ if HAVE_NUMBA:
             return CELL_EDGE
         # One voxel in px at the nearest depth: the field is d = sd * z / (f * voxel),
         # so |sd| > f * voxel / near puts every voxel beyond the +-1 clamp.
-        one_voxel = voxel_size * vr.f / near
+        one_voxel = cc.voxel_size * vr.f / near
         # Small footprints (the 2- and often 4-voxel cells): the bilinear value at the
         # centre is within lip * sqrt(2) * r + one table step of the voxels' (see
         # ``carve.classify_cells``), tighter than the nearest pixel's lip * r + slack.
         lu = u - vr.u0
         lv = v - vr.v0
-        if (r < bil_r and lu - r >= -0.5
+        if (r < cc.bil_r and lu - r >= -0.5
                 and lu + r <= vr.tw - 0.5 and lv - r >= -0.5 and lv + r <= vr.th - 0.5):
-            margin = lip * _SQRT2 * r + _SD_STEP + one_voxel
+            margin = cc.lip * _SQRT2 * r + _SD_STEP + one_voxel
             sd = _bilinear_row(vr, tables, u, v)
         else:
-            margin = lip * r + one_voxel + slack
+            margin = cc.lip * r + one_voxel + cc.slack
             sd = _nearest_row(vr, tables, u, v)
         if sd < -margin:
             return CELL_OUT
         if sd > margin:
             return CELL_IN
         return CELL_AMB
+
+    @njit(cache=True, inline="always")
+    def _removed(n_out, n_off, k, max_off):
+        # Out in more than k views, or off more images than min_seen allows: removed.
+        return n_out > k or n_off > max_off
+
+    @njit(cache=True, inline="always")
+    def _decide(n_out, n_in, n_off, n_amb, n_on_amb, max_off, cc):
+        # A cell's decision from its views' outcomes (``carve.classify_cells``): full when
+        # out or ambiguous in at most k views and wholly on at least min_seen images.
+        if _removed(n_out, n_off, cc.k, max_off):
+            return REMOVED
+        if n_out + n_amb <= cc.k and n_out + n_in + n_on_amb >= cc.min_seen:
+            return FULL
+        return SPLIT
 
     @njit(cache=True, inline="always")
     def _voxel_test(vr, tables, xc, yc, zc, fs):
@@ -278,11 +367,21 @@ if HAVE_NUMBA:
             m = max(m, kept[f, q])
         return m
 
+    @njit(cache=True, inline="always")
+    def _final_value(kth, seen, min_seen):
+        # A voxel's field: its clamped (k+1)-th smallest value, -1 when fewer than
+        # min_seen views saw it (and it is not removed already).
+        val = min(max(kth, np.float32(-1.0)), np.float32(1.0))
+        if seen < min_seen and kth > -1.0:
+            val = np.float32(-1.0)
+        return val
+
     @njit(cache=True, parallel=True)
-    def _voxel_field(points, params, tables, voxel_size, k, min_seen, chunk):
+    def _voxel_field(points, packed, cc, chunk):
         # View-major inside a chunk of neighbouring points: they project to a small
         # patch of each view's table, so the table reads stay in cache (point-major
         # order reads a different table every test and is memory bound).
+        params, tables, k = packed.params, packed.tables, cc.k
         n = points.shape[0]
         nv = params.shape[0]
         nchunks = (n + chunk - 1) // chunk
@@ -298,7 +397,7 @@ if HAVE_NUMBA:
             count = 0
             for j in range(nv):
                 vr = _row(params, j)
-                fs = vr.f * voxel_size
+                fs = vr.f * cc.voxel_size
                 for ii in range(m):
                     if done[ii]:
                         continue
@@ -317,60 +416,9 @@ if HAVE_NUMBA:
                 mx = kept[ii, 0]
                 for q in range(1, k + 1):
                     mx = max(mx, kept[ii, q])
-                val = min(max(mx, np.float32(-1.0)), np.float32(1.0))
-                if seen[ii] < min_seen and mx > -1.0:
-                    val = np.float32(-1.0)
-                out[a + ii] = val
+                out[a + ii] = _final_value(mx, seen[ii], cc.min_seen)
             tests[c] = count
         return out, tests.sum()
-
-    @njit(cache=True, parallel=True)
-    def _classify(centres, half_size, voxel_size, params, tables, k, slack, min_seen, lip,
-                  bil_r, chunk):
-        m_all = centres.shape[0]
-        nv = params.shape[0]
-        rho = (half_size - 0.5 * voxel_size) * np.sqrt(3.0)  # voxel centres: see carve
-        nchunks = (m_all + chunk - 1) // chunk
-        decision = np.empty(m_all, dtype=np.int8)
-        tests = np.zeros(nchunks, dtype=np.int64)
-        max_off = nv - min_seen
-        for c in prange(nchunks):
-            a = c * chunk
-            m = min(m_all, a + chunk) - a
-            n_out = np.zeros(m, dtype=np.int32)
-            n_amb = np.zeros(m, dtype=np.int32)
-            n_on = np.zeros(m, dtype=np.int32)
-            n_off = np.zeros(m, dtype=np.int32)
-            count = 0
-            for j in range(nv):
-                vr = _row(params, j)
-                for ii in range(m):
-                    if n_out[ii] > k or n_off[ii] > max_off:
-                        continue  # removed already
-                    i = a + ii
-                    count += 1
-                    xc, yc, zc = _cam(vr, centres[i, 0], centres[i, 1], centres[i, 2])
-                    res = _cell_test(vr, tables, xc, yc, zc, rho, voxel_size, lip, slack, bil_r)
-                    if res == CELL_OFF:
-                        n_off[ii] += 1
-                    elif res == CELL_EDGE:
-                        n_amb[ii] += 1
-                    else:
-                        n_on[ii] += 1
-                        if res == CELL_OUT:
-                            n_out[ii] += 1
-                        elif res == CELL_AMB:
-                            n_amb[ii] += 1
-            for ii in range(m):
-                if n_out[ii] > k or n_off[ii] > max_off:
-                    decision[a + ii] = 0
-                elif n_out[ii] + n_amb[ii] <= k and n_on[ii] >= min_seen:
-                    decision[a + ii] = 1
-                else:
-                    decision[a + ii] = 2
-            tests[c] = count
-        return decision, tests.sum()
-
 
     # ------------------------------------------------------------------ octree with inheritance
     # A cell's test in a view is conservative for every point of the cell: when a
@@ -379,21 +427,22 @@ if HAVE_NUMBA:
     # test only the views their parent left ambiguous.  Per cell: counts of the
     # decided views (out, in, off) and the list of ambiguous views (CSR, int16).
 
+    # Records go into a parallel loop as arguments of the kernel, never made inside it
+    # (numba 0.68 cannot type a record made in the function of a parallel loop, and
+    # wrote nothing through one), and every kernel reads a record's fields into locals
+    # before its loops: each read of a field holds a reference to its array, and those
+    # counts in the inner loops made the kernels 1.35-1.8x slower (measured).
+
     @njit(cache=True, parallel=True)
-    def _classify_tree(centres, parent, p_start, p_views, p_out, p_in, p_offc, scratch_off,
-                       half_size, voxel_size, params, tables, k, slack, min_seen, lip, bil_r,
-                       chunk):
+    def _classify_tree(centres, parent, tree, cc, packed, out, chunk):
+        # Cell i, a child of ``tree``'s cell parent[i], tests its parent's ambiguous views;
+        # its counts and decision go to ``out`` (``cell_counts``).
+        params, tables = packed.params, packed.tables
         m_all = centres.shape[0]
-        nv = params.shape[0]
-        rho = (half_size - 0.5 * voxel_size) * np.sqrt(3.0)  # voxel centres: see carve
-        max_off = nv - min_seen
-        decision = np.empty(m_all, dtype=np.int8)
-        c_out = np.empty(m_all, dtype=np.int32)
-        c_in = np.empty(m_all, dtype=np.int32)
-        c_off = np.empty(m_all, dtype=np.int32)
-        c_amb = np.empty(m_all, dtype=np.int32)
-        c_neg = np.empty(m_all, dtype=np.int32)
-        amb = np.empty(scratch_off[m_all], dtype=np.int16)
+        rho = (cc.half_size - 0.5 * cc.voxel_size) * np.sqrt(3.0)  # voxel centres: see carve
+        max_off = params.shape[0] - cc.min_seen
+        decision, c_out, c_in, c_off, c_amb, amb, amb_start = out
+        start, views, p_out, p_in, p_off = tree
         nchunks = (m_all + chunk - 1) // chunk
         tests = np.zeros(nchunks, dtype=np.int64)
         for c in prange(nchunks):
@@ -402,21 +451,21 @@ if HAVE_NUMBA:
                 q = parent[i]
                 n_out = p_out[q]
                 n_in = p_in[q]
-                n_off = p_offc[q]
+                n_off = p_off[q]
                 n_on_amb = 0
                 na = 0  # ambiguous views, in the global view order
-                w = scratch_off[i]
+                w = amb_start[i]
                 x = centres[i, 0]
                 y = centres[i, 1]
                 z = centres[i, 2]
-                for t in range(p_start[q], p_start[q + 1]):
-                    if n_out > k or n_off > max_off:
-                        break  # removed already
-                    j = p_views[t]
+                for t in range(start[q], start[q + 1]):
+                    if _removed(n_out, n_off, cc.k, max_off):
+                        break
+                    j = views[t]
                     count += 1
                     vr = _row(params, j)
                     xc, yc, zc = _cam(vr, x, y, z)
-                    res = _cell_test(vr, tables, xc, yc, zc, rho, voxel_size, lip, slack, bil_r)
+                    res = _cell_test(vr, tables, xc, yc, zc, rho, cc)
                     if res == CELL_OFF:
                         n_off += 1
                     elif res == CELL_OUT:
@@ -431,30 +480,19 @@ if HAVE_NUMBA:
                 c_in[i] = n_in
                 c_off[i] = n_off
                 c_amb[i] = na
-                c_neg[i] = na
-                if n_out > k or n_off > max_off:
-                    decision[i] = 0
-                elif n_out + na <= k and n_out + n_in + n_on_amb >= min_seen:
-                    decision[i] = 1
-                else:
-                    decision[i] = 2
+                decision[i] = _decide(n_out, n_in, n_off, na, n_on_amb, max_off, cc)
             tests[c] = count
-        return decision, c_out, c_in, c_off, c_amb, c_neg, amb, tests.sum()
+        return tests.sum()
 
     @njit(cache=True)  # serial: cheap, and parallel compiles slowly
-    def _gather_lists(sel, scratch_off, c_amb, c_neg, amb, out_start):
-        # Each child list: the front ``c_neg`` entries of its scratch, then the back
-        # ones reversed (the kernels write front-only, in the global view order).
+    def _gather_lists(sel, counts, out_start):
+        # The lists of the cells ``sel``: the first n_amb entries of each one's scratch.
         views = np.empty(out_start[-1], dtype=np.int16)
         for t in range(sel.shape[0]):
-            a = scratch_off[sel[t]]
-            e = scratch_off[sel[t] + 1] - 1
+            a = counts.amb_start[sel[t]]
             o = out_start[t]
-            neg = c_neg[sel[t]]
-            for q in range(neg):
-                views[o + q] = amb[a + q]
-            for q in range(c_amb[sel[t]] - neg):
-                views[o + neg + q] = amb[e - q]
+            for q in range(counts.n_amb[sel[t]]):
+                views[o + q] = counts.amb[a + q]
         return views
 
     @njit(cache=True)  # serial: cheap, and parallel compiles slowly
@@ -519,19 +557,41 @@ if HAVE_NUMBA:
     # they are tested together, from the projection of the parent's centre plus
     # the rotated half-offsets (3 additions per child instead of a matrix product).
     # A chunk of parents is processed view-major (lists are in the global view
-    # order), so one view's table is read for neighbouring cells in a row.
+    # order), so one view's table is read for neighbouring cells in a row.  Per view,
+    # the children of the parents that take it are projected in one branch-free loop
+    # that the compiler vectorises (8 divisions at once), their 4 table values read in
+    # a second loop and their values formed in a third (session 6: scalar, the voxels
+    # cost 33-41 ns per test on the captured 256^3 input, in passes 17-22 ns).
+
+    @njit(cache=True)
+    def _block(lo, hi, tree):
+        return Block(lo, hi, tree.start[lo:hi].copy(), np.zeros(hi - lo, np.int32))
+
+    @njit(cache=True)
+    def _passes(n, n_parents):
+        # The scratch of the passes for n children of n_parents parents.
+        return Passes(np.empty(n), np.empty(n), np.empty(n), np.empty(n, dtype=np.int64),
+                      np.empty(n, dtype=np.float32), np.empty(n, dtype=np.float32),
+                      np.empty(n, dtype=SD_DTYPE), np.empty(n, dtype=SD_DTYPE),
+                      np.empty(n, dtype=SD_DTYPE), np.empty(n, dtype=SD_DTYPE),
+                      np.empty(n, dtype=np.int8), np.empty(n), np.empty(n, dtype=np.bool_),
+                      np.empty(n), np.empty(n, dtype=np.bool_), np.empty(n, dtype=np.float32),
+                      np.empty(n_parents, dtype=np.int64))
 
     @njit(cache=True, inline="always")
-    def _children_in_view(vr, j, offs, lo, hi, centres, cursor, p_start, p_views, alive, X, Y,
-                          Z, sel):
-        # The parents lo..hi whose list holds view j (next, in the global view order) and
-        # that have live children: their indices in sel[:ns], their 8 children's centres
-        # (camera frame, ``offs`` from the parent's) in (X, Y, Z)[:8 ns].  Returns ns and
-        # the number of live children among them (the tests counted).
+    def _children_in_view(vr, j, offs, centres, tree, block, buf):
+        # The parents of the block whose list holds view j (next, in the global view
+        # order) and that have live children: their indices in buf.SEL[:ns], their 8
+        # children's centres (camera frame, ``offs`` from the parent's) in buf.X, Y,
+        # Z[:8 ns].  Returns ns and the number of live children among them (the tests
+        # counted).
+        lo, cursor, alive = block.lo, block.cursor, block.alive
+        start, views = tree.start, tree.views
+        X, Y, Z, SEL = buf.X, buf.Y, buf.Z, buf.SEL
         ns = 0
         count = 0
-        for i in range(lo, hi):
-            if not _takes_view(cursor, i - lo, p_start, p_views, i, j) or alive[i - lo] == 0:
+        for i in range(lo, block.hi):
+            if not _takes_view(cursor, i - lo, start, views, i, j) or alive[i - lo] == 0:
                 continue
             count += alive[i - lo]
             xc0, yc0, zc0 = _cam(vr, centres[i, 0], centres[i, 1], centres[i, 2])
@@ -539,30 +599,28 @@ if HAVE_NUMBA:
                 X[ns * 8 + ch] = xc0 + offs[ch, 0]
                 Y[ns * 8 + ch] = yc0 + offs[ch, 1]
                 Z[ns * 8 + ch] = zc0 + offs[ch, 2]
-            sel[ns] = i
+            SEL[ns] = i
             ns += 1
         return ns, count
 
     @njit(cache=True, inline="always")
-    def _pass_buffers(n):
-        # Scratch of the passes for n children: centres X, Y, Z (camera frame), table
-        # index IDX and fractions FX, FY of the bilinear reading, its 4 corners.
-        return (np.empty(n), np.empty(n), np.empty(n), np.empty(n, dtype=np.int64),
-                np.empty(n, dtype=np.float32), np.empty(n, dtype=np.float32),
-                np.empty(n, dtype=SD_DTYPE),
-                np.empty(n, dtype=SD_DTYPE), np.empty(n, dtype=SD_DTYPE),
-                np.empty(n, dtype=SD_DTYPE))
+    def _in_table(vr, lu, lv):
+        # Whether a point at (lu, lv) relative to the table's corner reads the table.
+        return (lu >= -0.5) & (lu <= vr.tw - 0.5) & (lv >= -0.5) & (lv <= vr.th - 0.5)
 
+    # ------------------------------------------------------------------ cells, in passes
     @njit(cache=True, error_model="numpy")
-    def _project_cells(n, X, Y, Z, vr, rho, voxel_size, lip, slack, bil_r, RES, MARGIN, IDX,
-                       BIL, FX, FY):
-        # The geometry of ``_cell_test`` for the cells centred at (X, Y, Z)[:n] (camera
+    def _project_cells(n, buf, vr, rho, cc):
+        # The geometry of ``_cell_test`` for the cells centred at buf.X, Y, Z[:n] (camera
         # frame), branch-free: RES CELL_OFF / CELL_EDGE when decided without the table,
         # else -1 and the margin and table reading to decide it (``_cell_outcomes``):
         # bilinear at the centre for small footprints, else the nearest pixel, which is
         # the bilinear formula with zero fractions on one corner (the same value).
         # Returns how many nearest readings fall beyond the table (the box bound:
-        # ``_classify_range`` fixes them up).
+        # ``_cells_beyond_table``).
+        X, Y, Z, RES, MARGIN, IDX, BIL, FX, FY = (buf.X, buf.Y, buf.Z, buf.RES, buf.MARGIN,
+                                                   buf.IDX, buf.BIL, buf.FX, buf.FY)
+        voxel_size, lip, slack, bil_r = cc.voxel_size, cc.lip, cc.slack, cc.bil_r
         w = vr.tw
         h = vr.th
         x_max = w - 2 if w > 1 else 0
@@ -586,8 +644,7 @@ if HAVE_NUMBA:
             lv = v - vr.v0
             bil = ((r < bil_r) & (lu - r >= -0.5) & (lu + r <= w - 0.5) & (lv - r >= -0.5)
                    & (lv + r <= h - 0.5))
-            in_tab = (lu >= -0.5) & (lu <= w - 0.5) & (lv >= -0.5) & (lv <= h - 0.5)
-            n_beyond += read & ~bil & ~in_tab
+            n_beyond += read & ~bil & ~_in_table(vr, lu, lv)
             MARGIN[t] = (lip * _SQRT2 * r + _SD_STEP + one_voxel if bil
                          else lip * r + one_voxel + slack)
             RES[t] = CELL_OFF if off else (CELL_EDGE if edge else -1)
@@ -605,8 +662,10 @@ if HAVE_NUMBA:
         return n_beyond
 
     @njit(cache=True, error_model="numpy")
-    def _cell_outcomes(n, tables, IDX, BIL, dx1, dy1, FX, FY, MARGIN, RES, A, B, C, D):
+    def _cell_outcomes(n, tables, buf, dx1, dy1):
         # The table readings of the cells with RES -1 and their outcomes.
+        IDX, BIL, FX, FY, MARGIN, RES = buf.IDX, buf.BIL, buf.FX, buf.FY, buf.MARGIN, buf.RES
+        A, B, C, D = buf.A, buf.B, buf.C, buf.D
         for t in range(n):
             q = IDX[t]
             A[t] = tables[q]
@@ -622,293 +681,165 @@ if HAVE_NUMBA:
             RES[t] = res if RES[t] < 0 else RES[t]
 
     @njit(cache=True)
-    def _classify_range(lo, hi, centres, valid, p_start, p_views, p_out, p_in, p_offc,
-                        scratch_off, half_size, voxel_size, params, tables, k, slack, min_seen,
-                        lip, bil_r, decision, c_out, c_in, c_off, c_amb, c_neg, amb):
-        # Serial body of ``_classify_group`` for parents lo..hi, view-major: for each
-        # view (lists are in the global view order) the parents of the chunk whose list
-        # holds it, so one view's table is read for neighbouring cells in a row (the
-        # reads stay in cache; cell-major order reads a different table every test).
-        # In passes as ``_voxel_range`` (session 6): the children of the parents that
-        # take the view are projected and decided in vectorised loops, then counted; a
-        # removed child is still counted with its siblings (it stays removed: its
-        # counts only grow) but no longer counted as tested.
-        nv = params.shape[0]
-        rho = (half_size - 0.5 * voxel_size) * np.sqrt(3.0)  # voxel centres: see carve
-        max_off = nv - min_seen
-        npl = hi - lo
-        n = npl * 8
-        count = 0
-        n_out = np.empty(n, np.int32)
-        n_in = np.empty(n, np.int32)
-        n_off = np.empty(n, np.int32)
-        n_on_amb = np.zeros(n, np.int32)
-        na = np.zeros(n, np.int32)
-        live_ok = np.empty(n, np.bool_)
-        alive = np.zeros(npl, np.int32)
-        cursor = np.empty(npl, np.int64)
-        # Which of its parent's listed views each child found ambiguous: bit q of
-        # ambig[q // 64, child] for list position q.  One row per 64 positions, so a view's
-        # updates write one contiguous row (writing the lists view by view touched one
-        # cache line per child: 20 % of the time); the lists are written at the end.
+    def _cells_beyond_table(n, buf, vr):
+        # The cells read at a nearest pixel beyond the table (rare): the box bound.
+        X, Y, Z, RES, BIL, MARGIN = buf.X, buf.Y, buf.Z, buf.RES, buf.BIL, buf.MARGIN
+        for t in range(n):
+            if RES[t] <= CELL_EDGE or BIL[t]:
+                continue
+            u, v = _pixel(vr, X[t], Y[t], Z[t])  # as in ``_project_cells``
+            if not _in_table(vr, u - vr.u0, v - vr.v0):
+                sd = _box_bound(vr, u, v)
+                RES[t] = CELL_OUT if sd < -MARGIN[t] else (CELL_IN if sd > MARGIN[t] else CELL_AMB)
+
+    # Per child of a block: the counts of its views' outcomes, whether it lies in the grid
+    # (live_ok), and which of its parent's listed views it found ambiguous: bit q of
+    # ambig[q // 64, child] for list position q.  One row per 64 positions, so a view's
+    # updates write one contiguous row (writing the lists view by view touched one cache
+    # line per child: 20 % of the time); the lists are written at the end.
+    Siblings = namedtuple("Siblings", ["n_out", "n_in", "n_off", "n_on_amb", "na", "live_ok",
+                                       "ambig"])
+
+    @njit(cache=True)
+    def _siblings(block, valid, tree, k, max_off):
+        # The children's counts start as their parent's; ``block.alive`` their live ones.
+        n = (block.hi - block.lo) * 8
         longest = 0
-        for i in range(lo, hi):
-            longest = max(longest, p_start[i + 1] - p_start[i])
-        ambig = np.zeros(((longest + 63) // 64, n), np.uint64)
-        for i in range(lo, hi):
-            cursor[i - lo] = p_start[i]
+        for i in range(block.lo, block.hi):
+            longest = max(longest, tree.start[i + 1] - tree.start[i])
+        sib = Siblings(np.empty(n, np.int32), np.empty(n, np.int32), np.empty(n, np.int32),
+                       np.zeros(n, np.int32), np.zeros(n, np.int32), np.empty(n, np.bool_),
+                       np.zeros(((longest + 63) // 64, n), np.uint64))
+        n_out, n_in, n_off, live_ok = sib.n_out, sib.n_in, sib.n_off, sib.live_ok
+        alive = block.alive
+        for i in range(block.lo, block.hi):
+            for ch in range(8):
+                f = (i - block.lo) * 8 + ch
+                n_out[f] = tree.n_out[i]
+                n_in[f] = tree.n_in[i]
+                n_off[f] = tree.n_off[i]
+                live_ok[f] = valid[i * 8 + ch]
+                alive[i - block.lo] += live_ok[f] and not _removed(n_out[f], n_off[f], k, max_off)
+        return sib
+
+    @njit(cache=True, inline="always")
+    def _count_outcomes(ns, block, tree, sib, buf, k, max_off):
+        # Adds the outcomes in buf.RES of the children of the ns parents buf.SEL to their
+        # counts; a removed child is still counted with its siblings (it stays removed:
+        # its counts only grow) but no longer counted as live.
+        lo, cursor, alive, start, SEL, RES = (block.lo, block.cursor, block.alive, tree.start,
+                                              buf.SEL, buf.RES)
+        n_out, n_in, n_off, n_on_amb, na, live_ok, ambig = sib
+        for s in range(ns):
+            i = SEL[s]
+            a = 0
+            q = cursor[i - lo] - 1 - start[i]  # the view's place in the parent's list
+            row = q >> 6
+            bit = np.uint64(1) << np.uint64(q & 63)
             for ch in range(8):
                 f = (i - lo) * 8 + ch
-                n_out[f] = p_out[i]
-                n_in[f] = p_in[i]
-                n_off[f] = p_offc[i]
-                live_ok[f] = valid[i * 8 + ch]
-                alive[i - lo] += live_ok[f] and not (n_out[f] > k or n_off[f] > max_off)
-        X, Y, Z, IDX, FX, FY, A, B, C, D = _pass_buffers(n)
-        MARGIN = np.empty(n)
-        RES = np.empty(n, dtype=np.int8)
-        BIL = np.empty(n, dtype=np.bool_)
-        sel = np.empty(npl, dtype=np.int64)
-        offs = np.empty((8, 3))
-        for j in range(nv):
-            vr = _row(params, j)
-            _child_offsets(vr, half_size, offs)
-            ns, tested = _children_in_view(vr, j, offs, lo, hi, centres, cursor, p_start,
-                                           p_views, alive, X, Y, Z, sel)
-            count += tested
-            m = ns * 8
-            n_beyond = _project_cells(m, X, Y, Z, vr, rho, voxel_size, lip, slack, bil_r, RES,
-                                      MARGIN, IDX, BIL, FX, FY)
-            _cell_outcomes(m, tables, IDX, BIL, 1 if vr.tw > 1 else 0,
-                           vr.tw if vr.th > 1 else 0, FX, FY, MARGIN, RES, A, B, C, D)
-            if n_beyond:  # nearest readings beyond the table (rare): the box bound
-                for t in range(m):
-                    if RES[t] <= CELL_EDGE or BIL[t]:
-                        continue
-                    u, v = _pixel(vr, X[t], Y[t], Z[t])  # as in ``_project_cells``
-                    lu = u - vr.u0
-                    lv = v - vr.v0
-                    if not (lu >= -0.5 and lu <= vr.tw - 0.5 and lv >= -0.5
-                            and lv <= vr.th - 0.5):
-                        sd = _box_bound(vr, u, v)
-                        mg = MARGIN[t]
-                        RES[t] = CELL_OUT if sd < -mg else (CELL_IN if sd > mg else CELL_AMB)
-            for s in range(ns):
-                i = sel[s]
-                a = 0
-                q = cursor[i - lo] - 1 - p_start[i]  # view j's position in the parent's list
-                row = q >> 6
-                bit = np.uint64(1) << np.uint64(q & 63)
-                for ch in range(8):
-                    f = (i - lo) * 8 + ch
-                    res = RES[s * 8 + ch]
-                    n_off[f] += res == CELL_OFF
-                    n_out[f] += res == CELL_OUT
-                    n_in[f] += res == CELL_IN
-                    is_amb = (res == CELL_EDGE) | (res == CELL_AMB)
-                    ambig[row, f] |= bit if is_amb else np.uint64(0)
-                    na[f] += is_amb
-                    n_on_amb[f] += res == CELL_AMB
-                    a += live_ok[f] and not (n_out[f] > k or n_off[f] > max_off)
-                alive[i - lo] = a
+                res = RES[s * 8 + ch]
+                n_off[f] += res == CELL_OFF
+                n_out[f] += res == CELL_OUT
+                n_in[f] += res == CELL_IN
+                is_amb = (res == CELL_EDGE) | (res == CELL_AMB)
+                ambig[row, f] |= bit if is_amb else np.uint64(0)
+                na[f] += is_amb
+                n_on_amb[f] += res == CELL_AMB
+                a += live_ok[f] and not _removed(n_out[f], n_off[f], k, max_off)
+            alive[i - lo] = a
+
+    @njit(cache=True)
+    def _write_cells(block, valid, tree, sib, max_off, cc, out):
+        # The children's decisions and counts into ``out``; the split children's lists of
+        # ambiguous views (in the global view order), for their own children: the
+        # siblings' lists are written in one walk of the parent's list (each slot
+        # written, kept if its bit is set: a list never outgrows the walk).  Other
+        # children's lists are not read.
+        n_out, n_in, n_off, n_on_amb, na, _, ambig = sib
+        decision, c_out, c_in, c_off, c_amb, amb, amb_start = out
+        start, views, lo = tree.start, tree.views, block.lo
         w = np.empty(8, np.int64)
-        for i in range(lo, hi):
+        for i in range(lo, block.hi):
             any_split = False
             for ch in range(8):
                 f = (i - lo) * 8 + ch
                 g = i * 8 + ch
                 if not valid[g]:
-                    continue  # beyond the grid: decision 0
+                    continue  # beyond the grid: decision REMOVED
                 c_out[g] = n_out[f]
                 c_in[g] = n_in[f]
                 c_off[g] = n_off[f]
                 c_amb[g] = na[f]
-                c_neg[g] = na[f]
-                if n_out[f] > k or n_off[f] > max_off:
-                    decision[g] = 0
-                elif n_out[f] + na[f] <= k and n_out[f] + n_in[f] + n_on_amb[f] >= min_seen:
-                    decision[g] = 1
-                else:
-                    decision[g] = 2
-                    any_split = True
-            if any_split:
-                # The split children's lists of ambiguous views (in the global view
-                # order), for their own children; the siblings' lists are written in one
-                # walk of the parent's list (each slot written, kept if its bit is set:
-                # a list never outgrows the walk).  Other children's lists are not read.
+                decision[g] = _decide(n_out[f], n_in[f], n_off[f], na[f], n_on_amb[f], max_off,
+                                      cc)
+                any_split |= decision[g] == SPLIT
+            if not any_split:
+                continue
+            for ch in range(8):
+                w[ch] = amb_start[i * 8 + ch]
+            p0 = start[i]
+            for q in range(start[i + 1] - p0):
+                view = views[p0 + q]
+                row = q >> 6
+                shift = np.uint64(q & 63)
                 for ch in range(8):
-                    w[ch] = scratch_off[i * 8 + ch]
-                p0 = p_start[i]
-                for q in range(p_start[i + 1] - p0):
-                    view = p_views[p0 + q]
-                    row = q >> 6
-                    shift = np.uint64(q & 63)
-                    for ch in range(8):
-                        amb[w[ch]] = view
-                        w[ch] += np.int64((ambig[row, (i - lo) * 8 + ch] >> shift)
-                                          & np.uint64(1))
+                    amb[w[ch]] = view
+                    w[ch] += np.int64((ambig[row, (i - lo) * 8 + ch] >> shift) & np.uint64(1))
+
+    @njit(cache=True)
+    def _classify_range(lo, hi, centres, valid, tree, cc, packed, out):
+        # Serial body of ``_classify_group`` for parents lo..hi, view-major: for each
+        # view (lists are in the global view order) the children of the parents whose
+        # list holds it are projected and decided in vectorised passes, then counted.
+        params, tables = packed.params, packed.tables
+        rho = (cc.half_size - 0.5 * cc.voxel_size) * np.sqrt(3.0)  # voxel centres: see carve
+        max_off = params.shape[0] - cc.min_seen
+        block = _block(lo, hi, tree)
+        sib = _siblings(block, valid, tree, cc.k, max_off)
+        buf = _passes((hi - lo) * 8, hi - lo)
+        offs = np.empty((8, 3))
+        count = 0
+        for j in range(params.shape[0]):
+            vr = _row(params, j)
+            _child_offsets(vr, cc.half_size, offs)
+            ns, tested = _children_in_view(vr, j, offs, centres, tree, block, buf)
+            count += tested
+            n_beyond = _project_cells(ns * 8, buf, vr, rho, cc)
+            _cell_outcomes(ns * 8, tables, buf, 1 if vr.tw > 1 else 0,
+                           vr.tw if vr.th > 1 else 0)
+            if n_beyond:
+                _cells_beyond_table(ns * 8, buf, vr)
+            _count_outcomes(ns, block, tree, sib, buf, cc.k, max_off)
+        _write_cells(block, valid, tree, sib, max_off, cc, out)
         return count
 
     @njit(cache=True, parallel=True)
-    def _classify_group(centres, valid, p_start, p_views, p_out, p_in, p_offc, scratch_off,
-                        half_size, voxel_size, params, tables, k, slack, min_seen, lip, bil_r,
-                       chunk):
-        # centres: (P, 3) parents' centres; children have half-side ``half_size``.
+    def _classify_group(centres, valid, tree, cc, packed, out, chunk):
+        # centres: (P, 3) parents' centres; children have half-side ``cc.half_size``;
+        # their counts and decisions go to ``out`` (``cell_counts`` of P * 8 cells).
         n_par = centres.shape[0]
-        decision = np.zeros(n_par * 8, dtype=np.int8)
-        c_out = np.zeros(n_par * 8, dtype=np.int32)
-        c_in = np.zeros(n_par * 8, dtype=np.int32)
-        c_off = np.zeros(n_par * 8, dtype=np.int32)
-        c_amb = np.zeros(n_par * 8, dtype=np.int32)
-        c_neg = np.zeros(n_par * 8, dtype=np.int32)
-        amb = np.empty(scratch_off[n_par * 8], dtype=np.int16)
         nchunks = (n_par + chunk - 1) // chunk
         tests = np.zeros(nchunks, dtype=np.int64)
         for c in prange(nchunks):
-            tests[c] = _classify_range(
-                c * chunk, min(n_par, (c + 1) * chunk), centres, valid, p_start, p_views, p_out,
-                p_in, p_offc, scratch_off, half_size, voxel_size, params, tables, k, slack,
-                min_seen, lip, bil_r, decision, c_out, c_in, c_off, c_amb, c_neg, amb)
-        return decision, c_out, c_in, c_off, c_amb, c_neg, amb, tests.sum()
-
-    @njit(cache=True, inline="always")
-    def _centre_bound(vr, tables, xc, yc, zc, lip):
-        # (u, v, sd - slack) at the projection of a parent's centre (camera frame), or
-        # sd = -inf when it does not read the table (behind the camera, beyond the table:
-        # the box bound there is not Lipschitz with the table) or lip <= 0.  slack: one
-        # table step for the rounding of two readings and 1e-3 px for float rounding.
-        if lip <= 0.0 or zc <= 0.0:
-            return 0.0, 0.0, -np.inf
-        u, v = _pixel(vr, xc, yc, zc)
-        lu = u - vr.u0
-        lv = v - vr.v0
-        if not (lu >= -0.5 and lu <= vr.tw - 0.5 and lv >= -0.5 and lv <= vr.th - 0.5):
-            return u, v, -np.inf
-        return u, v, _bilinear_row(vr, tables, u, v) - _SD_STEP - 1e-3
-
-    @njit(cache=True, inline="always")
-    def _voxel_bound(vr, u, v, zc, uc, vc, sdc, lip, fs):
-        # Lower bound (voxels) of the field value of a voxel seen at (u, v), depth zc, from
-        # the table read at its parent's centre (``_centre_bound``): the table's steps
-        # between neighbouring pixels are <= 1 px (< lip), so its bilinear interpolant
-        # changes by at most lip (|du| + |dv|) between the two projections.  -inf when
-        # the voxel does not read the table (then it is tested).
-        lu = u - vr.u0
-        lv = v - vr.v0
-        if not (lu >= -0.5 and lu <= vr.tw - 0.5 and lv >= -0.5 and lv <= vr.th - 0.5):
-            return -np.inf
-        return (sdc - lip * (abs(u - uc) + abs(v - vc))) * (zc / fs)
-
-    @njit(cache=True)
-    def _voxel_range_bounded(lo, hi, centres, valid, p_start, p_views, p_out, p_in, voxel_size,
-                             params, tables, k, min_seen, lip, out):
-        # Serial body of ``_voxel_group`` with bounds (lip > 0) for parents lo..hi,
-        # view-major as ``_classify_range``.
-        h = 0.5 * voxel_size
-        nv = params.shape[0]
-        n = (hi - lo) * 8
-        count = 0
-        centre = 0
-        bounded = 0
-        kept = np.empty((n, k + 1), dtype=np.float32)
-        mx = np.empty(n, dtype=np.float32)
-        seen = np.empty(n, dtype=np.int32)
-        live = np.empty(n, np.bool_)
-        alive = np.zeros(hi - lo, np.int32)
-        cursor = np.empty(hi - lo, np.int64)
-        total = 0
-        for i in range(lo, hi):
-            cursor[i - lo] = p_start[i]
-            for ch in range(8):
-                f = (i - lo) * 8 + ch
-                for q in range(k + 1):
-                    kept[f, q] = np.inf
-                # Decided views of the parent: out -> -1, in -> +1 after clamping.
-                filled = 0
-                for _ in range(min(p_out[i], k + 1)):
-                    kept[f, filled] = -1.0
-                    filled += 1
-                for _ in range(min(p_in[i], k + 1 - filled)):
-                    kept[f, filled] = 1.0
-                    filled += 1
-                m = kept[f, 0]
-                for q in range(1, k + 1):
-                    m = max(m, kept[f, q])
-                mx[f] = m
-                seen[f] = p_out[i] + p_in[i]
-                live[f] = valid[i * 8 + ch] and m > -1.0
-                alive[i - lo] += live[f]
-            total += alive[i - lo]
-        offs = np.empty((8, 3))
-        for j in range(nv):
-            if total == 0:
-                break
-            vr = _row(params, j)
-            fs = vr.f * voxel_size
-            _child_offsets(vr, h, offs)
-            for i in range(lo, hi):
-                if not _takes_view(cursor, i - lo, p_start, p_views, i, j) or alive[i - lo] == 0:
-                    continue
-                xc0, yc0, zc0 = _cam(vr, centres[i, 0], centres[i, 1], centres[i, 2])
-                # Branch and bound: the table read bilinearly at the parent's centre bounds
-                # each voxel's value from below (``_centre_bound``); a voxel whose bound is
-                # at or above its current (k+1)-th smallest value (or the +1 clamp) cannot
-                # be changed by this view: it is counted as seen and its read skipped.
-                uc, vc, sdc = _centre_bound(vr, tables, xc0, yc0, zc0, lip)
-                centre += sdc > -np.inf
-                for ch in range(8):
-                    f = (i - lo) * 8 + ch
-                    if not live[f]:
-                        continue
-                    zc = zc0 + offs[ch, 2]
-                    u, v = _pixel(vr, xc0 + offs[ch, 0], yc0 + offs[ch, 1], zc)
-                    if not (zc > 0 and u >= -0.5 and u <= vr.u_hi and v >= -0.5
-                            and v <= vr.v_hi):
-                        count += 1
-                        continue  # not seen
-                    seen[f] += 1
-                    if (sdc > -np.inf and _voxel_bound(vr, u, v, zc, uc, vc, sdc, lip, fs)
-                            >= min(mx[f], np.float32(1.0))):
-                        bounded += 1
-                        continue
-                    count += 1
-                    # As ``_voxel_test``.
-                    d = np.float32(_bilinear_row(vr, tables, u, v) * (zc / fs))
-                    if d < mx[f]:
-                        mx[f] = _keep_smallest(kept, f, k, d)
-                        if mx[f] <= -1.0:
-                            live[f] = False  # k+1 views at <= -1: final after clamping
-                            alive[i - lo] -= 1
-                            total -= 1
-        for i in range(lo, hi):
-            for ch in range(8):
-                f = (i - lo) * 8 + ch
-                if not valid[i * 8 + ch]:
-                    continue
-                m = mx[f]
-                val = min(max(m, np.float32(-1.0)), np.float32(1.0))
-                if seen[f] < min_seen and m > -1.0:
-                    val = np.float32(-1.0)
-                out[i * 8 + ch] = val
-        return count, centre, bounded
+            tests[c] = _classify_range(c * chunk, min(n_par, (c + 1) * chunk), centres, valid,
+                                       tree, cc, packed, out)
+        return tests.sum()
 
     # ------------------------------------------------------------------ fine voxels, in passes
-    # ``_voxel_range`` without bounds, restructured for throughput (same arithmetic, same
-    # field to the bit, same test counts; session 6): per view, the children of a block of
-    # parents are projected in one branch-free loop that the compiler vectorises (8
-    # divisions at once), their 4 table values are read in a second loop, the bilinear
-    # values formed in a third, and each child's k+1 smallest values are kept sorted and
-    # updated without branches, the 8 siblings at once (vectorised min / max).  Scalar, the
-    # same work cost 33-41 ns per test on the captured 256^3 input; in passes 17-22 ns
-    # (the loads of the table corners are the largest part left).
+    # Each voxel keeps its k+1 smallest values sorted in kept[p, :, ch] (kept[p, k, ch] is
+    # the (k+1)-th smallest), updated without branches, the 8 siblings at once
+    # (vectorised min / max).  Same field to the bit and same test counts as the scalar
+    # ``_voxel_test`` and ``_keep_smallest`` view by view (the reference in the tests).
 
     @njit(cache=True, error_model="numpy")
-    def _project_children(n, X, Y, Z, vr, fs, ZF, IDX, FX, FY, ON):
-        # Camera-frame points (X, Y, Z)[:n] -> their depth / (f voxel) ZF,
-        # whether seen ON (1) and, for ``_bilinear_row``'s in-table branch, the table
-        # index of the upper-left neighbour IDX and fractions FX, FY (same arithmetic as
-        # ``_pixel`` and ``_bilinear_row``).  Returns how many seen points fall beyond the
-        # table (their bilinear value is the box bound: ``_voxel_range`` fixes them up).
+    def _project_children(n, buf, vr, fs):
+        # Camera-frame points buf.X, Y, Z[:n] -> their depth / (f voxel) ZF, whether seen
+        # ON and, for ``_bilinear_row``'s in-table branch, the table index of the upper-left
+        # neighbour IDX and fractions FX, FY (same arithmetic as ``_pixel`` and
+        # ``_bilinear_row``).  Returns how many seen points fall beyond the table (their
+        # bilinear value is the box bound: ``_voxels_beyond_table``).
+        X, Y, Z, ZF, IDX, FX, FY, ON = buf.X, buf.Y, buf.Z, buf.ZF, buf.IDX, buf.FX, buf.FY, buf.ON
         w = vr.tw
         h = vr.th
         x_max = w - 2 if w > 1 else 0
@@ -921,7 +852,7 @@ if HAVE_NUMBA:
             on = (zc > 0.0) & (u >= -0.5) & (u <= vr.u_hi) & (v >= -0.5) & (v <= vr.v_hi)
             lu = u - vr.u0
             lv = v - vr.v0
-            n_off += on & ~((lu >= -0.5) & (lu <= w - 0.5) & (lv >= -0.5) & (lv <= h - 0.5))
+            n_off += on & ~_in_table(vr, lu, lv)
             # Unseen points read the table's first pixel (any in-bounds index; unused).
             lu = min(max(lu, 0.0), w - 1.0) if on else 0.0
             lv = min(max(lv, 0.0), h - 1.0) if on else 0.0
@@ -935,9 +866,10 @@ if HAVE_NUMBA:
         return n_off
 
     @njit(cache=True, error_model="numpy")
-    def _read_corners(n, tables, IDX, dx, dy, A, B, C, D):
+    def _read_corners(n, tables, buf, dx, dy):
         # The 4 table values around each point (a separate loop: the loads are what it
         # waits for; the arithmetic after it vectorises).
+        IDX, A, B, C, D = buf.IDX, buf.A, buf.B, buf.C, buf.D
         for t in range(n):
             q = IDX[t]
             A[t] = tables[q]
@@ -946,132 +878,125 @@ if HAVE_NUMBA:
             D[t] = tables[q + dy + dx]
 
     @njit(cache=True, error_model="numpy")
-    def _bilinear_values(n, A, B, C, D, FX, FY, ZF, ON, DD):
+    def _bilinear_values(n, buf):
         # DD: field value (voxels, float32) of each seen point, +inf for the unseen (as
         # ``_bilinear_row`` then ``_voxel_test``).
+        A, B, C, D, FX, FY, ZF, ON, DD = (buf.A, buf.B, buf.C, buf.D, buf.FX, buf.FY, buf.ZF,
+                                          buf.ON, buf.DD)
         for t in range(n):
             val = np.float32(_lerp2(A[t], B[t], C[t], D[t], FX[t], FY[t]) * _SD_STEP * ZF[t])
             DD[t] = val if ON[t] else np.float32(np.inf)
 
     @njit(cache=True, error_model="numpy")
-    def _voxel_range(lo, hi, centres, valid, p_start, p_views, p_out, p_in, voxel_size, params,
-                     tables, k, min_seen, out):
-        # Serial body of ``_voxel_group`` (no bounds) for parents lo..hi, view-major as
-        # ``_classify_range``.  Each voxel keeps its k+1 smallest values sorted in
-        # kept[p, :, ch] (kept[p, k, ch] is the (k+1)-th smallest); a dead voxel (<= -1)
-        # is still updated with its siblings (its clamped value stays -1) but no longer
-        # counted, and a parent whose voxels are all dead is skipped.
-        h = 0.5 * voxel_size
-        nv = params.shape[0]
-        npl = hi - lo
-        kept = np.empty((npl, k + 1, 8), dtype=np.float32)
-        seen = np.empty((npl, 8), dtype=np.int32)
-        live_ok = np.empty((npl, 8), dtype=np.bool_)
-        cursor = np.empty(npl, dtype=np.int64)
-        alive = np.empty(npl, dtype=np.int32)
+    def _voxels_beyond_table(n, buf, vr):
+        # Seen points beyond the table (rare): the box bound, as ``_bilinear_row``.
+        X, Y, Z, ON, ZF, DD = buf.X, buf.Y, buf.Z, buf.ON, buf.ZF, buf.DD
+        for t in range(n):
+            if not ON[t]:
+                continue
+            u, v = _pixel(vr, X[t], Y[t], Z[t])  # as in ``_project_children``
+            if not _in_table(vr, u - vr.u0, v - vr.v0):
+                DD[t] = np.float32(_box_bound(vr, u, v) * ZF[t])
+
+    # Per voxel of a block (parent p, child ch): its k+1 smallest values kept[p, :, ch]
+    # sorted, the views that saw it, whether it lies in the grid; x: scratch of 8 values.
+    Voxels = namedtuple("Voxels", ["kept", "seen", "live_ok", "x"])
+
+    @njit(cache=True)
+    def _voxels(block, valid, tree, k):
+        # The decided views of each parent start its voxels' values: out -> -1, in -> +1
+        # after clamping; ``block.alive`` counts the live ones.  Returns them and that count.
+        npl = block.hi - block.lo
+        vox = Voxels(np.empty((npl, k + 1, 8), dtype=np.float32),
+                     np.empty((npl, 8), dtype=np.int32), np.empty((npl, 8), dtype=np.bool_),
+                     np.empty(8, dtype=np.float32))
+        kept, seen, live_ok, alive = vox.kept, vox.seen, vox.live_ok, block.alive
         total = 0
-        for i in range(lo, hi):
-            p = i - lo
-            cursor[p] = p_start[i]
-            # Decided views of the parent: out -> -1, in -> +1 after clamping.
-            n_out = min(p_out[i], k + 1)
-            n_in = min(p_in[i], k + 1 - n_out)
-            alive[p] = 0
+        for i in range(block.lo, block.hi):
+            p = i - block.lo
+            n_out = min(tree.n_out[i], k + 1)
+            n_in = min(tree.n_in[i], k + 1 - n_out)
             for ch in range(8):
                 for q in range(k + 1):
                     kept[p, q, ch] = (np.float32(-1.0) if q < n_out else np.float32(1.0)
                                       if q < n_out + n_in else np.float32(np.inf))
-                seen[p, ch] = p_out[i] + p_in[i]
+                seen[p, ch] = tree.n_out[i] + tree.n_in[i]
                 live_ok[p, ch] = valid[i * 8 + ch]
                 alive[p] += live_ok[p, ch] and kept[p, k, ch] > -1.0
             total += alive[p]
-        m = npl * 8
-        X, Y, Z, IDX, FX, FY, A, B, C, D = _pass_buffers(m)
-        ZF = np.empty(m)
-        ON = np.empty(m, dtype=np.bool_)
-        DD = np.empty(m, dtype=np.float32)
-        sel = np.empty(npl, dtype=np.int64)
-        x = np.empty(8, dtype=np.float32)
+        return vox, total
+
+    @njit(cache=True, inline="always")
+    def _keep_values(ns, block, vox, buf):
+        # Inserts each child's value buf.DD into its sorted k+1 smallest, dropping the
+        # largest; a value at or above the largest (or unseen: +inf) changes nothing.
+        # Same multiset as ``_keep_smallest``.  A dead voxel (<= -1) is still updated with
+        # its siblings (its clamped value stays -1) but no longer live.  Returns how many
+        # voxels died.
+        kept, seen, live_ok, x = vox
+        lo, alive, SEL, DD, ON = block.lo, block.alive, buf.SEL, buf.DD, buf.ON
+        k = kept.shape[1] - 1
+        died = 0
+        for s in range(ns):
+            p = SEL[s] - lo
+            for ch in range(8):
+                x[ch] = min(DD[s * 8 + ch], kept[p, k, ch])
+                seen[p, ch] += ON[s * 8 + ch]
+            for q in range(k, 0, -1):
+                for ch in range(8):
+                    kept[p, q, ch] = max(kept[p, q - 1, ch], min(kept[p, q, ch], x[ch]))
+            for ch in range(8):
+                kept[p, 0, ch] = min(kept[p, 0, ch], x[ch])
+            a = 0
+            for ch in range(8):
+                a += live_ok[p, ch] and kept[p, k, ch] > -1.0
+            died += alive[p] - a
+            alive[p] = a
+        return died
+
+    @njit(cache=True, error_model="numpy")
+    def _voxel_range(lo, hi, centres, valid, tree, cc, packed, out):
+        # Serial body of ``_voxel_group`` for parents lo..hi, view-major as
+        # ``_classify_range``; a parent whose voxels are all dead is skipped.
+        params, tables, k = packed.params, packed.tables, cc.k
+        block = _block(lo, hi, tree)
+        vox, total = _voxels(block, valid, tree, k)
+        buf = _passes((hi - lo) * 8, hi - lo)
         offs = np.empty((8, 3))
         count = 0
-        for j in range(nv):
+        for j in range(params.shape[0]):
             if total == 0:
                 break
             vr = _row(params, j)
-            fs = vr.f * voxel_size
-            _child_offsets(vr, h, offs)
-            ns, tested = _children_in_view(vr, j, offs, lo, hi, centres, cursor, p_start,
-                                           p_views, alive, X, Y, Z, sel)
+            fs = vr.f * cc.voxel_size
+            _child_offsets(vr, 0.5 * cc.voxel_size, offs)
+            ns, tested = _children_in_view(vr, j, offs, centres, tree, block, buf)
             count += tested
             n = ns * 8
-            n_off = _project_children(n, X, Y, Z, vr, fs, ZF, IDX, FX, FY, ON)
-            _read_corners(n, tables, IDX, 1 if vr.tw > 1 else 0, vr.tw if vr.th > 1 else 0,
-                          A, B, C, D)
-            _bilinear_values(n, A, B, C, D, FX, FY, ZF, ON, DD)
-            if n_off:  # seen beyond the table (rare): the box bound, as ``_bilinear_row``
-                for t in range(n):
-                    if not ON[t]:
-                        continue
-                    u, v = _pixel(vr, X[t], Y[t], Z[t])  # as in ``_project_children``
-                    lu = u - vr.u0
-                    lv = v - vr.v0
-                    if not (lu >= -0.5 and lu <= vr.tw - 0.5 and lv >= -0.5
-                            and lv <= vr.th - 0.5):
-                        DD[t] = np.float32(_box_bound(vr, u, v) * ZF[t])
-            for s in range(ns):
-                p = sel[s] - lo
-                # Insert each child's value into its sorted k+1 smallest, dropping the
-                # largest; a value at or above the largest (or unseen: +inf) changes
-                # nothing.  Same multiset as ``_keep_smallest``.
-                for ch in range(8):
-                    x[ch] = min(DD[s * 8 + ch], kept[p, k, ch])
-                    seen[p, ch] += ON[s * 8 + ch]
-                for q in range(k, 0, -1):
-                    for ch in range(8):
-                        kept[p, q, ch] = max(kept[p, q - 1, ch], min(kept[p, q, ch], x[ch]))
-                for ch in range(8):
-                    kept[p, 0, ch] = min(kept[p, 0, ch], x[ch])
-                a = 0
-                for ch in range(8):
-                    a += live_ok[p, ch] and kept[p, k, ch] > -1.0
-                total -= alive[p] - a
-                alive[p] = a
+            n_off = _project_children(n, buf, vr, fs)
+            _read_corners(n, tables, buf, 1 if vr.tw > 1 else 0, vr.tw if vr.th > 1 else 0)
+            _bilinear_values(n, buf)
+            if n_off:
+                _voxels_beyond_table(n, buf, vr)
+            total -= _keep_values(ns, block, vox, buf)
+        kept, seen, min_seen = vox.kept, vox.seen, cc.min_seen
         for i in range(lo, hi):
-            p = i - lo
             for ch in range(8):
-                if not valid[i * 8 + ch]:
-                    continue
-                mk = kept[p, k, ch]
-                val = min(max(mk, np.float32(-1.0)), np.float32(1.0))
-                if seen[p, ch] < min_seen and mk > -1.0:
-                    val = np.float32(-1.0)
-                out[i * 8 + ch] = val
+                if valid[i * 8 + ch]:
+                    out[i * 8 + ch] = _final_value(kept[i - lo, k, ch], seen[i - lo, ch], min_seen)
         return count
 
     @njit(cache=True, parallel=True)
-    def _voxel_group(centres, valid, p_start, p_views, p_out, p_in, voxel_size, params, tables,
-                     k, min_seen, lip, chunk):
+    def _voxel_group(centres, valid, tree, cc, packed, chunk):
         # centres: (P, 3) centres of split 2-voxel cells; out: (P * 8,) voxel values.
-        # lip <= 0: no bounds (every voxel of every listed view read).
         n_par = centres.shape[0]
         nchunks = (n_par + chunk - 1) // chunk
         out = np.full(n_par * 8, np.float32(-1.0))
-        tests = np.zeros((nchunks, 3), dtype=np.int64)
+        tests = np.zeros(nchunks, dtype=np.int64)
         for c in prange(nchunks):
-            lo = c * chunk
-            hi = min(n_par, (c + 1) * chunk)
-            if lip > 0.0:
-                a, b, e = _voxel_range_bounded(lo, hi, centres, valid, p_start, p_views, p_out,
-                                               p_in, voxel_size, params, tables, k, min_seen,
-                                               lip, out)
-            else:
-                a = _voxel_range(lo, hi, centres, valid, p_start, p_views, p_out, p_in,
-                                 voxel_size, params, tables, k, min_seen, out)
-                b = e = 0
-            tests[c, 0] = a
-            tests[c, 1] = b
-            tests[c, 2] = e
-        return out, tests[:, 0].sum(), tests[:, 1].sum(), tests[:, 2].sum()
+            tests[c] = _voxel_range(c * chunk, min(n_par, (c + 1) * chunk), centres, valid,
+                                    tree, cc, packed, out)
+        return out, tests.sum()
 
 
     # ------------------------------------------------------------------ mesh topology
@@ -1186,49 +1111,25 @@ if HAVE_NUMBA:
         return out
 
 
-def voxel_field(packed, points: np.ndarray, voxel_size: float, k: int, stats=None,
-                min_seen: int = 0) -> np.ndarray:
+def voxel_field(packed: Packed, points: np.ndarray, consts: CarveConsts,
+                stats=None) -> np.ndarray:
     """Compiled ``carve.voxel_field`` (``packed`` from ``pack``)."""
-    params, tables = packed
-    out, tests = _voxel_field(np.ascontiguousarray(points, dtype=np.float64), params, tables,
-                              float(voxel_size), int(k), int(min_seen), CHUNK)
+    out, tests = _voxel_field(np.ascontiguousarray(points, dtype=np.float64), packed, consts,
+                              CHUNK)
     if stats is not None:
         stats.voxel_view_tests += int(tests)
     return out
-
-
-def classify_cells(packed, centres: np.ndarray, half_size: float, voxel_size: float, k: int,
-                   slack: float, stats=None, min_seen: int = 0, lipschitz: float = 1.0,
-                   bilinear_px: float = 0.0) -> np.ndarray:
-    """Compiled ``carve.classify_cells``."""
-    params, tables = packed
-    decision, tests = _classify(np.ascontiguousarray(centres, dtype=np.float64),
-                                float(half_size), float(voxel_size), params, tables, int(k),
-                                float(slack), int(min_seen), float(lipschitz),
-                                float(bilinear_px), CHUNK)
-    if stats is not None:
-        stats.cell_view_tests += int(tests)
-    return decision
 
 
 def threads() -> int:
     return int(numba.get_num_threads()) if HAVE_NUMBA else 1
 
 
-class Tree:
-    """Octree carve state with per-cell inherited view decisions (see ``_classify_tree``).
-
-    ``start``/``views``: CSR lists of the views each live cell left ambiguous
-    (int16 view indices in the packed, interleaved order); ``n_out``, ``n_in``,
-    ``n_off``: per live cell, views already decided out, in, off the image.
-    """
-
-    def __init__(self, n_views: int):
-        self.start = np.array([0, n_views], dtype=np.int64)
-        self.views = np.arange(n_views, dtype=np.int16)
-        self.n_out = np.zeros(1, np.int32)
-        self.n_in = np.zeros(1, np.int32)
-        self.n_off = np.zeros(1, np.int32)
+def cell_counts(m: int, amb_start: np.ndarray) -> CellCounts:
+    """Zeroed ``CellCounts`` of m cells, their scratch lists laid out by ``amb_start``."""
+    return CellCounts(np.zeros(m, np.int8), np.zeros(m, np.int32), np.zeros(m, np.int32),
+                      np.zeros(m, np.int32), np.zeros(m, np.int32),
+                      np.empty(int(amb_start[m]), np.int16), amb_start)
 
 
 def _offsets(lengths: np.ndarray) -> np.ndarray:
@@ -1238,46 +1139,37 @@ def _offsets(lengths: np.ndarray) -> np.ndarray:
     return out
 
 
-def _split_tree(decision, c_out, c_in, c_off, c_amb, c_neg, amb, scratch_off) -> Tree:
-    """The ``Tree`` of the cells with decision 2, their lists gathered from the scratch."""
-    sel = np.flatnonzero(decision == 2)
-    child = Tree.__new__(Tree)
-    child.start = _offsets(c_amb[sel])
-    child.views = _gather_lists(sel, scratch_off, c_amb, c_neg, amb, child.start)
-    child.n_out, child.n_in, child.n_off = c_out[sel], c_in[sel], c_off[sel]
-    return child
+def _split_tree(counts: CellCounts) -> Tree:
+    """The ``Tree`` of the cells with decision SPLIT, their lists gathered from the scratch."""
+    sel = np.flatnonzero(counts.decision == SPLIT)
+    start = _offsets(counts.n_amb[sel])
+    return Tree(start, _gather_lists(sel, counts, start), counts.n_out[sel], counts.n_in[sel],
+                counts.n_off[sel])
 
 
-def classify_tree(packed, tree: Tree, parent: np.ndarray, centres: np.ndarray, half_size: float,
-                  voxel_size: float, k: int, slack: float, min_seen: int, lipschitz: float,
-                  stats=None, bilinear_px: float = 0.0) -> tuple[np.ndarray, Tree]:
-    """Decide cells testing only their parent's ambiguous views.
+def classify_tree(packed: Packed, tree: Tree, parent: np.ndarray, centres: np.ndarray,
+                  consts: CarveConsts, stats=None) -> tuple[np.ndarray, Tree]:
+    """Decide cells (``centres`` (M, 3), mm) testing only their parent's ambiguous views.
 
-    Returns the decision (0 removed, 1 full, 2 split) and the ``Tree`` of the
-    cells to split (in the order of ``np.flatnonzero(decision == 2)``).
+    Returns the decision (REMOVED, FULL, SPLIT) and the ``Tree`` of the cells to
+    split (in the order of ``np.flatnonzero(decision == SPLIT)``).
     """
-    params, tables = packed
-    scratch_off = _offsets(np.diff(tree.start)[parent])
-    decision, c_out, c_in, c_off, c_amb, c_neg, amb, tests = _classify_tree(
-        np.ascontiguousarray(centres, dtype=np.float64), parent, tree.start, tree.views,
-        tree.n_out, tree.n_in, tree.n_off, scratch_off, float(half_size), float(voxel_size),
-        params, tables, int(k), float(slack), int(min_seen), float(lipschitz),
-        float(bilinear_px), CHUNK)
+    counts = cell_counts(len(centres), _offsets(np.diff(tree.start)[parent]))
+    tests = _classify_tree(np.ascontiguousarray(centres, dtype=np.float64), parent, tree,
+                           consts, packed, counts, CHUNK)
     if stats is not None:
         stats.cell_view_tests += int(tests)
-    return decision, _split_tree(decision, c_out, c_in, c_off, c_amb, c_neg, amb, scratch_off)
+    return counts.decision, _split_tree(counts)
 
 
-def classify_group(packed, tree: Tree, centres: np.ndarray, valid: np.ndarray, half_size: float,
-                   voxel_size: float, k: int, slack: float, min_seen: int, lipschitz: float,
-                   stats=None, bilinear_px: float = 0.0) -> tuple[np.ndarray, Tree]:
+def classify_group(packed: Packed, tree: Tree, centres: np.ndarray, valid: np.ndarray,
+                   consts: CarveConsts, stats=None) -> tuple[np.ndarray, Tree]:
     """Decide the 8 children of every split cell (``centres`` (P, 3): the parents').
 
     Children are ordered as ``carve._children``; ``valid`` (P * 8,) bool marks
-    those inside the grid.  Returns the (P * 8,) decision (0 removed, 1 full, 2
-    split) and the ``Tree`` of the children to split.
+    those inside the grid.  Returns the (P * 8,) decision (REMOVED, FULL, SPLIT)
+    and the ``Tree`` of the children to split.
     """
-    params, tables = packed
     centres = np.ascontiguousarray(centres, dtype=np.float64)
     n_par = len(centres)
     decision = np.empty(n_par * 8, dtype=np.int8)
@@ -1285,14 +1177,11 @@ def classify_group(packed, tree: Tree, centres: np.ndarray, valid: np.ndarray, h
     for b0 in range(0, max(n_par, 1), GROUP_BATCH):
         b1 = min(n_par, b0 + GROUP_BATCH)
         sub = _sub_tree(tree, b0, b1)
-        scratch_off = _offsets(np.repeat(np.diff(sub.start), 8))
-        d, c_out, c_in, c_off, c_amb, c_neg, amb, tests = _classify_group(
-            centres[b0:b1], valid[8 * b0:8 * b1], sub.start, sub.views, sub.n_out, sub.n_in,
-            sub.n_off, scratch_off, float(half_size), float(voxel_size), params, tables, int(k),
-            float(slack), int(min_seen), float(lipschitz), float(bilinear_px),
-            GROUP_CHUNK)
-        decision[8 * b0:8 * b1] = d
-        parts.append(_split_tree(d, c_out, c_in, c_off, c_amb, c_neg, amb, scratch_off))
+        counts = cell_counts(8 * (b1 - b0), _offsets(np.repeat(np.diff(sub.start), 8)))
+        tests = _classify_group(centres[b0:b1], valid[8 * b0:8 * b1], sub, consts, packed,
+                                counts, GROUP_CHUNK)
+        decision[8 * b0:8 * b1] = counts.decision
+        parts.append(_split_tree(counts))
         if stats is not None:
             stats.cell_view_tests += int(tests)
     return decision, _concat_trees(parts)
@@ -1300,51 +1189,36 @@ def classify_group(packed, tree: Tree, centres: np.ndarray, valid: np.ndarray, h
 
 def _sub_tree(tree: Tree, a: int, b: int) -> Tree:
     """Cells ``a:b`` of ``tree`` (views shared, not copied)."""
-    sub = Tree.__new__(Tree)
-    sub.start = tree.start[a:b + 1] - tree.start[a]
-    sub.views = tree.views[tree.start[a]:tree.start[b]]
-    sub.n_out, sub.n_in, sub.n_off = tree.n_out[a:b], tree.n_in[a:b], tree.n_off[a:b]
-    return sub
+    return Tree(tree.start[a:b + 1] - tree.start[a], tree.views[tree.start[a]:tree.start[b]],
+                tree.n_out[a:b], tree.n_in[a:b], tree.n_off[a:b])
 
 
 def _concat_trees(parts: list[Tree]) -> Tree:
     """One ``Tree`` of the cells of ``parts`` in order; each part is freed once copied."""
     if len(parts) == 1:
         return parts[0]
-    out = Tree.__new__(Tree)
-    out.start = _offsets(np.concatenate([np.diff(p.start) for p in parts]))
-    out.n_out = np.concatenate([p.n_out for p in parts])
-    out.n_in = np.concatenate([p.n_in for p in parts])
-    out.n_off = np.concatenate([p.n_off for p in parts])
+    start = _offsets(np.concatenate([np.diff(p.start) for p in parts]))
+    counts = [np.concatenate([getattr(p, name) for p in parts])
+              for name in ("n_out", "n_in", "n_off")]
     # np.empty maps pages as they are written, so the copy and the parts do not add up.
-    out.views = np.empty(int(out.start[-1]), dtype=np.int16)
+    views = np.empty(int(start[-1]), dtype=np.int16)
     pos = 0
     parts.reverse()
     while parts:
-        views = parts.pop().views
-        out.views[pos:pos + len(views)] = views
-        pos += len(views)
-        del views
-    return out
+        part_views = parts.pop().views
+        views[pos:pos + len(part_views)] = part_views
+        pos += len(part_views)
+        del part_views
+    return Tree(start, views, *counts)
 
 
-def voxel_group(packed, tree: Tree, centres: np.ndarray, valid: np.ndarray, voxel_size: float,
-                k: int, min_seen: int, stats=None, bound_lipschitz: float = 0.0) -> np.ndarray:
-    """Clamped field of the 8 voxels of every split 2-voxel cell (``centres``: the cells').
-
-    ``bound_lipschitz`` > 0 (the tables' Lipschitz constant): a voxel skips a view
-    whose bound from the table at its cell's centre cannot change its value (same
-    field, fewer reads); 0 reads every voxel in every listed view.
-    """
-    params, tables = packed
-    out, tests, centre, bounded = _voxel_group(
-        np.ascontiguousarray(centres, dtype=np.float64), valid, tree.start, tree.views,
-        tree.n_out, tree.n_in, float(voxel_size), params, tables, int(k), int(min_seen),
-        float(bound_lipschitz), GROUP_CHUNK)
+def voxel_group(packed: Packed, tree: Tree, centres: np.ndarray, valid: np.ndarray,
+                consts: CarveConsts, stats=None) -> np.ndarray:
+    """Clamped field of the 8 voxels of every split 2-voxel cell (``centres``: the cells')."""
+    out, tests = _voxel_group(np.ascontiguousarray(centres, dtype=np.float64), valid, tree,
+                              consts, packed, GROUP_CHUNK)
     if stats is not None:
-        # Table reads: at the voxels and at the parents' centres (the bounds).
-        stats.voxel_view_tests += int(tests) + int(centre)
-        stats.voxel_view_bounded += int(bounded)
+        stats.voxel_view_tests += int(tests)
     return out
 
 

@@ -346,29 +346,6 @@ def test_tighter_cell_tests_do_less_work_for_the_same_field(rig, mixed_sils, bac
     assert s_now.fine_voxels < s_before.fine_voxels
 
 
-@pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="the bounds are the compiled path's")
-def test_voxel_bounds_skip_reads_without_changing_the_field(rig, mixed_sils, monkeypatch):
-    # Branch and bound at the fine voxels (off by default: measured slower): a view whose
-    # lower bound from the cell centre's table value is at or above a voxel's current
-    # (k+1)-th smallest value (or the +1 clamp) is skipped.  Exact: same field as
-    # without bounds and as the dense grid; fewer table reads (centre reads included).
-    from plantscan_hull import carve
-
-    cal, _ = rig
-    vf = prepare_views(list(mixed_sils), cal)
-    grid = Grid.from_box((-60, -60, -50), (60, 60, 70), 64)
-    dense, _ = carve_dense(vf, grid, 3, backend="numba")
-    monkeypatch.setattr(carve, "VOXEL_BOUNDS", False)
-    plain, s_plain = carve_octree(vf, grid, 3, top_cell=16, backend="numba")
-    monkeypatch.setattr(carve, "VOXEL_BOUNDS", True)
-    bounded, s_bounded = carve_octree(vf, grid, 3, top_cell=16, backend="numba")
-    assert np.array_equal(bounded, dense)
-    assert np.array_equal(plain, dense)
-    assert s_plain.voxel_view_bounded == 0 < s_bounded.voxel_view_bounded
-    assert s_bounded.voxel_view_tests < s_plain.voxel_view_tests
-    assert s_bounded.cell_view_tests == s_plain.cell_view_tests
-
-
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_octree_equals_dense_for_every_top_cell(rig, mixed_sils, backend):
     # An odd grid (37 voxels: padded top cells, partial 2-voxel cells) and every top
@@ -388,8 +365,8 @@ def test_octree_equals_dense_for_every_top_cell(rig, mixed_sils, backend):
 def _random_parents(vf, n_par: int, seed: int):
     """Inputs of the sibling kernels: (P, 3) parent centres (half around the objects, half
     anywhere within 1.2 camera distances: behind cameras, off the images, beyond the
-    tables), each parent's list of ~80 % of the views, decided out / in / off counts and
-    which children lie in the grid."""
+    tables), the ``Tree`` of their lists (each of ~80 % of the views, with decided out /
+    in / off counts) and which children lie in the grid."""
     rng = np.random.default_rng(seed)
     dist = np.linalg.norm(vf[0].camera.pose.t)  # camera distance from the origin (mm)
     centres = rng.uniform(-1.2 * dist, 1.2 * dist, (n_par, 3))
@@ -398,7 +375,53 @@ def _random_parents(vf, n_par: int, seed: int):
     start = np.concatenate([[0], np.cumsum([len(v) for v in lists])]).astype(np.int64)
     views = np.concatenate(lists).astype(np.int16)
     counts = [rng.integers(0, 3, n_par).astype(np.int32) for _ in range(3)]
-    return centres, start, views, *counts, rng.random(n_par * 8) < 0.9
+    return centres, kernels.Tree(start, views, *counts), rng.random(n_par * 8) < 0.9
+
+
+if kernels.HAVE_NUMBA:
+    from numba import njit
+
+    @njit(cache=True)
+    def _scalar_voxels(centres, valid, tree, cc, packed):
+        # The reference of ``kernels._voxel_range``: each voxel of each parent, view by
+        # view with the scalar ``_voxel_test`` and ``_keep_smallest``, stopping once it
+        # is final (<= -1: the kernel's test count).
+        params, tables, k = packed.params, packed.tables, cc.k
+        n_par = centres.shape[0]
+        out = np.full(n_par * 8, np.float32(-1.0))
+        kept = np.empty((1, k + 1), dtype=np.float32)
+        offs = np.empty((8, 3))
+        tests = 0
+        for i in range(n_par):
+            for ch in range(8):
+                if not valid[i * 8 + ch]:
+                    continue
+                # Decided views of the parent: out -> -1, in -> +1 after clamping.
+                filled = 0
+                for q in range(k + 1):
+                    kept[0, q] = np.inf
+                for _ in range(min(tree.n_out[i], k + 1)):
+                    kept[0, filled] = -1.0
+                    filled += 1
+                for _ in range(min(tree.n_in[i], k + 1 - filled)):
+                    kept[0, filled] = 1.0
+                    filled += 1
+                mx = kept[0].max()
+                seen = tree.n_out[i] + tree.n_in[i]
+                for t in range(tree.start[i], tree.start[i + 1]):
+                    if mx <= -1.0:
+                        break
+                    vr = kernels._row(params, tree.views[t])
+                    kernels._child_offsets(vr, 0.5 * cc.voxel_size, offs)
+                    x0, y0, z0 = kernels._cam(vr, centres[i, 0], centres[i, 1], centres[i, 2])
+                    tests += 1
+                    on, d = kernels._voxel_test(vr, tables, x0 + offs[ch, 0], y0 + offs[ch, 1],
+                                                z0 + offs[ch, 2], vr.f * cc.voxel_size)
+                    seen += on
+                    if on and d < mx:
+                        mx = kernels._keep_smallest(kept, 0, k, d)
+                out[i * 8 + ch] = kernels._final_value(mx, seen, cc.min_seen)
+        return out, tests
 
 
 @pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="the compiled kernels' test")
@@ -410,9 +433,9 @@ def test_fine_voxel_passes_equal_the_scalar_kernel(rig, mixed_sils):
     # decided out / in, voxels beyond the grid.
     cal, _ = rig
     vf = prepare_views(list(mixed_sils), cal)
-    params, tables = kernels.pack(vf)
+    packed = kernels.pack(vf)
     n_par, s = 300, 8.0  # coarse voxels: fewer values clamped at +-1
-    centres, start, views, p_out, p_in, _, valid = _random_parents(vf, n_par, 6)
+    centres, tree, valid = _random_parents(vf, n_par, 6)
     beyond = behind = 0  # the inputs do reach the scalar kernel's branches
     for v in vf:
         front = centres @ v.camera.pose.R[2] + v.camera.pose.t[2] > 0
@@ -424,48 +447,46 @@ def test_fine_voxel_passes_equal_the_scalar_kernel(rig, mixed_sils):
                           & (lv <= v.sd.shape[0] - 0.5))).sum()
     assert beyond > 0 and behind > 0
     for k, min_seen in ((3, 4), (0, 1), (3, 0)):
+        cc = kernels.carve_consts(s, k, min_seen)
         new = np.full(n_par * 8, np.float32(-1.0))
-        old = np.full(n_par * 8, np.float32(-1.0))
-        n_new = kernels._voxel_range(0, n_par, centres, valid, start, views, p_out, p_in, s,
-                                     params, tables, k, min_seen, new)
-        n_old = kernels._voxel_range_bounded(0, n_par, centres, valid, start, views, p_out,
-                                             p_in, s, params, tables, k, min_seen, 0.0, old)[0]
+        n_new = kernels._voxel_range(0, n_par, centres, valid, tree, cc, packed, new)
+        old, n_old = _scalar_voxels(centres, valid, tree, cc, packed)
         assert np.array_equal(new.view(np.int32), old.view(np.int32)), k
         assert n_new == n_old
         assert len(np.unique(new)) > 20  # not all clamped: real field values compared
 
 
 if kernels.HAVE_NUMBA:
-    from numba import njit
 
     @njit(cache=True)
-    def _scalar_cells(centres, valid, start, views, p_out, p_in, p_off, half, s, params, tables,
-                      k, slack, min_seen, lip, bil_r):
+    def _scalar_cells(centres, valid, tree, cc, packed):
         # The reference of ``kernels._classify_range``: each child of each parent, view by
         # view with the scalar ``_cell_test``, stopping once removed (the kernel's counts).
+        params, tables, half, k = packed.params, packed.tables, cc.half_size, cc.k
         n_par = centres.shape[0]
-        rho = (half - 0.5 * s) * np.sqrt(3.0)
-        max_off = params.shape[0] - min_seen
+        rho = (half - 0.5 * cc.voxel_size) * np.sqrt(3.0)
+        max_off = params.shape[0] - cc.min_seen
         decision = np.zeros(n_par * 8, np.int8)
         counts = np.zeros((n_par * 8, 4), np.int64)  # out, in, off, ambiguous
-        amb = np.full(views.shape[0] * 8, -1, np.int16)
+        amb = np.full(tree.views.shape[0] * 8, -1, np.int16)
         tests = 0
         offs = np.empty((8, 3))
         for i in range(n_par):
+            a, b = tree.start[i], tree.start[i + 1]
             for ch in range(8):
                 g = i * 8 + ch
                 if not valid[g]:
                     continue
-                n_out, n_in, n_off, na, n_on_amb = p_out[i], p_in[i], p_off[i], 0, 0
-                for t in range(start[i], start[i + 1]):
+                n_out, n_in, n_off, na, n_on_amb = tree.n_out[i], tree.n_in[i], tree.n_off[i], 0, 0
+                for t in range(a, b):
                     if n_out > k or n_off > max_off:
                         break
-                    vr = kernels._row(params, views[t])
+                    vr = kernels._row(params, tree.views[t])
                     kernels._child_offsets(vr, half, offs)
                     x0, y0, z0 = kernels._cam(vr, centres[i, 0], centres[i, 1], centres[i, 2])
                     tests += 1
                     res = kernels._cell_test(vr, tables, x0 + offs[ch, 0], y0 + offs[ch, 1],
-                                             z0 + offs[ch, 2], rho, s, lip, slack, bil_r)
+                                             z0 + offs[ch, 2], rho, cc)
                     if res == kernels.CELL_OFF:
                         n_off += 1
                     elif res == kernels.CELL_OUT:
@@ -473,13 +494,13 @@ if kernels.HAVE_NUMBA:
                     elif res == kernels.CELL_IN:
                         n_in += 1
                     else:
-                        amb[start[i] * 8 + ch * (start[i + 1] - start[i]) + na] = views[t]
+                        amb[a * 8 + ch * (b - a) + na] = tree.views[t]
                         na += 1
                         n_on_amb += res == kernels.CELL_AMB
                 counts[g] = n_out, n_in, n_off, na
                 if n_out > k or n_off > max_off:
                     decision[g] = 0
-                elif n_out + na <= k and n_out + n_in + n_on_amb >= min_seen:
+                elif n_out + na <= k and n_out + n_in + n_on_amb >= cc.min_seen:
                     decision[g] = 1
                 else:
                     decision[g] = 2
@@ -494,25 +515,22 @@ def test_cell_passes_equal_the_scalar_cell_test(rig, mixed_sils):
     # bound), off the image, behind a camera and for the bilinear small footprints.
     cal, _ = rig
     vf = prepare_views(list(mixed_sils), cal)
-    params, tables = kernels.pack(vf)
+    packed = kernels.pack(vf)
     n_par = 400
-    centres, start, views, p_out, p_in, p_off, valid = _random_parents(vf, n_par, 7)
-    scratch = kernels._offsets(np.repeat(np.diff(start), 8))
+    centres, tree, valid = _random_parents(vf, n_par, 7)
+    amb_start = kernels._offsets(np.repeat(np.diff(tree.start), 8))
     for half, s, k, min_seen in ((1.0, 1.0, 3, 4), (2.0, 1.0, 3, 4), (4.0, 2.0, 0, 0)):
-        args = (half, s, params, tables, k, 1.5, min_seen, 1.02, 3.48)
-        decision = np.zeros(n_par * 8, np.int8)
-        outs = [np.zeros(n_par * 8, np.int32) for _ in range(5)]
-        amb = np.full(scratch[-1], -1, np.int16)
-        tests = kernels._classify_range(0, n_par, centres, valid, start, views, p_out, p_in,
-                                        p_off, scratch, *args, decision, *outs, amb)
-        ref, counts, ref_amb, ref_tests = _scalar_cells(centres, valid, start, views, p_out,
-                                                        p_in, p_off, *args)
-        assert np.array_equal(decision, ref) and tests == ref_tests, half
-        kept = decision > 0  # removed cells' counts are never read
-        assert np.array_equal(np.stack(outs[:4], 1)[kept], counts[kept]), half
-        split = np.flatnonzero(decision == 2)  # only split cells' lists are read
+        cc = kernels.carve_consts(s, k, min_seen, half, 1.5, 1.02, 3.48)
+        out = kernels.cell_counts(n_par * 8, amb_start)
+        tests = kernels._classify_range(0, n_par, centres, valid, tree, cc, packed, out)
+        ref, counts, ref_amb, ref_tests = _scalar_cells(centres, valid, tree, cc, packed)
+        assert np.array_equal(out.decision, ref) and tests == ref_tests, half
+        kept = out.decision > 0  # removed cells' counts are never read
+        mine = np.stack([out.n_out, out.n_in, out.n_off, out.n_amb], 1)
+        assert np.array_equal(mine[kept], counts[kept]), half
+        split = np.flatnonzero(out.decision == 2)  # only split cells' lists are read
         for g in split:
             na = counts[g, 3]
-            assert np.array_equal(amb[scratch[g]:scratch[g] + na],
-                                  ref_amb[scratch[g]:scratch[g] + na]), g
+            assert np.array_equal(out.amb[amb_start[g]:amb_start[g] + na],
+                                  ref_amb[amb_start[g]:amb_start[g] + na]), g
         assert len(np.unique(ref)) == 3 and (counts[split, 3] > 0).any()
