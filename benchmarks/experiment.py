@@ -131,7 +131,8 @@ def truth_leaf_tracks(entries, scans) -> dict[str, float]:
         ident = json.loads((scan / "ground_truth" / "leaves.json").read_text()) \
             if (scan / "ground_truth" / "leaves.json").exists() else None
         tri = v[f]
-        area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), 1)
+        area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]),
+                                    axis=1)
         for leaf in np.unique(lab[lab >= 0]):
             sel = lab == leaf
             c = (tri[sel].mean(1) * area[sel, None]).sum(0) / area[sel].sum()
@@ -163,6 +164,8 @@ def main() -> int:
     ap.add_argument("--views", type=int, default=12)
     ap.add_argument("--resolution", type=int, default=96)
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--doc", default=str(ROOT / "docs" / "benchmarks" / "experiment.md"),
+                    help="where the figures go (a trial run: somewhere else)")
     args = ap.parse_args()
     import pandas as pd
     from plantscan_store import Store
@@ -238,7 +241,7 @@ into one SQLite store.  Scans {t_scan:.0f} s, batch {t_batch:.0f} s (load averag
 |---|---|---|---|---|
 {group_rows}
 """
-    (ROOT / "docs" / "benchmarks" / "experiment.md").write_text(page)
+    Path(args.doc).write_text(page)
     print(page)
     pd.set_option("display.width", 200)
     return 0
