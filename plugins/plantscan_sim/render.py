@@ -187,6 +187,7 @@ class Renderer:
     board: BoardTexture | None = None
     board_material: int = -1
     moving: dict[str, TriMesh] = field(default_factory=dict)
+    textures: dict[int, object] = field(default_factory=dict)  # material -> .albedo(p) (N,)
     _layers: dict = field(default_factory=dict, init=False)
     _lab: _Layer | None = field(default=None, init=False)
     _moving: dict = field(default_factory=dict, init=False)
@@ -205,6 +206,13 @@ class Renderer:
         for role, mesh in self.moving.items():
             self._moving[role] = _Layer(mesh, _raycasting_scene(mesh), mesh.face_attr)
         self._room = _room(self.lab) if HAVE_NUMBA else None
+
+    def _textured(self) -> list[tuple[int, object]]:
+        """(material, texture) pairs: the board's pattern and any other printed surface."""
+        out = list(self.textures.items())
+        if self.board is not None and self.board_material >= 0:
+            out.append((self.board_material, self.board))
+        return out
 
     # ------------------------------------------------------------------ rays
     def _centre_bands(self, model: CameraModel):
@@ -473,11 +481,11 @@ class Renderer:
             nn = hc["primitive_normals"][closer]
             normal[sel] = nn if m is None else _mul3(nn, m.T)
         board_albedo = np.full(n_rays, -1.0, dtype=np.float32)
-        if self.board is not None and self.board_material >= 0:
-            ob = np.flatnonzero(mat == self.board_material)
+        for m_tex, tex in self._textured():
+            ob = np.flatnonzero(mat == m_tex)
             if len(ob):
                 p = centre + t[ob, None] * d_w[ob]
-                board_albedo[ob] = self.board.albedo(p.astype(np.float64))
+                board_albedo[ob] = tex.albedo(p.astype(np.float64))
         lam = np.empty(n_rays, dtype=np.float32)
         shadow_cand = np.empty(n_rays, dtype=bool)
         _light_terms(d_w, c64, t, normal, light_w.astype(float), cull.basis, cull.window,
@@ -566,10 +574,10 @@ class Renderer:
         key = np.full(n_rays, -8, dtype=np.int32)
         key[idx] = 8 * m_hit.astype(np.int32)
         p = centre + t[idx, None] * d_w[idx]
-        if self.board is not None:
-            on_board = m_hit == self.board_material
+        for m_tex, tex in self._textured():
+            on_board = m_hit == m_tex
             if on_board.any():
-                a = self.board.albedo(p[on_board].astype(np.float64))
+                a = tex.albedo(p[on_board].astype(np.float64))
                 albedo[on_board] = a[:, None]
                 key[idx[on_board]] += 4 * (a < 0.4)
         n_hit = normal[idx]

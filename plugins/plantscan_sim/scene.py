@@ -7,7 +7,8 @@ What each role shows (what a real lab's set-up holds when that role is shot):
 * ``background``: backdrop, turntable plate and pot carrier (fixtures of the
   turntable that stay in place when the potted plant is lifted off); no pot, no
   plant.  The plate and carrier are plain and round, so one background plate per
-  camera and tilt fits every turntable angle.
+  camera and tilt fits every turntable angle (unless ``plate_texture`` prints a
+  pattern on the plate, which turns with it).
 * ``plant``: the background plus the pot (dark, tapered, with soil) and the plant.
   The truth masks are pot + plant (the foreground a background subtraction
   should find; the pot is removed later from the hull, see ``pot.yaml``).
@@ -46,6 +47,7 @@ from plantscan_sim.render import (
     Renderer,
 )
 from plantscan_sim.rig import Rig, SimCameraParams
+from plantscan_sim.texture import plate_textures
 
 SHARED_KEY = "sim_scene"
 TRUTH_VIEWS_DIR = "views"  # ground_truth/views/<role>/<image stem>.json|.mask.png (staging)
@@ -93,6 +95,11 @@ class SimSceneParams(StageParams):
     soil_depth_mm: float = Field(8.0, ge=0.0)
     carrier_radius_mm: float = 60.0
     plate_radius_mm: float = 200.0
+    plate_texture: Literal["plain", "random-dots"] = Field(
+        "plain", description="pattern printed on the plate's top and rim and on the pot carrier: "
+        "'random-dots' gives structure from motion (calibrate: sfm) features that turn with "
+        "the plant")
+    plate_texture_pitch_mm: float = Field(10.0, gt=0.5, description="cell side of the dots")
     sway_deg: float = Field(0.0, ge=0.0, le=10.0, description="plant sway: per turntable stop "
                             "the plant (not the pot) tilts about its stem base by a random "
                             "angle of this standard deviation (seeded, in cameras.jsonl)")
@@ -339,8 +346,10 @@ class SimScene(Scene):
         light_lab = rotation_z(p.arm_azimuth_deg) @ np.array(p.light_position_mm, float)
         light = Lighting(light_lab, p.key_light, p.ambient,
                          gamma=p.gamma)
+        printed = plate_textures(p.plate_texture, p.plate_radius_mm, p.carrier_radius_mm,
+                                 p.pot_z_bottom_mm, p.plate_texture_pitch_mm, p.seed)
         self.renderer = Renderer(world, self._backdrop(), materials, light, tex, M_BOARD,
-                                 moving)
+                                 moving, textures=dict(zip((M_PLATE, M_CARRIER), printed)))
 
     # ------------------------------------------------------------------ axes
     def axis_moved(self, axis: str, true_deg: float) -> None:
