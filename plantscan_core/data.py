@@ -372,6 +372,11 @@ class Calibration:
         When known, cameras at tilts that were never calibrated are available.
     quality : dict
         Free-form quality report of the calibrator (residuals, rejections...).
+    view_angles_deg : dict view index -> float, deg
+        The true turntable angle of individual views where the calibrator
+        measured it (``sfm`` solves every photo's stop; backlash or a missed
+        step then no longer blurs the hull).  Views not listed use their
+        recorded angle times ``angle_scale``.
     """
 
     models: dict[str, CameraModel]
@@ -380,6 +385,7 @@ class Calibration:
     angle_scale: float = 1.0
     tilt_axis: TiltAxis | None = None
     quality: dict[str, Any] = field(default_factory=dict)
+    view_angles_deg: dict[int, float] = field(default_factory=dict)
 
     @property
     def camera_names(self) -> list[str]:
@@ -406,11 +412,20 @@ class Calibration:
         pose = self.poses[key]
         return Camera(model, pose.compose_world(rotation_z(angle_deg * self.angle_scale)))
 
+    def view_angle_deg(self, view: ViewRecord) -> float:
+        """Turntable angle of ``view``: the calibration's own estimate for that view when it
+        has one (``view_angles_deg``, by view index, already scaled), else the recorded."""
+        solved = self.view_angles_deg.get(int(view.index))
+        if solved is None:
+            return view.angle_deg
+        return solved / self.angle_scale
+
     def camera_for_view(self, view: ViewRecord) -> Camera:
         """The camera that took ``view`` (its measured angle when known)."""
+        angle = self.view_angle_deg(view)
         if (view.camera, view.tilt_index) not in self.poses and self.tilt_axis is not None:
-            return self.camera_at_tilt(view.camera, view.tilt_deg, view.angle_deg)
-        return self.camera_at(view.camera, view.tilt_index, view.angle_deg)
+            return self.camera_at_tilt(view.camera, view.tilt_deg, angle)
+        return self.camera_at(view.camera, view.tilt_index, angle)
 
     def camera_at_tilt(self, camera: str, tilt_deg: float, angle_deg: float) -> Camera:
         """Camera at any tilt angle, through the tilt-arm axis model."""
@@ -440,6 +455,9 @@ class Calibration:
             "angle_scale": float(self.angle_scale),
             "tilt_axis": None if self.tilt_axis is None else self.tilt_axis.to_dict(),
             "quality": _plain(self.quality),
+            **({"view_angles_deg": {int(k): float(v) for k, v in
+                                    sorted(self.view_angles_deg.items())}}
+               if self.view_angles_deg else {}),
         }
 
     @classmethod
@@ -451,6 +469,8 @@ class Calibration:
             angle_scale=float(d.get("angle_scale", 1.0)),
             tilt_axis=None if not d.get("tilt_axis") else TiltAxis.from_dict(d["tilt_axis"]),
             quality=d.get("quality") or {},
+            view_angles_deg={int(k): float(v)
+                             for k, v in (d.get("view_angles_deg") or {}).items()},
         )
 
     def save(self, path: Path) -> None:
