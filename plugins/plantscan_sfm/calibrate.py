@@ -1,0 +1,425 @@
+"""Structure from motion with the turntable's constraints: photos in, ``Calibration`` out.
+
+1. SIFT features and verified matches between turntable neighbours (``features``).
+2. Focal length, axis and one pose per (camera, tilt) from two-view geometry
+   (``initialise``), or from approximate poses given with the scan.
+3. Triangulation, then the turntable bundle adjustment (``bundle``): one axis,
+   the commanded angles as priors, one pose per (camera, tilt), intrinsics per
+   camera with radial distortion.
+4. Metric scale and height from the plate (``scale``), world frame as the
+   chessboard calibrator's: axis = +Z, origin on the axis at the plate's top.
+"""
+
+from __future__ import annotations
+
+import math
+import tempfile
+import time
+from collections import Counter, defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from plantscan_calib.solver import fit_tilt_axis, rotmats, rotvec
+
+from plantscan_core.data import Calibration, CameraModel, Pose, ViewRecord, rotation_z
+from plantscan_sfm import bundle, features, initialise
+from plantscan_sfm.features import SfmError, SfmView, Tracks
+from plantscan_sfm.initialise import GroupPose
+from plantscan_sfm.scale import metric_frame
+
+ADVICE_TEXTURE = ("print a random-dot pattern and lay it on the turntable plate (docs/"
+                  "calibration.md, 'calibrating from the plant photos'), or calibrate with a "
+                  "board (calibrate.plugin: turntable)")
+
+
+@dataclass
+class SfmSettings:
+    """Everything the ``sfm`` calibrator's recipe parameters set (see ``plugin.Params``)."""
+
+    role: str = "plant"
+    max_features: int = 8192
+    max_image_size: int = 3200
+    first_octave: int | None = None
+    orbit_neighbours: int = 3
+    cross_window_deg: float | None = None
+    exhaustive_below: int = 16
+    ransac_px: float = 2.0
+    scale: str = "plate"
+    plate_diameter_mm: float | None = None
+    camera_distance_mm: float | None = None
+    plate_top_mm: float = 0.0
+    angle_sigma_deg: float | None = 0.5
+    fit_angle_scale: bool = False
+    fix_principal_point: bool = False
+    fix_distortion: bool = False
+    min_tracks: int = 200
+    min_view_observations: int = 15
+    max_rms_px: float = 1.5
+    threads: int = 2
+    max_observations: int = 30_000
+    prior_poses: dict[tuple[str, int], Pose] | None = None
+    prior_focal: dict[str, float] | None = None
+    workspace: Path | None = None
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+def _image_sizes(scan, views: list[ViewRecord]) -> dict[str, tuple[int, int]]:
+    from PIL import Image
+
+    sizes: dict[str, tuple[int, int]] = {}
+    first: dict[str, ViewRecord] = {}
+    for v in views:
+        with Image.open(scan.path_of(v)) as im:
+            size = im.size
+        if v.camera in sizes and sizes[v.camera] != size:
+            raise SfmError(f"camera {v.camera}: photos of different sizes: {first[v.camera].file} "
+                           f"is {sizes[v.camera][0]}x{sizes[v.camera][1]}, {v.file} is "
+                           f"{size[0]}x{size[1]}")
+        sizes.setdefault(v.camera, size)
+        first.setdefault(v.camera, v)
+    return sizes
+
+
+def calibrate_scan(scan, settings: SfmSettings) -> Calibration:
+    """Calibrate the rig of ``scan`` from the photos of ``settings.role``."""
+    views = scan.views_by_role(settings.role)
+    if len(views) < 3:
+        raise SfmError(f"{scan.root}: {len(views)} '{settings.role}' photos; structure from "
+                       "motion needs at least 3 per camera and tilt")
+    per_group = Counter((v.camera, v.tilt_index) for v in views)
+    few = {g: n for g, n in per_group.items() if n < 3}
+    if few:
+        raise SfmError(f"{scan.root}: too few photos for " + ", ".join(
+            f"camera {c} tilt {t} ({n})" for (c, t), n in sorted(few.items())) +
+            "; structure from motion needs at least 3 per camera and tilt")
+    sizes = _image_sizes(scan, views)
+    if settings.workspace is not None:
+        settings.workspace.mkdir(parents=True, exist_ok=True)
+        return _calibrate(scan, views, sizes, settings, settings.workspace)
+    with tempfile.TemporaryDirectory(prefix="plantscan-sfm-") as tmp:
+        return _calibrate(scan, views, sizes, settings, Path(tmp))
+
+
+def match_scan(scan, views: list[ViewRecord], settings: SfmSettings, work: Path
+               ) -> tuple[list[SfmView], Path, Tracks]:
+    """Steps 1 of the module doc: features, pairs, verified matches, tracks."""
+    t = settings.timings
+    t0 = time.perf_counter()
+    sviews = features.workspace_views(scan, views, work)
+    sizes = _image_sizes(scan, views)
+    octave = settings.first_octave
+    if octave is None:  # small photos: upsample once so that printed dots of a few px count
+        octave = -1 if max(w * h for w, h in sizes.values()) < 800_000 else 0
+    db = features.extract_features(work, sviews, settings.max_features,
+                                   settings.max_image_size, settings.threads, octave)
+    t["features_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    cross = settings.cross_window_deg if settings.cross_window_deg is not None \
+        else features.default_cross_window(sviews)
+    pairs = features.plan_pairs(sviews, settings.orbit_neighbours, cross,
+                                settings.exhaustive_below)
+    features.match_pairs(db, work, sviews, pairs, settings.threads, settings.ransac_px)
+    t["matching_s"] = time.perf_counter() - t0
+    tracks = features.read_tracks(db, sviews)
+    tracks.stats["pairs_matched"] = len(pairs)
+    return sviews, db, tracks
+
+
+def _calibrate(scan, views: list[ViewRecord], sizes: dict[str, tuple[int, int]],
+               settings: SfmSettings, work: Path) -> Calibration:
+    t_all = time.perf_counter()
+    sviews, _, tracks = match_scan(scan, views, settings, work)
+    _check_texture(tracks, sviews, settings, scan.root)
+    return solve_tracks(sviews, tracks, sizes, settings, t_all)
+
+
+def _check_texture(tracks: Tracks, views: list[SfmView], settings: SfmSettings,
+                   root: Path) -> None:
+    """The named failure of a textureless scene: too few features or tracks."""
+    kp = tracks.stats.get("keypoints_per_photo", 0.0)
+    if tracks.n_tracks < settings.min_tracks:
+        raise SfmError(
+            f"{root}: too few features to calibrate from: {tracks.n_tracks} feature tracks over "
+            f"{len(views)} photos ({kp:.0f} keypoints per photo, "
+            f"{tracks.stats.get('verified_pairs', 0)} of {tracks.stats.get('pairs_matched', 0)} "
+            f"photo pairs matched; need calibrate.params.min_tracks = {settings.min_tracks}). "
+            f"The scene is too plain: {ADVICE_TEXTURE}")
+
+
+def solve_tracks(views: list[SfmView], tracks: Tracks, sizes: dict[str, tuple[int, int]],
+                 settings: SfmSettings, t_start: float | None = None) -> Calibration:
+    """Steps 2-4 of the module doc, from tracks."""
+    t = settings.timings
+    t_start = time.perf_counter() if t_start is None else t_start
+    t0 = time.perf_counter()
+    tracks = _cap_observations(tracks, settings.max_observations)
+    commanded = np.array([v.view.angle_deg for v in views])
+    state, init_info, tracks = _initial_state(views, tracks, sizes, settings, commanded)
+    t["initialisation_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    opt = bundle.BundleOptions(angle_sigma_deg=settings.angle_sigma_deg,
+                               fit_angle_scale=settings.fit_angle_scale,
+                               fix_principal_point=settings.fix_principal_point,
+                               fix_distortion=settings.fix_distortion, threads=settings.threads)
+    # First with the principal point, distortion and angles held (a far start), then all.
+    first = bundle.BundleOptions(**{**opt.__dict__, "fix_distortion": True,
+                                    "fix_principal_point": True, "angle_sigma_deg": None,
+                                    "outlier_px": 4.0})
+    keep, rep1 = bundle.adjust(state, views, tracks, first, rounds=1)
+    _retriangulate(state, views, tracks, keep)
+    keep, rep2 = bundle.adjust(state, views, tracks, opt, rounds=2)
+    t["bundle_s"] = time.perf_counter() - t0
+    res = bundle.residuals(state, views, tracks)
+    err = np.linalg.norm(res, axis=1)
+    quality = _quality(state, views, tracks, keep, err, settings)
+    quality["initialisation"] = init_info
+    quality["solver"] = {"solves": rep1.solves + rep2.solves}
+    final = rep2.solves[-1]
+    if not final["usable"]:
+        raise SfmError(f"the turntable bundle adjustment failed ({final['termination']})")
+    # Metric scale and height.
+    counts = np.bincount(tracks.track[keep], minlength=tracks.n_tracks)
+    solid = counts >= 3
+    ref_c = state.poses[state.reference][3:6]
+    s, z0, sinfo = metric_frame(state.points[solid], float(np.hypot(ref_c[0], ref_c[1])),
+                                settings.scale, settings.plate_diameter_mm,
+                                settings.camera_distance_mm)
+    quality["scale"] = sinfo
+    for p in state.poses.values():
+        p[3:6] = s * p[3:6] + np.array([0.0, 0.0, settings.plate_top_mm - s * z0])
+    state.points[:] = s * state.points + np.array([0.0, 0.0, settings.plate_top_mm - s * z0])
+    if quality["rms_px"] > settings.max_rms_px:
+        raise SfmError(f"the turntable model leaves {quality['rms_px']:.3g} px RMS (limit "
+                       f"max_rms_px {settings.max_rms_px}); the photos do not fit one rigid "
+                       "scene turning about one axis (a plant that moved, wrong angles?)")
+    models = {c: state.model(c) for c in state.intrinsics}
+    poses = {g: state.pose(g) for g in state.poses}
+    tilts = {v.view.tilt_index: v.view.tilt_deg for v in views}
+    tilt_axis = None
+    if len({g[1] for g in poses}) >= 2:
+        fitted = fit_tilt_axis(poses, tilts, min(g[1] for g in poses))
+        if fitted is not None:
+            tilt_axis, quality["tilt_axis"] = fitted
+    angles = state.view_angles(views)
+    view_angles = {int(v.view.index): float(a) for v, a in zip(views, angles, strict=True)}
+    if settings.prior_poses:
+        quality["prior_poses_moved"] = _prior_moves(settings.prior_poses, poses)
+    t["total_s"] = time.perf_counter() - t_start
+    quality["seconds"] = dict(t)
+    quality["method"] = "sfm: pycolmap SIFT + turntable-constrained bundle adjustment (pyceres)"
+    return Calibration(models, poses, {k: float(v) for k, v in tilts.items()},
+                       float(state.scale[0]), tilt_axis, quality, view_angles)
+
+
+def _cap_observations(tracks: Tracks, cap: int) -> Tracks:
+    """At most about ``cap`` observations, shared evenly between the photos: in each
+    photo those of the longest tracks (they constrain most) are kept."""
+    n_views = int(tracks.view.max()) + 1 if len(tracks.view) else 1
+    if len(tracks.view) <= cap:
+        return tracks
+    per_view = max(cap // n_views, 20)
+    length = np.bincount(tracks.track)[tracks.track]
+    order = np.lexsort((-length, tracks.view))       # by photo, longest tracks first
+    rank = np.empty(len(order), np.int64)
+    starts = np.searchsorted(tracks.view[order], np.arange(n_views))
+    rank[order] = np.arange(len(order)) - starts[tracks.view[order]]
+    out = tracks.subset(rank < per_view)
+    out.stats["observations_capped_from"] = int(len(tracks.view))
+    return out
+
+
+def _initial_state(views: list[SfmView], tracks: Tracks, sizes: dict[str, tuple[int, int]],
+                   settings: SfmSettings, commanded: np.ndarray):
+    info: dict[str, Any] = {}
+    groups = sorted({v.group for v in views})
+    if settings.prior_poses:
+        missing = [g for g in groups if g not in settings.prior_poses]
+        if missing:
+            raise SfmError("the approximate poses given with the scan lack " + ", ".join(
+                f"camera {c} tilt {t}" for c, t in missing))
+        focal = settings.prior_focal or {}
+        models = {c: CameraModel(focal[c], (w - 1) / 2, (h - 1) / 2, 0, 0, w, h)
+                  for c, (w, h) in sizes.items() if c in focal}
+        for c, size in sizes.items():
+            if c not in models:
+                motions = [m for g, ms in initialise.orbit_pairs(views, tracks).items()
+                           if g[0] == c for m in ms]
+                f, finfo = initialise.focal_from_turns(motions, size)
+                models[c] = CameraModel(f, (size[0] - 1) / 2, (size[1] - 1) / 2, 0, 0, *size)
+                info[f"focal_{c}"] = finfo
+        poses = {g: GroupPose(settings.prior_poses[g].R, settings.prior_poses[g].centre)
+                 for g in groups}
+        info["source"] = "approximate poses given with the scan"
+    else:
+        motions = initialise.orbit_pairs(views, tracks)
+        own, focal = {}, defaultdict(list)
+        for g in groups:
+            if not motions.get(g):
+                raise SfmError(f"camera {g[0]} tilt {g[1]}: no two photos a few turntable stops "
+                               f"apart share enough features. {ADVICE_TEXTURE}")
+            f, own[g], info[f"pose_{g[0]}/t{g[1]}"] = _orbit_start(
+                views, tracks, motions[g], g, sizes[g[0]], settings)
+            focal[g[0]].append(f)
+        models = {c: CameraModel(float(np.median(focal[c])), (w - 1) / 2, (h - 1) / 2, 0, 0, w,
+                                 h) for c, (w, h) in sizes.items()}
+        poses, info["link"], merged = initialise.link_groups(
+            tracks, views, models, own, commanded,
+            settings.plate_diameter_mm if settings.scale == "plate" else None)
+        if merged:
+            tracks = merge_tracks(tracks, np.concatenate(list(merged.values())))
+            info["link"]["tracks_merged"] = int(sum(len(m) for m in merged.values()))
+        info["source"] = "two-view geometry of turntable neighbours"
+    ref = max(groups, key=lambda g: int(np.sum([views[i].group == g for i in tracks.view])))
+    poses = _normalise(poses, ref)
+    pts, spread = initialise.triangulate(tracks, views, models, poses, commanded)
+    pts[~(spread > 1.0)] = np.nan
+    state = bundle.new_state(views, models, poses, pts, ref)
+    if settings.prior_poses:
+        state.pose_priors = {g: (p.R, p.C) for g, p in _normalise(
+            {g: GroupPose(settings.prior_poses[g].R, settings.prior_poses[g].centre)
+             for g in groups}, ref, keep_scale=True).items()}
+    info["reference"] = f"{ref[0]}/t{ref[1]}"
+    return state, info, tracks
+
+
+def merge_tracks(tracks: Tracks, pairs: np.ndarray) -> Tracks:
+    """Tracks with each pair ``(a, b)`` of track ids (``pairs`` (K, 2)) made one."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = tracks.n_tracks
+    g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, label = connected_components(g, directed=False)
+    t = label[tracks.track]
+    order = np.argsort(t, kind="stable")
+    _, t = np.unique(t[order], return_inverse=True)
+    return Tracks(tracks.view[order], t, tracks.uv[order], dict(tracks.stats))
+
+
+def _orbit_start(views: list[SfmView], tracks: Tracks, motions, group: tuple[str, int],
+                 size: tuple[int, int], settings: SfmSettings
+                 ) -> tuple[float, GroupPose, dict[str, Any]]:
+    """Focal length and pose of one (camera, tilt) from its own orbit, multi-start.
+
+    Two-view geometry fixes the axis for a given focal length but not the focal
+    length itself when most features lie on the plate (a plane turning about its
+    normal: the degenerate case of plane-based calibration).  So a short bundle
+    adjustment of this orbit alone (the angles held, no distortion) starts from
+    each of several focal lengths, and the lowest cost wins.
+    """
+    w, h = size
+    in_group = np.array([views[i].group == group for i in tracks.view])
+    sub = _cap_observations(tracks.subset(in_group), 4000)
+    f_turns, _ = initialise.focal_from_turns(motions, size)
+    starts = sorted({f_turns, *(k * max(w, h) for k in (0.7, 1.0, 1.4, 2.0, 2.8))})
+    opt = bundle.BundleOptions(angle_sigma_deg=None, fix_principal_point=True,
+                               fix_distortion=True, max_iterations=15, outlier_px=8.0,
+                               threads=settings.threads)
+    tried = []
+    best = None
+    commanded = np.array([v.view.angle_deg for v in views])
+    for f0 in starts:
+        try:
+            pose, _ = initialise.group_pose(motions, f0, size)
+        except SfmError:
+            continue
+        model = CameraModel(f0, (w - 1) / 2, (h - 1) / 2, 0, 0, w, h)
+        pts, spread = initialise.triangulate(sub, views, {group[0]: model}, {group: pose},
+                                             commanded)
+        pts[~(spread > 1.0)] = np.nan
+        st = bundle.new_state([views[i] for i in range(len(views))], {group[0]: model},
+                              {group: pose}, pts, group)
+        keep, rep = bundle.adjust(st, views, sub, opt, rounds=0)
+        cost = rep.solves[-1]["final_cost"] / max(int(keep.sum()), 1)
+        tried.append({"f_start_px": f0, "f_px": float(st.intrinsics[group[0]][0]),
+                      "cost_per_obs": cost})
+        if best is None or cost < best[0]:
+            best = (cost, float(st.intrinsics[group[0]][0]), st.group_pose(group))
+    if best is None:
+        raise SfmError(f"camera {group[0]} tilt {group[1]}: no start gives a usable orbit")
+    return best[1], best[2], {"starts": tried, "f_px": best[1]}
+
+
+def _normalise(poses: dict[tuple[str, int], GroupPose], ref: tuple[str, int],
+               keep_scale: bool = False) -> dict[tuple[str, int], GroupPose]:
+    """Turn the world about the axis so the reference camera is on -Y at height 0 and,
+    unless ``keep_scale``, at ``NOMINAL_DISTANCE`` from the axis (the bundle's gauge)."""
+    c = poses[ref].C
+    yaw = -90.0 - math.degrees(math.atan2(c[1], c[0]))
+    rz = rotation_z(yaw)
+    s = 1.0 if keep_scale else initialise.NOMINAL_DISTANCE / max(float(np.hypot(c[0], c[1])),
+                                                                1e-9)
+    dz = 0.0 if keep_scale else -s * c[2]
+    return {g: GroupPose(p.R @ rz.T, s * (rz @ p.C) + np.array([0.0, 0.0, dz]))
+            for g, p in poses.items()}
+
+
+def _retriangulate(state: bundle.TurntableState, views: list[SfmView], tracks: Tracks,
+                   keep: np.ndarray) -> None:
+    """Points of every track again from the refined cameras (dropped tracks come back)."""
+    models = {c: state.model(c) for c in state.intrinsics}
+    poses = {g: state.group_pose(g) for g in state.poses}
+    pts, spread = initialise.triangulate(tracks, views, models, poses, state.view_angles(views))
+    pts[~(spread > 1.0)] = np.nan
+    state.points[:] = pts
+    del keep
+
+
+def _quality(state: bundle.TurntableState, views: list[SfmView], tracks: Tracks,
+             keep: np.ndarray, err: np.ndarray, settings: SfmSettings) -> dict[str, Any]:
+    e = err[keep]
+    per_cam: dict[str, list[float]] = defaultdict(list)
+    per_view = np.zeros(len(views), int)
+    for k in np.flatnonzero(keep):
+        per_cam[views[tracks.view[k]].view.camera].append(err[k])
+        per_view[tracks.view[k]] += 1
+    lengths = np.bincount(tracks.track[keep])
+    lengths = lengths[lengths > 0]
+    weak = [int(views[i].view.index) for i in np.flatnonzero(
+        per_view < settings.min_view_observations)]
+    flags = []
+    if weak:
+        flags.append(f"{len(weak)} photos hold fewer than {settings.min_view_observations} "
+                     f"inlier features (view indices {weak[:10]}); their turntable angles stay "
+                     "at the commanded values")
+    angles = state.view_angles(views)
+    commanded = np.array([v.view.angle_deg for v in views])
+    moved = angles - commanded
+    return {
+        "rms_px": float(np.sqrt(np.mean(e ** 2))) if len(e) else float("nan"),
+        "mean_px": float(np.mean(e)) if len(e) else float("nan"),
+        "per_camera": {c: {"rms_px": float(np.sqrt(np.mean(np.square(v)))),
+                           "observations": len(v)} for c, v in sorted(per_cam.items())},
+        "observations": int(keep.sum()), "rejected_observations": int((~keep).sum()),
+        "tracks": int(len(lengths)),
+        "track_length": {"mean": float(lengths.mean()) if len(lengths) else 0.0,
+                         "median": float(np.median(lengths)) if len(lengths) else 0.0,
+                         "max": int(lengths.max()) if len(lengths) else 0},
+        "views": len(views),
+        "registered_views": int(np.sum(per_view >= settings.min_view_observations)),
+        "observations_per_view": {"min": int(per_view.min()), "median": float(
+            np.median(per_view))},
+        "stop_angle_change_deg": {"rms": float(np.sqrt(np.mean(moved ** 2))),
+                                  "max": float(np.max(np.abs(moved)))},
+        "features": dict(tracks.stats),
+        "flags": flags,
+    }
+
+
+def _prior_moves(prior: dict[tuple[str, int], Pose], poses: dict[tuple[str, int], Pose]
+                 ) -> dict[str, dict[str, float]]:
+    """How far the solve moved each approximate pose (centre mm, rotation deg)."""
+    out = {}
+    for g, p in poses.items():
+        if g in prior:
+            q = prior[g]
+            out[f"{g[0]}/t{g[1]}"] = {
+                "centre_mm": float(np.linalg.norm(p.centre - q.centre)),
+                "rotation_deg": math.degrees(float(np.linalg.norm(rotvec(p.R @ q.R.T))))}
+    return out
+
+
+__all__ = ["SfmError", "SfmSettings", "calibrate_scan", "solve_tracks", "match_scan",
+           "rotmats"]

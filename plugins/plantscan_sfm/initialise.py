@@ -1,0 +1,406 @@
+"""Turntable initialisation from two-view geometry: focal length, axis and camera poses.
+
+Between two photos of one camera at turntable angles ``a_i`` and ``a_j`` the
+scene turned by ``d = a_j - a_i`` about the axis, so the camera moved by
+
+    x_j = Q x_i + t,   Q = R Rz(d) R^T,   t = (I - Q) o
+
+where ``R`` is the camera's world -> camera rotation and ``o`` the world origin
+(a point of the axis) in camera coordinates.  The essential matrix of the pair
+gives ``Q`` and the direction of ``t``.  Hence, per (camera, tilt):
+
+* the focal length is the one whose essential matrices turn by the commanded
+  angles (a wrong focal length shrinks or stretches every rotation);
+* the axis in camera coordinates, ``R e_z``, is the mean rotation axis of the
+  ``Q``; the direction from the camera to the axis, ``R e_y``, follows from ``t``;
+* the camera sits at ``C = (0, -D, 0)`` for an arbitrary distance ``D`` (scale
+  and height come later, from the plate).
+
+Cameras and tilts initialised this way each have their own yaw, height and
+scale about the common axis; points seen from two of them fix those three
+numbers (a similarity turning only about the axis), in a tree grown from the
+(camera, tilt) with the most observations.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from plantscan_core.data import CameraModel, rotation_z
+from plantscan_sfm.features import SfmError, SfmView, Tracks
+
+NOMINAL_DISTANCE = 1000.0  # arbitrary units until the metric scale is known
+
+
+@dataclass
+class GroupPose:
+    """World -> camera rotation ``R`` (3, 3) and centre ``C`` (3,) of one (camera, tilt)."""
+
+    R: np.ndarray
+    C: np.ndarray
+
+
+def pair_correspondences(tracks: Tracks, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels ``(K, 2)`` in photos ``a`` and ``b`` of the tracks seen in both."""
+    ia = np.flatnonzero(tracks.view == a)
+    ib = np.flatnonzero(tracks.view == b)
+    common, ka, kb = np.intersect1d(tracks.track[ia], tracks.track[ib], return_indices=True)
+    return tracks.uv[ia[ka]], tracks.uv[ib[kb]]
+
+
+def _relative_pose(pa: np.ndarray, pb: np.ndarray, f: float, centre: tuple[float, float],
+                   threshold_px: float):
+    """(Q, t unit, inliers) of photo b from photo a under focal ``f`` (no distortion)."""
+    k = np.array([[f, 0.0, centre[0]], [0.0, f, centre[1]], [0.0, 0.0, 1.0]])
+    e, mask = cv2.findEssentialMat(pa, pb, k, cv2.RANSAC, 0.999, threshold_px)
+    if e is None or e.shape != (3, 3):
+        return None
+    n, r, t, mask2 = cv2.recoverPose(e, pa, pb, k, mask=mask)
+    if n < 8:
+        return None
+    return r, t.reshape(3), int(n)
+
+
+def _rotvec(r: np.ndarray) -> np.ndarray:
+    v, _ = cv2.Rodrigues(np.asarray(r, dtype=float))
+    return v.reshape(3)
+
+
+@dataclass
+class PairMotion:
+    a: int
+    b: int
+    delta_deg: float      # commanded turn from a to b
+    pa: np.ndarray
+    pb: np.ndarray
+
+
+def orbit_pairs(views: list[SfmView], tracks: Tracks, max_stops: int = 2,
+                min_points: int = 30) -> dict[tuple[str, int], list[PairMotion]]:
+    """Pairs of photos of each (camera, tilt) one or two stops apart, with their matches."""
+    groups: dict[tuple[str, int], list[int]] = defaultdict(list)
+    for i, v in enumerate(views):
+        groups[v.group].append(i)
+    out: dict[tuple[str, int], list[PairMotion]] = {}
+    for g, idx in groups.items():
+        idx = sorted(idx, key=lambda i: views[i].view.angle_deg)
+        m = len(idx)
+        motions = []
+        for k in range(m):
+            for s in range(1, max_stops + 1):
+                if m < 3 or (s >= m):
+                    continue
+                a, b = idx[k], idx[(k + s) % m]
+                d = (views[b].view.angle_deg - views[a].view.angle_deg + 180.0) % 360.0 - 180.0
+                if abs(d) < 1.0 or abs(d) > 60.0:
+                    continue
+                pa, pb = pair_correspondences(tracks, a, b)
+                if len(pa) >= min_points:
+                    motions.append(PairMotion(a, b, d, pa, pb))
+        out[g] = motions
+    return out
+
+
+def focal_from_turns(motions: list[PairMotion], size: tuple[int, int],
+                     threshold_px: float = 1.5) -> tuple[float, dict]:
+    """Focal length (px) whose essential matrices turn by the commanded angles.
+
+    A log-spaced search from 0.3 to 5 image widths, refined twice around the
+    best; the figure of merit is the median over pairs of the relative error
+    of the recovered turn ``|angle(Q)| / |d| - 1``.
+    """
+    if not motions:
+        raise SfmError("no two photos of a camera a few turntable stops apart share enough "
+                       "matched features to start from")
+    w, h = size
+    centre = ((w - 1) / 2.0, (h - 1) / 2.0)
+    use = sorted(motions, key=lambda m: -len(m.pa))[:12]
+
+    def misfit(f: float) -> float:
+        errs = []
+        for m in use:
+            rel = _relative_pose(m.pa, m.pb, f, centre, threshold_px)
+            if rel is None:
+                errs.append(1.0)
+                continue
+            ang = math.degrees(np.linalg.norm(_rotvec(rel[0])))
+            errs.append(abs(ang / abs(m.delta_deg) - 1.0))
+        return float(np.median(errs))
+
+    lo, hi, n = math.log(0.3 * max(w, h)), math.log(5.0 * max(w, h)), 24
+    best = None
+    for _ in range(3):
+        grid = np.exp(np.linspace(lo, hi, n))
+        scores = [misfit(f) for f in grid]
+        k = int(np.argmin(scores))
+        best = (float(grid[k]), float(scores[k]))
+        step = (hi - lo) / (n - 1)
+        lo, hi, n = math.log(best[0]) - 1.5 * step, math.log(best[0]) + 1.5 * step, 9
+    return best[0], {"turn_misfit": best[1], "pairs": len(use)}
+
+
+def group_pose(motions: list[PairMotion], f: float, size: tuple[int, int],
+               threshold_px: float = 1.5) -> tuple[GroupPose, dict]:
+    """Pose of one (camera, tilt) about the axis from its orbit pairs (see module doc)."""
+    w, h = size
+    centre = ((w - 1) / 2.0, (h - 1) / 2.0)
+    axes, towards, turns = [], [], []
+    for m in motions:
+        rel = _relative_pose(m.pa, m.pb, f, centre, threshold_px)
+        if rel is None:
+            continue
+        q, t, _ = rel
+        rv = _rotvec(q)
+        ang = np.linalg.norm(rv)
+        if ang < 1e-6:
+            continue
+        a = rv / math.radians(m.delta_deg)   # rotation by +d about a
+        a /= np.linalg.norm(a)
+        # (I - Q) o = t restricted to the plane normal to a: o up to scale, with sign.
+        p = np.eye(3) - np.outer(a, a)
+        o, *_ = np.linalg.lstsq((np.eye(3) - q) @ p, t, rcond=None)
+        o = p @ o
+        if np.linalg.norm(o) < 1e-9:
+            continue
+        axes.append(a)
+        towards.append(o / np.linalg.norm(o))
+        turns.append(math.degrees(ang) / abs(m.delta_deg))
+    if len(axes) < 2:
+        raise SfmError("too few photo pairs of one camera give a usable relative pose "
+                       f"({len(axes)}); the photos share too few features")
+    ez = np.median(np.array(axes), axis=0)
+    ez /= np.linalg.norm(ez)
+    ey = np.median(np.array(towards), axis=0)
+    ey -= ez * (ey @ ez)
+    ey /= np.linalg.norm(ey)
+    ex = np.cross(ey, ez)
+    r = np.stack([ex, ey, ez], axis=1)
+    spread = float(np.degrees(np.median(np.arccos(np.clip(np.array(axes) @ ez, -1, 1)))))
+    return GroupPose(r, np.array([0.0, -NOMINAL_DISTANCE, 0.0])), {
+        "pairs": len(axes), "axis_spread_deg": spread, "turn_ratio": float(np.median(turns))}
+
+
+def triangulate(tracks: Tracks, views: list[SfmView], models: dict[str, CameraModel],
+                poses: dict[tuple[str, int], GroupPose], angles_deg: np.ndarray,
+                obs: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Mid-point triangulation of every track (world frame at turntable angle 0).
+
+    ``angles_deg`` (n_views,) is the turntable angle of each photo; ``obs``
+    (M,) bool the observations to use (default: those of posed groups).
+
+    Returns points ``(n_tracks, 3)`` and the largest angle between two of a
+    track's rays ``(n_tracks,)``, deg (NaN where fewer than two rays).
+    """
+    n = tracks.n_tracks
+    v = tracks.view
+    posed = np.array([views[i].group in poses for i in range(len(views))])
+    use = posed[v] if obs is None else (obs & posed[v])
+    centres = np.zeros((len(v), 3))
+    dirs = np.zeros((len(v), 3))
+    for i, sv in enumerate(views):
+        if not posed[i]:
+            continue
+        sel = np.flatnonzero((v == i) & use)
+        if not len(sel):
+            continue
+        pose = poses[sv.group]
+        rz = rotation_z(-angles_deg[i])
+        rays = models[sv.view.camera].unproject(tracks.uv[sel])
+        dirs[sel] = rays @ (rz @ pose.R.T).T
+        centres[sel] = rz @ pose.C
+    a = np.zeros((n, 3, 3))
+    b = np.zeros((n, 3))
+    proj = np.eye(3)[None] - dirs[:, :, None] * dirs[:, None, :]
+    proj[~use] = 0.0
+    np.add.at(a, tracks.track, proj)
+    np.add.at(b, tracks.track, np.einsum("kij,kj->ki", proj, centres))
+    counts = np.bincount(tracks.track[use], minlength=n)
+    ok = counts >= 2
+    a[~ok] = np.eye(3)
+    det = np.linalg.det(a)
+    ok &= np.abs(det) > 1e-12
+    a[~ok] = np.eye(3)
+    pts = np.linalg.solve(a, b[:, :, None])[:, :, 0]
+    pts[~ok] = np.nan
+    # Widest ray pair of each track: compare each ray with the track's mean direction.
+    mean_dir = np.zeros((n, 3))
+    np.add.at(mean_dir, tracks.track[use], dirs[use])
+    norm = np.linalg.norm(mean_dir, axis=1, keepdims=True)
+    mean_dir = mean_dir / np.where(norm > 0, norm, 1.0)
+    cosang = np.clip(np.einsum("ki,ki->k", dirs, mean_dir[tracks.track]), -1, 1)
+    spread = np.zeros(n)
+    np.maximum.at(spread, tracks.track[use], np.degrees(np.arccos(cosang[use])))
+    spread[~ok] = np.nan
+    return pts, 2.0 * spread
+
+
+def link_groups(tracks: Tracks, views: list[SfmView], models: dict[str, CameraModel],
+                poses: dict[tuple[str, int], GroupPose], angles_deg: np.ndarray,
+                plate_diameter_mm: float | None = None,
+                ) -> tuple[dict[tuple[str, int], GroupPose], dict, dict]:
+    """Bring every (camera, tilt) into the frame of the one with the most observations.
+
+    Each group's own triangulation and the reference's share points; the
+    similarity ``X_ref = s Rz(phi) X + dz e_z`` (the two frames share the axis)
+    is fitted on them robustly.  Groups whose photos share no tracks with the
+    others (views too different for SIFT, as 8 and 48 degrees of elevation on a
+    printed plate) are linked by the shape of their point clouds, made metric
+    by the plate (``_register_by_shape``).  Groups linked to no posed group
+    raise SfmError.
+
+    Returns the poses, a report, and per group linked by shape the pairs of
+    tracks ``(K, 2)`` (its, the other's) found to be the same points.
+    """
+    group_of_view = [v.group for v in views]
+    gid = {g: k for k, g in enumerate(sorted(set(group_of_view)))}
+    obs_gid = np.array([gid[group_of_view[i]] for i in tracks.view], dtype=np.int64)
+    counts = {g: int(np.sum(obs_gid == k)) for g, k in gid.items()}
+    ref = max(sorted(poses), key=lambda g: counts.get(g, 0))
+    own = {}
+    for g in poses:
+        sel = obs_gid == gid[g]
+        pts, spread = triangulate(tracks, views, models, {g: poses[g]}, angles_deg, sel)
+        own[g] = np.where((spread > 2.0)[:, None], pts, np.nan)
+    placed = {ref: poses[ref]}
+    links = {}
+    pending = [g for g in poses if g != ref]
+    while pending:
+        best = None
+        for g in pending:
+            for h in placed:
+                both = np.isfinite(own[g][:, 0]) & np.isfinite(own[h][:, 0])
+                if both.sum() >= 8 and (best is None or both.sum() > best[2]):
+                    best = (g, h, int(both.sum()))
+        if best is None and plate_diameter_mm is not None:
+            found = _register_by_shape(pending, placed, own, plate_diameter_mm)
+            if found is not None:
+                g, h, n_common, (s, phi, dz, inl), pairs = found
+                _place(g, h, s, phi, dz, n_common, inl, poses, placed, links, "3D shape",
+                       pairs)
+                pending.remove(g)
+                continue
+        if best is None:
+            raise SfmError(
+                "these cameras/tilts share too few triangulated points with the others to be "
+                f"placed in one frame: {', '.join(f'{c} tilt {t}' for c, t in pending)}; match "
+                "more photos across cameras (cross_window_deg) or add texture to the plate")
+        g, h, n_common = best
+        both = np.isfinite(own[g][:, 0]) & np.isfinite(own[h][:, 0])
+        s, phi, dz, inl = _axial_similarity(own[g][both], own[h][both])
+        _place(g, h, s, phi, dz, n_common, inl, poses, placed, links, "shared tracks")
+        pending.remove(g)
+    info = {"reference": f"{ref[0]}/t{ref[1]}",
+            "links": {f"{g[0]}/t{g[1]}": v[3] for g, v in links.items()}}
+    merged = {g: v[4] for g, v in links.items() if v[4] is not None}
+    return placed, info, merged
+
+
+def _place(g, h, s, phi, dz, n_common, inl, poses, placed, links, how, pairs=None) -> None:
+    """Put group ``g`` in the reference frame through ``h`` (``X_h = s Rz(phi) X_g + dz``)."""
+    # own[h] is in h's initial frame; bring the result through h's own link.
+    sh, phih, dzh = links.get(h, (1.0, 0.0, 0.0))[:3]
+    s_tot, phi_tot, dz_tot = sh * s, phih + phi, sh * dz + dzh
+    rz = rotation_z(phi_tot)
+    p = poses[g]
+    placed[g] = GroupPose(p.R @ rz.T, s_tot * (rz @ p.C) + np.array([0.0, 0.0, dz_tot]))
+    links[g] = (s_tot, phi_tot, dz_tot, {"linked_to": f"{h[0]}/t{h[1]}", "by": how,
+                                         "common_points": n_common, "inliers": inl}, pairs)
+
+
+def _metric(points: np.ndarray, plate_diameter_mm: float) -> tuple[float, float]:
+    """(mm per unit, plate-top height) of one group's own points, from the plate."""
+    from plantscan_sfm.scale import metric_frame
+
+    s, z0, _ = metric_frame(points, 1.0, "plate", plate_diameter_mm, None)
+    return s, z0
+
+
+def _register_by_shape(pending, placed, own, plate_diameter_mm: float,
+                       tol_mm: float = 1.5):
+    """Link a group that shares no tracks: its points and a placed group's, both made
+    metric by the plate, differ only by a turn about the axis; the turn with the most
+    points within ``tol_mm`` of each other wins, then a least-squares fit on them.
+
+    Returns ``(g, h, n_pairs, (s, phi, dz, inliers), pairs)`` (``pairs``: (K, 2)
+    track ids of g and h found to be one point, for merging tracks), or None.
+    """
+    from scipy.spatial import cKDTree
+
+    best = None
+    for g in pending:
+        xg = own[g][np.isfinite(own[g][:, 0])]
+        ig = np.flatnonzero(np.isfinite(own[g][:, 0]))
+        if len(xg) < 50:
+            continue
+        try:
+            sg, zg = _metric(xg, plate_diameter_mm)
+        except SfmError:
+            continue
+        for h in placed:
+            xh = own[h][np.isfinite(own[h][:, 0])]
+            ih = np.flatnonzero(np.isfinite(own[h][:, 0]))
+            if len(xh) < 50:
+                continue
+            try:
+                sh, zh = _metric(xh, plate_diameter_mm)
+            except SfmError:
+                continue
+            mg = sg * xg - np.array([0.0, 0.0, sg * zg])
+            mh = sh * xh - np.array([0.0, 0.0, sh * zh])
+            tree = cKDTree(mh)
+            scores = []
+            for phi in np.arange(0.0, 360.0, 0.5):
+                d, _ = tree.query(mg @ rotation_z(phi).T, distance_upper_bound=tol_mm)
+                scores.append(int(np.sum(np.isfinite(d))))
+            phi = 0.5 * int(np.argmax(scores))
+            # Pairs at the best turn, then the similarity in h's own units.
+            for _ in range(3):
+                d, j = tree.query(mg @ rotation_z(phi).T, distance_upper_bound=tol_mm)
+                ok = np.isfinite(d)
+                if ok.sum() < 8:
+                    break
+                s, phi_fit, dz, inl = _axial_similarity(mg[ok], mh[j[ok]])
+                phi = phi_fit
+            if ok.sum() < 8:
+                continue
+            # mutual nearest neighbours only, for merging tracks
+            back = cKDTree(mg @ rotation_z(phi).T)
+            _, jb = back.query(mh[j[ok]])
+            mutual = np.flatnonzero(ok)[jb == np.flatnonzero(ok)]
+            s_units = s * sg / sh
+            dz_units = (dz - s * sg * zg + sh * zh) / sh
+            pairs = np.stack([ig[mutual], ih[j[mutual]]], axis=1)
+            cand = (g, h, int(len(mutual)), (s_units, phi, dz_units, inl), pairs)
+            if best is None or cand[2] > best[2]:
+                best = cand
+    return best
+
+
+def _axial_similarity(x: np.ndarray, y: np.ndarray, iterations: int = 5
+                      ) -> tuple[float, float, float, int]:
+    """``y ~ s Rz(phi) x + dz e_z`` (x, y: (K, 3)); returns s, phi (deg), dz, inliers.
+
+    The horizontal part is one complex ratio (least squares), refitted on the
+    points within 3 robust sigma of the fit.
+    """
+    zx = x[:, 0] + 1j * x[:, 1]
+    zy = y[:, 0] + 1j * y[:, 1]
+    keep = np.ones(len(x), bool)
+    s, phi, dz = 1.0, 0.0, 0.0
+    for _ in range(iterations):
+        w = np.sum(np.conj(zx[keep]) * zy[keep]) / np.sum(np.abs(zx[keep]) ** 2)
+        s, phi = float(abs(w)), float(np.degrees(np.angle(w)))
+        dz = float(np.median(y[keep, 2] - s * x[keep, 2]))
+        pred = np.stack([(w * zx).real, (w * zx).imag, s * x[:, 2] + dz], axis=1)
+        r = np.linalg.norm(pred - y, axis=1)
+        sigma = 1.4826 * np.median(r[keep]) + 1e-12
+        new = r < 3.0 * sigma
+        if new.sum() < 4 or np.array_equal(new, keep):
+            break
+        keep = new
+    return s, phi, dz, int(keep.sum())

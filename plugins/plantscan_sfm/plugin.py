@@ -1,0 +1,103 @@
+"""The ``sfm`` calibrator: calibrate a turntable rig from the plant photos themselves."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field
+
+from plantscan_core.data import Calibration
+from plantscan_core.hookspecs import hookimpl
+from plantscan_core.stages import Calibrator, StageParams
+from plantscan_sfm.calibrate import SfmError, SfmSettings, calibrate_scan
+
+__all__ = ["SfmCalibrator", "SfmError"]
+
+
+class SfmCalibrator(Calibrator):
+    """Structure from motion with the turntable's constraints (pycolmap + pyceres).
+
+    Needs no board: SIFT features of the plant, pot and plate (a printed plate
+    makes it dependable) are matched between turntable neighbours, and one
+    turntable model (one axis, the commanded angles as priors, one pose per
+    camera and tilt, intrinsics per camera) is fitted to them.  The metric
+    scale comes from the plate's diameter or a known camera distance.
+    """
+
+    name = "sfm"
+
+    class Params(StageParams):
+        role: Literal["plant", "calibration", "background"] = Field(
+            "plant", description="which photos to calibrate from")
+        scale: Literal["plate", "camera-distance"] = Field(
+            "plate", description="where the metric scale comes from")
+        plate_diameter_mm: float | None = Field(None, gt=0, description="turntable plate "
+                                                "diameter (scale: plate)")
+        camera_distance_mm: float | None = Field(
+            None, gt=0, description="distance of the first camera's centre from the axis "
+            "(scale: camera-distance)")
+        plate_top_mm: float = Field(0.0, description="world height of the plate's top")
+        max_features: int = Field(8192, ge=100, description="SIFT features per photo")
+        max_image_size: int = Field(3200, ge=200, description="photos are scaled down to this "
+                                    "longest side for feature extraction")
+        first_octave: int | None = Field(None, ge=-1, le=2, description="SIFT's first octave "
+                                         "(-1 upsamples; default: -1 below 0.8 MP, else 0)")
+        orbit_neighbours: int = Field(3, ge=1, description="photos of one camera and tilt are "
+                                      "matched with this many turntable stops on each side")
+        cross_window_deg: float | None = Field(
+            None, ge=0, description="photos of different cameras/tilts are matched when their "
+            "angles differ by at most this (default: 1.5 turntable steps)")
+        exhaustive_below: int = Field(16, ge=0, description="match every pair below this many "
+                                      "photos")
+        ransac_px: float = Field(2.0, gt=0, description="two-view RANSAC threshold")
+        angle_sigma_deg: float | None = Field(
+            0.5, gt=0, description="uncertainty of the recorded turntable angles (backlash); "
+            "None holds them exact")
+        fit_angle_scale: bool = False
+        fix_principal_point: bool = False
+        fix_distortion: bool = False
+        min_tracks: int = Field(200, ge=10, description="fewer feature tracks: the scene is "
+                                "too plain to calibrate from")
+        min_view_observations: int = Field(15, ge=1)
+        max_rms_px: float = Field(1.5, gt=0)
+        max_observations: int = Field(30_000, ge=1000, description="longest tracks kept up "
+                                      "to this many observations (bounds the solve's time)")
+        threads: int = Field(2, ge=1)
+        prior_poses: str | None = Field(
+            None, description="approximate poses (plantscan import poses) relative to the scan "
+            "folder; default: the scan's prior_poses.yaml when present")
+
+    def settings(self) -> SfmSettings:
+        p = self.params
+        return SfmSettings(**{k: getattr(p, k) for k in (
+            "role", "max_features", "max_image_size", "first_octave", "orbit_neighbours",
+            "cross_window_deg", "exhaustive_below", "ransac_px", "scale", "plate_diameter_mm",
+            "camera_distance_mm", "plate_top_mm", "angle_sigma_deg", "fit_angle_scale",
+            "fix_principal_point", "fix_distortion", "min_tracks", "min_view_observations",
+            "max_rms_px", "threads", "max_observations")})
+
+    def calibrate(self, scan) -> Calibration:
+        from plantscan_sfm.priors import PRIOR_POSES_FILE, read_prior_poses
+
+        s = self.settings()
+        path = Path(self.params.prior_poses or PRIOR_POSES_FILE)
+        if not path.is_absolute():
+            path = Path(scan.root) / path
+        if path.exists():
+            s.prior_poses, s.prior_focal = read_prior_poses(path)
+        elif self.params.prior_poses is not None:
+            raise SfmError(f"{path}: calibrate.params.prior_poses names no file")
+        return calibrate_scan(scan, s)
+
+
+@hookimpl
+def plantscan_register_stages(registry) -> None:
+    registry.add(SfmCalibrator)
+
+
+@hookimpl
+def plantscan_add_commands(subparsers) -> None:
+    from plantscan_sfm.priors import add_import_command
+
+    add_import_command(subparsers)
