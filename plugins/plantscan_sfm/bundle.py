@@ -217,6 +217,55 @@ def _make_pose_prior_cost():
     return PosePriorCost
 
 
+def _make_surface_cost(kind: str):
+    import pyceres
+
+    class SurfaceCost(pyceres.CostFunction):
+        """A printed point lies on the plate: ``w (z - h)`` (its top, a plane normal to the
+        axis) or ``w (sqrt(x^2 + y^2) - rho)`` (its rim, a cylinder about the axis)."""
+
+        def __init__(self, weight: float):
+            super().__init__()
+            self.w = float(weight)
+            self.set_num_residuals(1)
+            self.set_parameter_block_sizes([3, 1])
+
+        def Evaluate(self, parameters, residuals, jacobians):  # noqa: N802 - Ceres API
+            x, h = parameters[0], parameters[1]
+            if kind == "plane":
+                residuals[0] = self.w * (x[2] - h[0])
+                d = (0.0, 0.0, self.w)
+            else:
+                r = math.hypot(x[0], x[1])
+                if r < 1e-9:
+                    return False
+                residuals[0] = self.w * (r - h[0])
+                d = (self.w * x[0] / r, self.w * x[1] / r, 0.0)
+            if jacobians is not None:
+                if jacobians[0] is not None:
+                    jacobians[0][:] = d
+                if jacobians[1] is not None:
+                    jacobians[1][0] = -self.w
+            return True
+
+    return SurfaceCost
+
+
+@dataclass
+class PlateSurfaces:
+    """Tracks printed on the plate's top (a plane normal to the axis) and its rim (a
+    cylinder about it), with the plane's height and the rim's radius as unknowns.
+
+    ``weight``: residual per unit of distance off the surface (px per model unit).
+    """
+
+    top_tracks: np.ndarray
+    rim_tracks: np.ndarray
+    height: np.ndarray     # (1,) model units
+    radius: np.ndarray     # (1,) model units
+    weight: float
+
+
 @dataclass
 class TurntableState:
     """Parameter blocks of the turntable model (arrays Ceres optimises in place)."""
@@ -230,6 +279,7 @@ class TurntableState:
     reference: tuple[str, int] = ("", 0)
     pose_priors: dict[tuple[str, int], tuple[np.ndarray, np.ndarray]] = field(
         default_factory=dict)
+    plate: PlateSurfaces | None = None
 
     def model(self, camera: str) -> CameraModel:
         f, cu, cv, d1, d2, aspect = (float(x) for x in self.intrinsics[camera])
@@ -254,7 +304,7 @@ class TurntableState:
                               {k: v.copy() for k, v in self.poses.items()},
                               {k: v.copy() for k, v in self.stops.items()},
                               self.scale.copy(), self.points.copy(), dict(self.image_sizes),
-                              self.reference, dict(self.pose_priors))
+                              self.reference, dict(self.pose_priors), self.plate)
 
 
 def stop_key(v: SfmView) -> tuple[int, float]:
@@ -406,6 +456,15 @@ def _build(state: TurntableState, views: list[SfmView], tracks: Tracks, keep: np
         else:
             problem.add_residual_block(
                 prior(np.zeros(1), opt.prior_noise_px / opt.angle_sigma_deg), None, [arr])
+    if state.plate is not None:
+        pl = state.plate
+        for kind, ids, arr in (("plane", pl.top_tracks, pl.height),
+                               ("cylinder", pl.rim_tracks, pl.radius)):
+            cost = _make_surface_cost(kind)
+            for t in ids:
+                if int(t) in point_blocks:
+                    problem.add_residual_block(cost(pl.weight), None,
+                                               [point_blocks[int(t)], arr])
     pose_prior = _make_pose_prior_cost()
     for g, (r, c) in state.pose_priors.items():
         if g in state.poses and problem.has_parameter_block(state.poses[g]) \

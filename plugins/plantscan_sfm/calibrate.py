@@ -52,13 +52,16 @@ class SfmSettings:
     plate_top_mm: float = 0.0
     angle_sigma_deg: float | None = 0.5
     fit_angle_scale: bool = False
-    fix_principal_point: bool = False
+    fix_principal_point: bool = True
     fix_distortion: bool = False
     min_tracks: int = 200
     min_view_observations: int = 15
     max_rms_px: float = 1.5
     threads: int = 2
     max_observations: int = 30_000
+    plate_surfaces: bool = False
+    plate_flatness_mm: float = 0.3
+    plate_surface_tolerance_mm: float = 3.0
     prior_poses: dict[tuple[str, int], Pose] | None = None
     prior_focal: dict[str, float] | None = None
     workspace: Path | None = None
@@ -169,6 +172,8 @@ def solve_tracks(views: list[SfmView], tracks: Tracks, sizes: dict[str, tuple[in
                                     "outlier_px": 4.0})
     keep, rep1 = bundle.adjust(state, views, tracks, first, rounds=1)
     _retriangulate(state, views, tracks, keep)
+    if settings.scale == "plate" and settings.plate_surfaces:
+        state.plate = plate_surfaces(state, tracks, keep, settings)
     keep, rep2 = bundle.adjust(state, views, tracks, opt, rounds=2)
     t["bundle_s"] = time.perf_counter() - t0
     res = bundle.residuals(state, views, tracks)
@@ -176,6 +181,9 @@ def solve_tracks(views: list[SfmView], tracks: Tracks, sizes: dict[str, tuple[in
     quality = _quality(state, views, tracks, keep, err, settings)
     quality["initialisation"] = init_info
     quality["solver"] = {"solves": rep1.solves + rep2.solves}
+    if state.plate is not None:
+        quality["plate_surfaces"] = {"top_points": len(state.plate.top_tracks),
+                                     "rim_points": len(state.plate.rim_tracks)}
     final = rep2.solves[-1]
     if not final["usable"]:
         raise SfmError(f"the turntable bundle adjustment failed ({final['termination']})")
@@ -211,6 +219,35 @@ def solve_tracks(views: list[SfmView], tracks: Tracks, sizes: dict[str, tuple[in
     quality["method"] = "sfm: pycolmap SIFT + turntable-constrained bundle adjustment (pyceres)"
     return Calibration(models, poses, {k: float(v) for k, v in tilts.items()},
                        float(state.scale[0]), tilt_axis, quality, view_angles)
+
+
+def plate_surfaces(state: bundle.TurntableState, tracks: Tracks, keep: np.ndarray,
+                   settings: SfmSettings) -> bundle.PlateSurfaces | None:
+    """Which tracks are printed on the plate's top and rim (see ``bundle.PlateSurfaces``).
+
+    A plate is flat and turns about its own normal, and its rim is a cylinder about
+    the axis: on points that lie there these two facts fix what the photos of one
+    orbit leave loose (focal length, principal point and elevation trade off when
+    most features lie on one plane turning about its normal).
+    """
+    from plantscan_sfm.scale import metric_frame
+
+    counts = np.bincount(tracks.track[keep], minlength=tracks.n_tracks)
+    solid = (counts >= 3) & np.isfinite(state.points[:, 0])
+    try:
+        s, z0, info = metric_frame(state.points[solid], 1.0, "plate",
+                                   settings.plate_diameter_mm, None)
+    except SfmError:
+        return None
+    radius = 0.5 * settings.plate_diameter_mm / s
+    x = state.points
+    r = np.hypot(x[:, 0], x[:, 1])
+    tol = settings.plate_surface_tolerance_mm / s
+    top = solid & (np.abs(x[:, 2] - z0) < tol) & (r < radius - tol)
+    rim = solid & (np.abs(r - radius) < tol) & (x[:, 2] < z0 - tol) & (x[:, 2] > z0 - 0.5 * radius)
+    return bundle.PlateSurfaces(np.flatnonzero(top), np.flatnonzero(rim), np.array([z0]),
+                                np.array([radius]),
+                                0.5 / (settings.plate_flatness_mm / s))
 
 
 def _cap_observations(tracks: Tracks, cap: int) -> Tracks:

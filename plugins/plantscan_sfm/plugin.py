@@ -55,7 +55,13 @@ class SfmCalibrator(Calibrator):
             0.5, gt=0, description="uncertainty of the recorded turntable angles (backlash); "
             "None holds them exact")
         fit_angle_scale: bool = False
-        fix_principal_point: bool = False
+        fix_principal_point: bool = Field(
+            True, description="hold (cu, cv) at the image centre: one orbit of a mostly flat "
+            "scene does not fix the principal point (freed, it wandered 70 px on the virtual "
+            "paper-72 scan); the bias is the lens's offset / f (5 px / 1880 px: 0.17 deg)")
+        plate_surfaces: bool = Field(
+            False, description="hold points on the plate's top to a plane normal to the axis "
+            "and its rim to a cylinder (measured worse on the virtual paper-72: off)")
         fix_distortion: bool = False
         min_tracks: int = Field(200, ge=10, description="fewer feature tracks: the scene is "
                                 "too plain to calibrate from")
@@ -75,6 +81,7 @@ class SfmCalibrator(Calibrator):
             "cross_window_deg", "exhaustive_below", "ransac_px", "scale", "plate_diameter_mm",
             "camera_distance_mm", "plate_top_mm", "angle_sigma_deg", "fit_angle_scale",
             "fix_principal_point", "fix_distortion", "min_tracks", "min_view_observations",
+            "plate_surfaces",
             "max_rms_px", "threads", "max_observations")})
 
     def calibrate(self, scan) -> Calibration:

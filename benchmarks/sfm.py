@@ -1,0 +1,127 @@
+"""Structure-from-motion calibration: the turntable-constrained ``sfm`` calibrator beside
+COLMAP's own unconstrained incremental reconstruction, on the same features and matches.
+
+    python benchmarks/sfm.py --scan /work/cache/sfm24/scans/dicot-72b --plate-diameter 400 \
+        [--chessboard] [--json out.json]
+
+Per scan: SIFT extraction and matching once (timed, shared by both), then
+
+* ``sfm``: initialisation + turntable bundle adjustment (``solve_tracks``);
+* COLMAP: ``pycolmap.incremental_mapping`` on the same database (a pose per
+  photo, a RADIAL camera per scanner camera), its registered photos and mean
+  reprojection error;
+* on a virtual scan, the ``sfm`` result against the truth
+  (``plantscan_calib.evaluate.compare_calibrations``) and, with
+  ``--chessboard``, the chessboard calibrator's on the same scan.
+
+Wall and CPU seconds are both reported: the machine is shared, and CPU seconds
+(all threads of this process) do not grow with other people's load.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "plugins"))
+
+
+def _timed(fn):
+    t0, c0 = time.perf_counter(), time.process_time()
+    out = fn()
+    return out, {"wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0}
+
+
+def colmap_baseline(db: Path, images: Path, out: Path, threads: int) -> dict:
+    """COLMAP's incremental mapper on ``db``: registered photos, reprojection error."""
+    import pycolmap
+
+    if out.exists():
+        shutil.rmtree(out)
+    out.mkdir(parents=True)
+    opt = pycolmap.IncrementalPipelineOptions()
+    opt.num_threads = threads
+    recs, t = _timed(lambda: pycolmap.incremental_mapping(db, images, out, opt))
+    if not recs:
+        return {"registered_views": 0, **t}
+    best = max(recs.values(), key=lambda r: r.num_reg_images())
+    return {"registered_views": int(best.num_reg_images()), "models": len(recs),
+            "points": int(best.num_points3D()),
+            "mean_reprojection_px": float(best.compute_mean_reprojection_error()), **t}
+
+
+def run_scan(scan_dir: Path, plate_mm: float, work: Path, threads: int, chessboard: bool
+             ) -> dict:
+    from plantscan_core.data import Calibration
+    from plantscan_core.scanfolder import ScanFolder
+    from plantscan_sfm.calibrate import SfmSettings, _image_sizes, match_scan, solve_tracks
+
+    scan = ScanFolder.open(scan_dir)
+    views = scan.views_by_role("plant")
+    work.mkdir(parents=True, exist_ok=True)
+    st = SfmSettings(plate_diameter_mm=plate_mm, threads=threads, workspace=work)
+    (sv, db, tracks), t_match = _timed(lambda: match_scan(scan, views, st, work))
+    sizes = _image_sizes(scan, views)
+    cal, t_sfm = _timed(lambda: solve_tracks(sv, tracks, sizes, st))
+    q = cal.quality
+    row = {"scan": str(scan_dir), "photos": len(views),
+           "image_size": sorted({f"{w}x{h}" for w, h in sizes.values()}),
+           "features_and_matching": {**t_match, **st.timings, **tracks.stats},
+           "sfm": {**t_sfm, "registered_views": q["registered_views"], "rms_px": q["rms_px"],
+                   "observations": q["observations"], "tracks": q["tracks"]},
+           "colmap": colmap_baseline(db, work / "images", work / "colmap", threads)}
+    truth_path = scan_dir / "ground_truth" / "calibration.yaml"
+    if truth_path.exists():
+        from plantscan_calib.evaluate import compare_calibrations, plant_volume_points
+
+        truth = Calibration.load(truth_path)
+        pts = plant_volume_points(scan_dir / "ground_truth")
+        row["sfm"]["vs_truth"] = _summary(compare_calibrations(cal, truth, pts), cal, truth)
+        if chessboard and scan.views_by_role("calibration"):
+            from plantscan_calib.plugin import TurntableCalibrator
+
+            recipe = scan.recipe_dict.get("calibrate", {}).get("params", {})
+            board = TurntableCalibrator(TurntableCalibrator.Params(**recipe))
+            cb, t_cb = _timed(lambda: board.calibrate(scan))
+            row["chessboard"] = {**t_cb, "vs_truth": _summary(
+                compare_calibrations(cb, truth, pts), cb, truth)}
+    cal.save(work / "calibration-sfm.yaml")
+    return row
+
+
+def _summary(res: dict, est, truth) -> dict:
+    focal = {c: 100.0 * (est.models[c].f / truth.models[c].f - 1.0) for c in est.models
+             if c in truth.models}
+    return {"centre_mm_max": res["camera_centre_error_mm"]["max"],
+            "rotation_deg_max": res["rotation_error_deg"]["max"],
+            "focal_error_pct": focal,
+            "volume_reprojection_px_rms": res["volume_reprojection_px_rms"]}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scan", action="append", required=True, help="scan folder (repeatable)")
+    ap.add_argument("--plate-diameter", type=float, default=400.0, help="mm")
+    ap.add_argument("--work", default="/tmp/plantscan-bench-sfm", help="workspaces")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--chessboard", action="store_true",
+                    help="also calibrate from the scan's board views (virtual scans)")
+    ap.add_argument("--json", help="write the rows here")
+    args = ap.parse_args(argv)
+    rows = []
+    for s in args.scan:
+        p = Path(s)
+        rows.append(run_scan(p, args.plate_diameter, Path(args.work) / p.name, args.threads,
+                             args.chessboard))
+        print(json.dumps(rows[-1], indent=1, default=str), flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1, default=str))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
