@@ -56,9 +56,16 @@ def colmap_baseline(db: Path, images: Path, out: Path, threads: int) -> dict:
 
 def run_scan(scan_dir: Path, plate_mm: float, work: Path, threads: int, chessboard: bool
              ) -> dict:
+    from plantscan_sfm.calibrate import (
+        SfmError,
+        SfmSettings,
+        _image_sizes,
+        match_scan,
+        solve_tracks,
+    )
+
     from plantscan_core.data import Calibration
     from plantscan_core.scanfolder import ScanFolder
-    from plantscan_sfm.calibrate import SfmSettings, _image_sizes, match_scan, solve_tracks
 
     scan = ScanFolder.open(scan_dir)
     views = scan.views_by_role("plant")
@@ -66,16 +73,20 @@ def run_scan(scan_dir: Path, plate_mm: float, work: Path, threads: int, chessboa
     st = SfmSettings(plate_diameter_mm=plate_mm, threads=threads, workspace=work)
     (sv, db, tracks), t_match = _timed(lambda: match_scan(scan, views, st, work))
     sizes = _image_sizes(scan, views)
-    cal, t_sfm = _timed(lambda: solve_tracks(sv, tracks, sizes, st))
-    q = cal.quality
     row = {"scan": str(scan_dir), "photos": len(views),
            "image_size": sorted({f"{w}x{h}" for w, h in sizes.values()}),
-           "features_and_matching": {**t_match, **st.timings, **tracks.stats},
-           "sfm": {**t_sfm, "registered_views": q["registered_views"], "rms_px": q["rms_px"],
-                   "observations": q["observations"], "tracks": q["tracks"]},
-           "colmap": colmap_baseline(db, work / "images", work / "colmap", threads)}
+           "features_and_matching": {**t_match, **st.timings, **tracks.stats}}
+    try:
+        cal, t_sfm = _timed(lambda: solve_tracks(sv, tracks, sizes, st))
+    except SfmError as exc:  # a named failure is a result too
+        cal, row["sfm"] = None, {"error": str(exc)}
+    else:
+        q = cal.quality
+        row["sfm"] = {**t_sfm, "registered_views": q["registered_views"], "rms_px": q["rms_px"],
+                      "observations": q["observations"], "tracks": q["tracks"]}
+    row["colmap"] = colmap_baseline(db, work / "images", work / "colmap", threads)
     truth_path = scan_dir / "ground_truth" / "calibration.yaml"
-    if truth_path.exists():
+    if truth_path.exists() and cal is not None:
         from plantscan_calib.evaluate import compare_calibrations, plant_volume_points
 
         truth = Calibration.load(truth_path)
@@ -89,7 +100,8 @@ def run_scan(scan_dir: Path, plate_mm: float, work: Path, threads: int, chessboa
             cb, t_cb = _timed(lambda: board.calibrate(scan))
             row["chessboard"] = {**t_cb, "vs_truth": _summary(
                 compare_calibrations(cb, truth, pts), cb, truth)}
-    cal.save(work / "calibration-sfm.yaml")
+    if cal is not None:
+        cal.save(work / "calibration-sfm.yaml")
     return row
 
 

@@ -368,6 +368,7 @@ class BundleOptions:
         Keypoint noise assumed when weighing the priors against the observations.
     pose_prior_mm, pose_prior_deg : float
         Standard deviation of the (camera, tilt) pose priors, when any.
+    fixed_focal : list of camera names whose focal length is held (given by the lab).
     max_iterations : int
     threads : int
     """
@@ -383,6 +384,7 @@ class BundleOptions:
     pose_prior_deg: float = 5.0
     max_iterations: int = 50
     threads: int = 2
+    fixed_focal: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -440,9 +442,10 @@ def _build(state: TurntableState, views: list[SfmView], tracks: Tracks, keep: np
                                    loss, layout.blocks)
     fixed = ([1, 2] if opt.fix_principal_point else []) + \
         ([3, 4] if opt.fix_distortion else []) + [5]
-    for arr in state.intrinsics.values():
+    for cam, arr in state.intrinsics.items():
         if problem.has_parameter_block(arr):
-            problem.set_manifold(arr, pyceres.SubsetManifold(6, fixed))
+            held = sorted(set(fixed) | ({0} if cam in opt.fixed_focal else set()))
+            problem.set_manifold(arr, pyceres.SubsetManifold(6, held))
     ref = state.poses[state.reference]
     problem.set_manifold(ref, pyceres.SubsetManifold(6, [3, 4, 5]))
     if not opt.fit_angle_scale:

@@ -59,6 +59,8 @@ class SfmSettings:
     max_rms_px: float = 1.5
     threads: int = 2
     max_observations: int = 30_000
+    focal_px: dict[str, float] | None = None
+    fit_focal: bool = False
     plate_surfaces: bool = False
     plate_flatness_mm: float = 0.3
     plate_surface_tolerance_mm: float = 3.0
@@ -162,7 +164,8 @@ def solve_tracks(views: list[SfmView], tracks: Tracks, sizes: dict[str, tuple[in
     state, init_info, tracks = _initial_state(views, tracks, sizes, settings, commanded)
     t["initialisation_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    opt = bundle.BundleOptions(angle_sigma_deg=settings.angle_sigma_deg,
+    held_focal = sorted(settings.focal_px or {}) if not settings.fit_focal else []
+    opt = bundle.BundleOptions(angle_sigma_deg=settings.angle_sigma_deg, fixed_focal=held_focal,
                                fit_angle_scale=settings.fit_angle_scale,
                                fix_principal_point=settings.fix_principal_point,
                                fix_distortion=settings.fix_distortion, threads=settings.threads)
@@ -349,11 +352,17 @@ def _orbit_start(views: list[SfmView], tracks: Tracks, motions, group: tuple[str
     w, h = size
     in_group = np.array([views[i].group == group for i in tracks.view])
     sub = _cap_observations(tracks.subset(in_group), 4000)
-    f_turns, _ = initialise.focal_from_turns(motions, size)
-    starts = sorted({f_turns, *(k * max(w, h) for k in (0.7, 1.0, 1.4, 2.0, 2.8))})
+    given = (settings.focal_px or {}).get(group[0])
+    if given is not None:
+        starts = [float(given)]
+    else:
+        f_turns, _ = initialise.focal_from_turns(motions, size)
+        starts = sorted({f_turns, *(k * max(w, h) for k in (0.7, 1.0, 1.4, 2.0, 2.8))})
     opt = bundle.BundleOptions(angle_sigma_deg=None, fix_principal_point=True,
                                fix_distortion=True, max_iterations=15, outlier_px=8.0,
-                               threads=settings.threads)
+                               threads=settings.threads,
+                               fixed_focal=[group[0]] if given is not None and not
+                               settings.fit_focal else [])
     tried = []
     best = None
     commanded = np.array([v.view.angle_deg for v in views])
@@ -376,7 +385,26 @@ def _orbit_start(views: list[SfmView], tracks: Tracks, motions, group: tuple[str
             best = (cost, float(st.intrinsics[group[0]][0]), st.group_pose(group))
     if best is None:
         raise SfmError(f"camera {group[0]} tilt {group[1]}: no start gives a usable orbit")
+    # A start that ends at a clearly different focal length for about the same cost means
+    # these photos do not fix the focal length (a shallow scene: focal length and distance
+    # trade off); a calibration from them would look fine and be wrong.
+    rivals = [t for t in tried if abs(t["f_px"] / best[1] - 1.0) > FOCAL_RIVAL_GAP
+              and t["cost_per_obs"] < (1.0 + FOCAL_RIVAL_COST) * best[0]]
+    if rivals:
+        raise SfmError(
+            f"camera {group[0]} tilt {group[1]}: the photos do not fix the focal length "
+            f"(f = {best[1]:.0f} px and f = {rivals[0]['f_px']:.0f} px fit them equally "
+            f"well: {best[0]:.3g} and {rivals[0]['cost_per_obs']:.3g} per observation); give "
+            f"the lens's focal length (calibrate.params.focal_px.{group[0]}: focal length / "
+            "pixel pitch) or print texture at other depths (the plate's rim, the pot carrier)")
     return best[1], best[2], {"starts": tried, "f_px": best[1]}
+
+
+# Two focal lengths more than 5 % apart whose orbit costs differ by less than 10 %: the
+# photos do not decide between them (the virtual 640 x 427 orbits: 1.4 and 2.8 image
+# widths within 2 % of each other's cost; a determined orbit separates them by > 3x).
+FOCAL_RIVAL_GAP = 0.05
+FOCAL_RIVAL_COST = 0.10
 
 
 def _normalise(poses: dict[tuple[str, int], GroupPose], ref: tuple[str, int],

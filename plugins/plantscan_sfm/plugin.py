@@ -70,6 +70,11 @@ class SfmCalibrator(Calibrator):
         max_observations: int = Field(30_000, ge=1000, description="longest tracks kept up "
                                       "to this many observations (bounds the solve's time)")
         threads: int = Field(2, ge=1)
+        focal_px: dict[str, float] | None = Field(
+            None, description="focal length per camera, px (lens focal length / pixel "
+            "pitch), where the photos do not fix it (a shallow scene)")
+        fit_focal: bool = Field(False, description="refine the given focal_px instead of "
+                                "holding it")
         prior_poses: str | None = Field(
             None, description="approximate poses (plantscan import poses) relative to the scan "
             "folder; default: the scan's prior_poses.yaml when present")
@@ -81,7 +86,7 @@ class SfmCalibrator(Calibrator):
             "cross_window_deg", "exhaustive_below", "ransac_px", "scale", "plate_diameter_mm",
             "camera_distance_mm", "plate_top_mm", "angle_sigma_deg", "fit_angle_scale",
             "fix_principal_point", "fix_distortion", "min_tracks", "min_view_observations",
-            "plate_surfaces",
+            "plate_surfaces", "focal_px", "fit_focal",
             "max_rms_px", "threads", "max_observations")})
 
     def calibrate(self, scan) -> Calibration:

@@ -27,20 +27,29 @@ def test_plain_plate_gives_the_named_error(tmp_path):
 
 @pytest.mark.slow
 def test_small_printed_scan_calibrates_against_truth(tmp_path):
+    """Two cameras 12 deg apart in elevation (36 and 48: their photos share plate features,
+    which links them; 40 deg apart, as in paper-72, they share none, docs/sfm.md), 24
+    stops, 640 x 427 px, the plate printed, the lens's focal length given (at this size
+    the orbits do not fix it: f and the distance trade off, and the calibrator says so)."""
     from plantscan_calib.evaluate import compare_calibrations, plant_volume_points
     from plantscan_sfm.plugin import SfmCalibrator
 
-    # Cameras 12 deg apart in elevation (8 and 20): their photos share plate features, which
-    # links them (40 deg apart, as in paper-72, they share none: see docs/sfm.md).
-    scan = _scan(tmp_path / "printed", image_size=(640, 427), images_per_revolution=18,
+    scan = _scan(tmp_path / "printed", image_size=(640, 427), images_per_revolution=24,
                  scene={"plate_texture": "random-dots"},
-                 overrides=["scan.cameras.1.params.elevation_deg=20"])
-    cal = SfmCalibrator(SfmCalibrator.Params(plate_diameter_mm=400)).calibrate(scan)
+                 overrides=["scan.cameras.0.params.elevation_deg=36"])
     truth = Calibration.load(scan.ground_truth_dir / "calibration.yaml")
+    focal = {c: m.f for c, m in truth.models.items()}
+    cal = SfmCalibrator(SfmCalibrator.Params(plate_diameter_mm=400, focal_px=focal)
+                        ).calibrate(scan)
     res = compare_calibrations(cal, truth, plant_volume_points(scan.ground_truth_dir))
     q = cal.quality
-    assert q["registered_views"] == q["views"] == 36
+    assert q["registered_views"] == q["views"] == 48
+    assert q["initialisation"]["link"]["links"]["cam0/t0"]["by"] == "shared tracks"
     assert set(cal.view_angles_deg) == {v.index for v in scan.views_by_role("plant")}
-    print(res["camera_centre_error_mm"], res["rotation_error_deg"],
-          res["volume_reprojection_px_rms"], {c: cal.models[c].f / truth.models[c].f - 1
-                                               for c in cal.models})
+    # The principal point is held at the image centre, 2.6 px off the lens's in u and v at
+    # 929 px focal length: 0.22 deg of camera rotation (measured 0.23).
+    assert res["rotation_error_deg"]["max"] < 0.3
+    # Camera centres measured 10-13 mm off at 1.4 m (scale from the plate's rim, with the
+    # rotation bias above): what this small scan gives, far from the chessboard's 0.3 mm.
+    assert res["camera_centre_error_mm"]["max"] < 20.0
+    assert q["rms_px"] < 0.5  # the model fits the rendered keypoints (measured 0.27 px)
