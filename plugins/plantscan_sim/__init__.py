@@ -11,8 +11,9 @@ Python API (see docs/virtual-scanner.md)::
 from __future__ import annotations
 
 from plantscan_sim.api import make_scan, scan_recipe, sim_manager
+from plantscan_sim.families import FAMILIES
 from plantscan_sim.plants import PRESETS
 from plantscan_sim.scene import RigError, finalize_truth, read_truth_cameras
 
-__all__ = ["make_scan", "scan_recipe", "sim_manager", "PRESETS", "RigError", "finalize_truth",
-           "read_truth_cameras"]
+__all__ = ["make_scan", "scan_recipe", "sim_manager", "PRESETS", "FAMILIES", "RigError",
+           "finalize_truth", "read_truth_cameras"]

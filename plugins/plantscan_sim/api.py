@@ -18,7 +18,8 @@ from plantscan_core.recipe import (
 from plantscan_core.scanfolder import ScanFolder
 
 PRESET_RECIPES = {"plastic-dicot": "plastic-dicot", "wheat": "wheat", "sorghum": "sorghum",
-                  "mesh": "plastic-dicot"}
+                  "mesh": "plastic-dicot", "dicot": "dicot", "rosette": "rosette",
+                  "branched": "branched", "grass": "grass", "seedling": "seedling"}
 
 
 def sim_manager():

@@ -88,24 +88,23 @@ def tube(points: np.ndarray, radii, n: int = 10, attr: int = 0) -> TriMesh:
     tang /= np.linalg.norm(tang, axis=1, keepdims=True)
     ref = np.array([0.0, 0.0, 1.0]) if abs(tang[0, 2]) < 0.9 else np.array([1.0, 0.0, 0.0])
     a = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
-    rings = []
-    for p, t, r in zip(pts, tang, radii, strict=True):
-        u = np.cross(t, ref)
-        u /= np.linalg.norm(u)
-        w = np.cross(t, u)
-        rings.append(p + r * (np.cos(a)[:, None] * u + np.sin(a)[:, None] * w))
-    v = np.concatenate(rings + [pts[:1], pts[-1:]])
+    u = np.cross(tang, ref)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    w = np.cross(tang, u)
+    rings = pts[:, None, :] + radii[:, None, None] * (
+        np.cos(a)[None, :, None] * u[:, None, :] + np.sin(a)[None, :, None] * w[:, None, :])
+    v = np.concatenate([rings.reshape(-1, 3), pts[:1], pts[-1:]])
     m = len(pts)
-    faces = []
-    for i in range(m - 1):
-        for j in range(n):
-            p, q = i * n + j, i * n + (j + 1) % n
-            faces += [(p, q, q + n), (p, q + n, p + n)]
+    i, j = np.meshgrid(np.arange(m - 1), np.arange(n), indexing="ij")
+    p_ = (i * n + j).ravel()
+    q = (i * n + (j + 1) % n).ravel()
+    side = np.stack([np.stack([p_, q, q + n], 1), np.stack([p_, q + n, p_ + n], 1)], 1)
     c0, c1 = m * n, m * n + 1
-    for j in range(n):
-        faces.append((c0, (j + 1) % n, j))
-        faces.append((c1, (m - 1) * n + j, (m - 1) * n + (j + 1) % n))
-    return _mesh(v, faces, attr)
+    jj = np.arange(n)
+    caps = np.stack([np.stack([np.full(n, c0), (jj + 1) % n, jj], 1),
+                     np.stack([np.full(n, c1), (m - 1) * n + jj, (m - 1) * n + (jj + 1) % n], 1)],
+                    1)
+    return _mesh(v, np.concatenate([side.reshape(-1, 3), caps.reshape(-1, 3)]), attr)
 
 
 def box(centre, ex, ey, ez, half_sizes, attr: int = 0) -> TriMesh:
@@ -213,11 +212,18 @@ def leaf_outline(length: float, width: float, area: float, *, p: float | None = 
 class LeafPlacement:
     """Where and how a flat blade is put on the plant.
 
-    The midrib leaves ``base`` in direction ``cos(incl) e1 + sin(incl) z`` where
-    ``e1`` is horizontal at ``azimuth_deg``; it bends downwards with curvature
-    ``kappa(s) = k0 + k1 s`` (1/mm) in the vertical plane, rolled by ``roll_deg``
-    about the initial direction.  The blade stays a developable (cylindrical)
-    surface, so flat length, width, area and perimeter are preserved exactly.
+    The midrib leaves ``base`` in direction ``e1 = cos(incl) radial + sin(incl) z``
+    (``radial`` horizontal at ``azimuth_deg``); ``e2`` is the blade's upper normal
+    there and ``e3 = e1 x e2`` its across direction, both rolled by ``roll_deg``
+    about ``e1``.  The blade is wrapped, without stretching, on a cylinder whose
+    cross-section bends downwards with curvature ``kappa(sigma) = k0 + k1 sigma``
+    (1/mm, ``sigma`` the arc length of the cross-section).  With ``twist_deg = 0``
+    the cylinder's generators run across the blade (``e3``): the midrib bends in
+    one plane.  With ``twist_deg = b`` the midrib crosses the cross-sections at
+    ``b`` degrees, so it winds as a helix-like curve and the blade's normal turns
+    about it (a twisted, drooping blade).  A blade wrapped on a cylinder is a
+    developable surface: flat length, width, area and perimeter are preserved
+    exactly whatever the bend, roll and twist.
     """
 
     base: np.ndarray
@@ -226,16 +232,20 @@ class LeafPlacement:
     k0: float
     k1: float
     roll_deg: float = 0.0
+    twist_deg: float = 0.0
+    fine_samples: int = 4001  # grid of the exact tangent integral (601 is exact to 1e-5 mm)
 
     @staticmethod
     def with_total_bend(base, azimuth_deg, inclination_deg, length, bend_deg, roll_deg=0.0,
-                        tip_share=0.7) -> LeafPlacement:
-        """Bend of ``bend_deg`` over the blade, ``tip_share`` of it from the linear term."""
+                        tip_share=0.7, twist_deg=0.0) -> LeafPlacement:
+        """The cylinder's cross-section turns by ``bend_deg`` over the blade, ``tip_share``
+        of it from the linear term (with no twist: the midrib turns by ``bend_deg``)."""
         total = math.radians(bend_deg)
-        k0 = (1.0 - tip_share) * total / length
-        k1 = 2.0 * tip_share * total / length**2
+        span = length * math.cos(math.radians(twist_deg))  # cross-section arc under the blade
+        k0 = (1.0 - tip_share) * total / span
+        k1 = 2.0 * tip_share * total / span**2
         return LeafPlacement(np.asarray(base, float), azimuth_deg, inclination_deg, k0, k1,
-                             roll_deg)
+                             roll_deg, twist_deg)
 
     def frame(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         a, i = math.radians(self.azimuth_deg), math.radians(self.inclination_deg)
@@ -247,32 +257,49 @@ class LeafPlacement:
         e2, e3 = math.cos(r) * e2 + math.sin(r) * e3, -math.sin(r) * e2 + math.cos(r) * e3
         return e1, e2, e3
 
-    def midrib(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Midrib points ``(N, 3)`` and blade normals ``(N, 3)`` at arc lengths ``s`` (mm)."""
-        s = np.asarray(s, dtype=float)
-        theta = -(self.k0 * s + 0.5 * self.k1 * s * s)  # angle from e1 towards e2 (downwards)
-        # Exact integral of the unit tangent on a fine grid (the curve is smooth).
-        fine = np.linspace(0.0, float(s.max()) if s.size else 0.0, 4001)
+    def surface(self, x: np.ndarray, y: np.ndarray, offset: float = 0.0
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """Points ``(N, 3)`` mm and unit normals of the blade at flat coordinates.
+
+        ``x`` (mm along the flat midrib from the base) and ``y`` (mm across it,
+        towards ``e3``) are broadcast together; points lie ``offset`` mm along
+        the upper normal.
+        """
+        x, y = np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float))
+        e1, e2, e3 = self.frame()
+        b = math.radians(self.twist_deg)
+        u = math.cos(b) * e1 - math.sin(b) * e3   # cross-section direction at the base
+        axis = math.cos(b) * e3 + math.sin(b) * e1  # the cylinder's generators
+        sigma = math.cos(b) * x - math.sin(b) * y
+        along = math.sin(b) * x + math.cos(b) * y
+        # Exact integral of the cross-section's unit tangent on a fine grid (it is smooth).
+        lo, hi = (min(0.0, float(sigma.min())), float(sigma.max())) if sigma.size else (0.0, 0.0)
+        fine = np.linspace(lo, hi, self.fine_samples)
         th = -(self.k0 * fine + 0.5 * self.k1 * fine * fine)
         ca, sa = np.cos(th), np.sin(th)
         ds = np.diff(fine)
-        a = np.concatenate([[0.0], np.cumsum(0.5 * (ca[1:] + ca[:-1]) * ds)])
-        b = np.concatenate([[0.0], np.cumsum(0.5 * (sa[1:] + sa[:-1]) * ds)])
-        a, b = np.interp(s, fine, a), np.interp(s, fine, b)
-        e1, e2, _ = self.frame()
-        pts = self.base + a[:, None] * e1 + b[:, None] * e2
-        normal = -np.sin(theta)[:, None] * e1 + np.cos(theta)[:, None] * e2
+        ga = np.concatenate([[0.0], np.cumsum(0.5 * (ca[1:] + ca[:-1]) * ds)])
+        gb = np.concatenate([[0.0], np.cumsum(0.5 * (sa[1:] + sa[:-1]) * ds)])
+        zero = np.interp(0.0, fine, ga), np.interp(0.0, fine, gb)
+        ga, gb = np.interp(sigma, fine, ga) - zero[0], np.interp(sigma, fine, gb) - zero[1]
+        theta = -(self.k0 * sigma + 0.5 * self.k1 * sigma * sigma)
+        normal = -np.sin(theta)[..., None] * u + np.cos(theta)[..., None] * e2
+        pts = (self.base + ga[..., None] * u + gb[..., None] * e2 + along[..., None] * axis
+               + offset * normal)
         return pts, normal
+
+    def midrib(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Midrib points ``(N, 3)`` and blade normals ``(N, 3)`` at arc lengths ``s`` (mm)."""
+        s = np.asarray(s, dtype=float)
+        return self.surface(s, np.zeros_like(s))
 
 
 def leaf_surface(outline: LeafOutline, place: LeafPlacement, across: int = 9,
                  offset: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Vertices ``(N*across, 3)`` and faces of the bent blade, offset along its normal."""
-    pts, normal = place.midrib(outline.x)
-    _, _, e3 = place.frame()
     sj = np.linspace(-1.0, 1.0, across)
     y = outline.half_width[:, None] * sj[None, :]
-    v = pts[:, None, :] + y[..., None] * e3 + offset * normal[:, None, :]
+    v, _ = place.surface(np.broadcast_to(outline.x[:, None], y.shape), y, offset)
     return v.reshape(-1, 3), grid_faces(len(outline.x), across)
 
 

@@ -1,11 +1,18 @@
 """Procedural plants (and external meshes) with exact flat-leaf truth.
 
 A plant is built in the world (turntable) frame, standing in its pot: the pot's
-soil surface is at ``soil_z`` (mm above the turntable plate).
+soil surface is at ``soil_z`` (mm above the turntable plate).  ``build_plant``
+makes a plant of one of the five families (``families.FAMILIES``: seeded,
+varied, growing with ``age``) or of a fixed preset: ``plastic-dicot`` (a member
+of the dicot family: the seed's plastic plant), ``wheat`` and ``sorghum``
+(members of the grass family, kept so their old figures can be re-measured) and
+``mesh`` (any labelled mesh).  Every face carries a leaf id (-1: not leaf) and
+an organ (``families.ORGANS``).
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -14,6 +21,14 @@ import numpy as np
 
 from plantscan_core.data import LeafTraits, Traits
 from plantscan_core.errors import DataError
+from plantscan_sim.families import (
+    DRAW,
+    FAMILIES,
+    ORGAN_CODE,
+    Ground,
+    build,
+    resolve_crossings,
+)
 from plantscan_sim.geometry import (
     LeafOutline,
     LeafPlacement,
@@ -25,6 +40,9 @@ from plantscan_sim.geometry import (
 )
 
 PRESETS = ("plastic-dicot", "wheat", "sorghum", "mesh")
+# the family each fixed preset belongs to (what a population figure of it is compared with)
+PRESET_FAMILY = {"plastic-dicot": "dicot", "wheat": "grass", "sorghum": "grass", "mesh": None}
+PLANTS = FAMILIES + PRESETS  # every value of scan.scene.params.preset
 
 # The seed's large plastic plant (Table of dissected leaves): length, width mm; perimeter mm;
 # area mm².
@@ -42,6 +60,9 @@ class Leaf:
     outline: LeafOutline
     placement: LeafPlacement
     colour: tuple[float, float, float]
+    group: int = -1                  # tiller / shoot / compound leaf (families)
+    growth: float = 1.0              # share of its final size at the plant's age
+    appear_day: float | None = None  # day the leaf appeared (families)
 
     def traits(self) -> LeafTraits:
         o = self.outline
@@ -50,7 +71,8 @@ class Leaf:
 
 @dataclass
 class Plant:
-    """Geometry of a plant: ``mesh.face_attr`` is the leaf id (-1 stem/petioles)."""
+    """Geometry of a plant: ``mesh.face_attr`` is the leaf id (-1 stem/petioles),
+    ``face_organ`` the organ of every face (a code of ``families.ORGANS``)."""
 
     preset: str
     mesh: TriMesh
@@ -60,6 +82,23 @@ class Plant:
     soil_z: float
     info: dict = field(default_factory=dict)
     surface_traits: list[LeafTraits] | None = None  # external meshes: measured, not flat
+    face_organ: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.face_organ is None:  # a leaf id is a blade, everything else stem
+            self.face_organ = np.where(self.mesh.face_attr >= 0, ORGAN_CODE["blade"],
+                                       ORGAN_CODE["stem"]).astype(np.int8)
+
+    def leaf_records(self) -> list[dict]:
+        """One record per leaf: id, kind, group, growth, appearance day, base and tip (mm)."""
+        out = []
+        for lf in self.leaves:
+            pts, _ = lf.placement.midrib(np.array([0.0, lf.outline.length]))
+            out.append({"leaf_id": lf.leaf_id, "kind": lf.kind, "group": lf.group,
+                        "growth": round(float(lf.growth), 6), "appear_day": lf.appear_day,
+                        "base_mm": np.round(pts[0], 4).tolist(),
+                        "tip_mm": np.round(pts[1], 4).tolist()})
+        return out
 
     def traits(self) -> Traits:
         leaves = self.surface_traits if self.surface_traits is not None else [
@@ -80,11 +119,60 @@ def _green(rng: np.random.Generator, base=(0.10, 0.36, 0.07)) -> tuple[float, fl
     return (base[0] * rng.uniform(0.8, 1.2), base[1] * j, base[2] * rng.uniform(0.8, 1.2))
 
 
-def _assemble(preset, leaves, stems, soil_z, rng, thickness, info, stem_colour) -> Plant:
+def _assemble(preset, leaves, stems, soil_z, rng, thickness, info, stem_colour,
+              stem_organs=None) -> Plant:
     parts = [leaf_solid(lf.outline, lf.placement, thickness, attr=lf.leaf_id) for lf in leaves]
     parts += [s.with_attr(-1) for s in stems]
+    organs = ["blade"] * len(leaves) + list(stem_organs or ["stem"] * len(stems))
+    face_organ = np.concatenate([np.full(len(p.faces), ORGAN_CODE[o], np.int8)
+                                 for p, o in zip(parts, organs, strict=True)])
+    info = {"family": PRESET_FAMILY[preset], **info}
     return Plant(preset, TriMesh.concat(parts), leaves, {lf.leaf_id: lf.colour for lf in leaves},
-                 stem_colour, soil_z, info)
+                 stem_colour, soil_z, info, face_organ=face_organ)
+
+
+@functools.lru_cache(maxsize=32)
+def _mature_plan(family: str, seed: int, soil_z: float, thickness: float, ground: Ground):
+    """The seed's plan with its crossings fixed (cached: a growth series builds it once)."""
+    plan = DRAW[family](np.random.default_rng(seed))
+    return resolve_crossings(plan, seed, soil_z, thickness, ground)
+
+
+def family_plant(family: str, seed: int, soil_z: float, thickness: float = 0.5,
+                 age: float | None = None, ground: Ground | None = None) -> Plant:
+    """The plant of ``family`` drawn from ``seed``, at ``age`` days (None: mature).
+
+    The plan (every random draw) depends on the seed only; the crossing fixes are
+    made on the mature plant, so every age of one seed is the same plant growing.
+    """
+    if family not in DRAW:
+        raise ValueError(f"unknown plant family {family!r}; valid: {', '.join(FAMILIES)}")
+    if age is not None and age < 0:
+        raise ValueError(f"age {age} days: must be >= 0")
+    ground = ground or Ground.default(soil_z)
+    plan, crossings_left = _mature_plan(family, int(seed), float(soil_z), float(thickness), ground)
+    mature = plan.mature_age()
+    at = mature if age is None else min(float(age), mature)
+    built = build(plan, at, soil_z, thickness, ground)
+    leaves = []
+    for i, _, outline, place, growth in built.leaves:
+        lp = plan.leaves[i]
+        leaves.append(Leaf(i, lp.kind, outline, place, lp.colour, lp.group, growth, lp.appear))
+    # leaf ids are the plan's indices: stable over ages (a leaf keeps its id as it grows)
+    faces, organs = [], []
+    for part in built.parts:
+        attr = part.mesh.face_attr
+        if part.key[0] == "leaf":
+            attr = np.full(len(part.mesh.faces), part.key[1], np.int64)
+        faces.append(TriMesh(part.mesh.vertices, part.mesh.faces, attr if part.organ == "blade"
+                             else np.full(len(part.mesh.faces), -1, np.int64)))
+        organs.append(np.full(len(part.mesh.faces), ORGAN_CODE[part.organ], np.int8))
+    info = {"family": family, "variant": plan.variant, "age_days": at,
+            "mature_age_days": mature, "crossings": crossings_left, **built.info,
+            "leaves_planned": len(plan.leaves),
+            "petioles_mm": [round(plan.leaves[i].petiole_mm * g, 4) for i, *_, g in built.leaves]}
+    return Plant(family, TriMesh.concat(faces), leaves, {lf.leaf_id: lf.colour for lf in leaves},
+                 plan.stem_colour, soil_z, info, face_organ=np.concatenate(organs))
 
 
 def plastic_dicot(rng: np.random.Generator, soil_z: float, thickness: float = 0.5) -> Plant:
@@ -114,7 +202,7 @@ def plastic_dicot(rng: np.random.Generator, soil_z: float, thickness: float = 0.
         leaves.append(Leaf(i, kind, outlines[kind], place, _green(rng)))
     info = {"shape": {k: o.shape for k, o in outlines.items()}, "stem_top_z_mm": stem_top}
     return _assemble("plastic-dicot", leaves, stems, soil_z, rng, thickness, info,
-                     (0.12, 0.30, 0.08))
+                     (0.12, 0.30, 0.08), ["stem"] + ["petiole"] * (len(stems) - 1))
 
 
 def wheat(rng: np.random.Generator, soil_z: float, thickness: float = 0.5) -> Plant:
@@ -234,8 +322,18 @@ def external_mesh(path: Path, labels_path: Path | None, scale: float, soil_z: fl
 
 def build_plant(preset: str, seed: int, soil_z: float, thickness: float = 0.5,
                 mesh_path: str | None = None, mesh_labels_path: str | None = None,
-                mesh_scale: float = 1.0) -> Plant:
-    """The plant of ``preset`` (one of ``PRESETS``), reproducible from ``seed``."""
+                mesh_scale: float = 1.0, age: float | None = None,
+                ground: Ground | None = None) -> Plant:
+    """The plant of ``preset`` (a family or one of ``PRESETS``), reproducible from ``seed``.
+
+    ``age`` (days, families only) grows the plant; ``ground`` is the soil and pot
+    rim its blades must clear (default: the sim scene's default pot).
+    """
+    if preset in FAMILIES:
+        return family_plant(preset, seed, soil_z, thickness, age, ground)
+    if age is not None:
+        raise ValueError(f"preset {preset!r} does not grow (age applies to the families: "
+                         f"{', '.join(FAMILIES)})")
     rng = np.random.default_rng(seed)
     if preset == "plastic-dicot":
         return plastic_dicot(rng, soil_z, thickness)
@@ -248,4 +346,4 @@ def build_plant(preset: str, seed: int, soil_z: float, thickness: float = 0.5,
             raise DataError("scan.scene.params.mesh_path: the 'mesh' preset needs a PLY/OBJ file")
         return external_mesh(Path(mesh_path), Path(mesh_labels_path) if mesh_labels_path else None,
                              mesh_scale, soil_z)
-    raise ValueError(f"unknown plant preset {preset!r}; valid: {', '.join(PRESETS)}")
+    raise ValueError(f"unknown plant preset {preset!r}; valid: {', '.join(PLANTS)}")

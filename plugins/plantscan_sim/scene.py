@@ -35,6 +35,7 @@ from plantscan_core.errors import DataError, RecipeError, ScanFolderError
 from plantscan_core.preflight import WorkEstimate, WorkPlan
 from plantscan_core.scanfolder import ScanFolder, atomic_write_bytes, atomic_write_text
 from plantscan_core.stages import CaptureRequest, Scene, StageParams
+from plantscan_sim.families import ORGANS, Ground
 from plantscan_sim.geometry import TriMesh, box, frustum, grid_faces, revolve, tube
 from plantscan_sim.plants import PRESETS, Plant, build_plant
 from plantscan_sim.render import (
@@ -60,8 +61,13 @@ class RigError(RecipeError):
 class SimSceneParams(StageParams):
     """Parameters of the virtual world (``scan.scene.params``)."""
 
-    preset: Literal["plastic-dicot", "wheat", "sorghum", "mesh"] = "plastic-dicot"
+    preset: Literal["dicot", "rosette", "branched", "grass", "seedling", "plastic-dicot",
+                    "wheat", "sorghum", "mesh"] = Field(
+        "plastic-dicot", description="a plant family (seeded, varied, growing with age) or a "
+        "fixed preset (docs/virtual-scanner.md)")
     seed: int = 0
+    age: float | None = Field(None, ge=0.0, description="days after emergence (families only); "
+                              "None: the mature plant")
     mesh_path: str | None = Field(None, description="PLY/OBJ plant mesh (preset 'mesh')")
     mesh_labels_path: str | None = Field(None, description="one leaf id per face (-1 stem)")
     mesh_scale: float = Field(1.0, gt=0, description="mesh units -> mm")
@@ -164,8 +170,13 @@ class SimScene(Scene):
 
         self.rig = Rig(cams, tuple(recipe.scan.image_size), all_tilts(recipe),
                        p.target_height_mm, p.arm_azimuth_deg)
+        if p.age is not None and p.preset in PRESETS:
+            raise RecipeError([("scan.scene.params.age", f"the preset {p.preset!r} does not "
+                                "grow; age applies to the families dicot, rosette, branched, "
+                                "grass, seedling")], "virtual scanner")
         self.plant = build_plant(p.preset, p.seed, self.soil_z, p.leaf_thickness_mm,
-                                 p.mesh_path, p.mesh_labels_path, p.mesh_scale)
+                                 p.mesh_path, p.mesh_labels_path, p.mesh_scale, age=p.age,
+                                 ground=self.ground())
         self.jpeg_quality = recipe.scan.jpeg_quality
         self.camera_order = [c.name for c in recipe.scan.cameras]
         if p.check_rig:
@@ -191,6 +202,13 @@ class SimScene(Scene):
     @property
     def soil_z(self) -> float:
         return self.params.pot_z_top_mm - self.params.soil_depth_mm
+
+    def ground(self) -> Ground:
+        """Soil and pot rim the plant's blades must clear (mm, turntable frame)."""
+        p = self.params
+        frac = (self.soil_z - p.pot_z_bottom_mm) / (p.pot_z_top_mm - p.pot_z_bottom_mm)
+        r_in_soil = p.pot_r_bottom_mm + frac * (p.pot_r_top_mm - p.pot_r_bottom_mm) - 3.0
+        return Ground(self.soil_z, p.pot_z_top_mm, r_in_soil, p.pot_r_top_mm, p.pot_z_bottom_mm)
 
     def _camera_params(self, recipe) -> dict[str, SimCameraParams]:
         errors, cams = [], {}
@@ -504,9 +522,18 @@ class SimScene(Scene):
         import io
 
         buf = io.BytesIO()
-        np.savez_compressed(buf, vertices=plant.mesh.vertices, faces=faces, face_leaf_id=leaf_id)
+        organ = plant.face_organ.astype(np.int8)
+        np.savez_compressed(buf, vertices=plant.mesh.vertices, faces=faces, face_leaf_id=leaf_id,
+                            face_organ=organ)
         atomic_write_bytes(gt / "plant.npz", buf.getvalue())
-        atomic_write_bytes(gt / "plant.ply", ply_bytes(plant.mesh.vertices, faces, leaf_id))
+        atomic_write_bytes(gt / "plant.ply", ply_bytes(plant.mesh.vertices, faces, leaf_id, organ))
+        organs = {"format": "plantscan-sim-organs/1",
+                  "organs": dict(enumerate(ORGANS)),
+                  "face_area_mm2": {name: float(_area(plant.mesh.vertices,
+                                                      faces[organ == code]))
+                                    for code, name in enumerate(ORGANS)},
+                  "leaves": plant.leaf_records()}
+        atomic_write_text(gt / "organs.json", json.dumps(plain(organs), indent=1))
         p = self.params
         pot = {
             "units": "mm, turntable frame (z up from the top of the plate)",
@@ -623,19 +650,29 @@ def read_truth_cameras(truth_dir: Path) -> dict[int, Camera]:
     return out
 
 
-def ply_bytes(vertices: np.ndarray, faces: np.ndarray, face_leaf_id: np.ndarray) -> bytes:
-    """Binary little-endian PLY with a per-face ``leaf_id`` property."""
+def _area(vertices: np.ndarray, faces: np.ndarray) -> float:
+    t = vertices[faces]
+    return 0.5 * float(np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1).sum())
+
+
+def ply_bytes(vertices: np.ndarray, faces: np.ndarray, face_leaf_id: np.ndarray,
+              face_organ: np.ndarray | None = None) -> bytes:
+    """Binary little-endian PLY with per-face ``leaf_id`` and ``organ`` properties."""
+    if face_organ is None:
+        face_organ = np.where(face_leaf_id >= 0, ORGANS.index("blade"), 0)
     header = (
         "ply\nformat binary_little_endian 1.0\ncomment plantscan virtual plant, mm\n"
+        f"comment organ codes: {' '.join(f'{c}={n}' for c, n in enumerate(ORGANS))}\n"
         f"element vertex {len(vertices)}\nproperty float x\nproperty float y\nproperty float z\n"
         f"element face {len(faces)}\nproperty list uchar int vertex_indices\n"
-        "property int leaf_id\nend_header\n"
+        "property int leaf_id\nproperty uchar organ\nend_header\n"
     ).encode()
-    fdt = np.dtype([("n", "u1"), ("v", "<i4", (3,)), ("leaf", "<i4")])
+    fdt = np.dtype([("n", "u1"), ("v", "<i4", (3,)), ("leaf", "<i4"), ("organ", "u1")])
     fa = np.empty(len(faces), dtype=fdt)
     fa["n"] = 3
     fa["v"] = faces
     fa["leaf"] = face_leaf_id
+    fa["organ"] = face_organ
     return header + vertices.astype("<f4").tobytes() + fa.tobytes()
 
 

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from plantscan_sim.geometry import leaf_surface, mesh_area
+from plantscan_sim.families import FAMILIES
+from plantscan_sim.geometry import LeafPlacement, leaf_outline, leaf_surface, mesh_area
 from plantscan_sim.plants import PLASTIC_DICOT_LEAVES, build_plant
 
 
@@ -35,24 +36,40 @@ def _boundary_length(v, rows, across):
     return sum(float(np.linalg.norm(np.diff(s, axis=0), axis=1).sum()) for s in sides)
 
 
-@pytest.mark.parametrize("preset", ["plastic-dicot", "wheat", "sorghum"])
-def test_bending_preserves_flat_traits(preset):
+def _assert_keeps_flat_traits(o, placement):
     # The bent blade (mid-surface, in 3D) must keep the flat outline's area, boundary
     # length, midrib length and width: 0.5 % (the bound; chords of the bent
     # polyline are the only loss).
+    v, f = leaf_surface(o, placement, across=9)
+    rows = len(o.x)
+    assert mesh_area(v, f) == pytest.approx(o.area, rel=0.005)
+    assert _boundary_length(v, rows, 9) == pytest.approx(o.perimeter, rel=0.005)
+    mid = v.reshape(rows, 9, 3)[:, 4]
+    assert float(np.linalg.norm(np.diff(mid, axis=0), axis=1).sum()) == pytest.approx(
+        o.length, rel=0.005)
+    g = v.reshape(rows, 9, 3)
+    assert float(np.linalg.norm(g[:, -1] - g[:, 0], axis=1).max()) == pytest.approx(
+        o.width, rel=0.005)
+
+
+@pytest.mark.parametrize("preset", ["plastic-dicot", "wheat", "sorghum", *FAMILIES])
+def test_bending_preserves_flat_traits(preset):
     plant = build_plant(preset, seed=1, soil_z=142.0)
     for leaf in plant.leaves:
-        o = leaf.outline
-        v, f = leaf_surface(o, leaf.placement, across=9)
-        rows = len(o.x)
-        assert mesh_area(v, f) == pytest.approx(o.area, rel=0.005)
-        assert _boundary_length(v, rows, 9) == pytest.approx(o.perimeter, rel=0.005)
-        mid = v.reshape(rows, 9, 3)[:, 4]
-        assert float(np.linalg.norm(np.diff(mid, axis=0), axis=1).sum()) == pytest.approx(
-            o.length, rel=0.005)
-        g = v.reshape(rows, 9, 3)
-        assert float(np.linalg.norm(g[:, -1] - g[:, 0], axis=1).max()) == pytest.approx(
-            o.width, rel=0.005)
+        _assert_keeps_flat_traits(leaf.outline, leaf.placement)
+
+
+@pytest.mark.parametrize("twist", [0.0, 15.0, -30.0])
+def test_a_twisted_bent_blade_keeps_its_flat_traits(twist):
+    # Wrapped on a cylinder, a blade is developable whatever the twist.
+    o = leaf_outline(300.0, 20.0, 0.72 * 300.0 * 20.0, p=4.0, warp=0.7)
+    place = LeafPlacement.with_total_bend([0.0, 0.0, 150.0], 30.0, 60.0, o.length, 130.0, 5.0,
+                                          twist_deg=twist)
+    _assert_keeps_flat_traits(o, place)
+    # a twisted blade is not planar-bent: its normal turns about the midrib
+    _, n = place.midrib(np.array([0.0, o.length]))
+    _, _, e3 = place.frame()
+    assert (abs(float(n[1] @ e3)) > 0.1) == (twist != 0.0)
 
 
 @pytest.mark.parametrize("preset", ["plastic-dicot", "wheat", "sorghum"])
