@@ -73,8 +73,17 @@ def run_demo(out: Path, overrides: list[str], recipe_name: str = "plastic-dicot"
         mre = traits.get("mean_relative_error", {})
         print("demo: trait errors against truth (mean relative error): " + ", ".join(
             f"{k} {100 * v:.2f} %" for k, v in mre.items()))
-        print(f"demo: leaves found {traits.get('leaves_found')} of {traits.get('leaves_truth')}, "
-              f"merged {traits.get('leaves_merged')}")
+        inst = traits.get("instances")
+        if inst:
+            print(f"demo: leaves found {inst['found']} of {inst['truth']} truth leaves, "
+                  f"{inst['measured']} measured: merged {inst['merged']}, split {inst['split']} "
+                  f"({inst['split_pieces']} extra pieces of split leaves), extra {inst['extra']} "
+                  f"(debris {inst['debris_area_mm2']:.0f} mm², "
+                  f"{100 * inst['debris_share']:.1f} % of the measured leaf area), "
+                  f"missed {inst['missed']}")
+        else:
+            print(f"demo: leaves found {traits.get('leaves_found')} of "
+                  f"{traits.get('leaves_truth')}, merged {traits.get('leaves_merged')}")
         warned = traits.get("leaves_warned", 0)
         if warned:
             quiet = traits.get("mean_relative_error_unwarned", {})

@@ -9,11 +9,23 @@ hull encloses the true leaf), so overlap is measured by nearest faces:
   ``cover[t, m]`` = fraction of truth leaf ``t``'s area whose nearest
   measured face belongs to measured leaf ``m``;
 * truth and measured leaves are paired one to one maximising total cover
-  (Hungarian algorithm); a pair counts when its cover is >= 0.5;
-* a measured leaf is *merged* when it covers >= 0.3 of two or more truth
-  leaves; a truth leaf is *missed* when it has no pair.
+  (Hungarian algorithm); a pair counts when its cover is >= 0.5 (PAIR_COVER):
+  the truth leaf is *found*, the measured leaf *matched*;
+* a truth leaf is *missed* when it has no pair;
+* a measured leaf is *merged* when it covers >= 0.3 (MERGE_COVER) of two or
+  more truth leaves (one measured leaf holding two);
+* a truth leaf is *split* when two or more measured leaves each cover >= 0.1
+  (SPLIT_COVER) of it (found or not); an unpaired measured leaf covering
+  >= 0.1 of some truth leaf is one of its *split pieces*;
+* a measured leaf that is neither matched nor a split piece is *extra* (it
+  matches no truth leaf); the measured area of the extra leaves is the
+  *debris area*, said with where each lies (every measured face takes the
+  truth organ of the nearest truth face: on a leaf, on the stem, or off the
+  plant when that face is farther than ``OFF_PLANT_MM``).
 
-Errors use the seed's ε = mean(|truth − measured| / truth) over the pairs.
+"12 of 12 found" thus stands beside the pieces that are no leaf: recall =
+found / truth leaves, precision = matched / measured leaves.  Errors use the
+seed's ε = mean(|truth − measured| / truth) over the pairs.
 
 A calibration fixes the turntable frame only up to its gauge (a rotation about
 the axis and a shift along it); when the run's mesh is far from the truth
@@ -37,6 +49,8 @@ from plantscan_leaves.measure import warned
 
 PAIR_COVER = 0.5  # more than half of a truth leaf must be in its measured leaf
 MERGE_COVER = 0.3  # a measured leaf holding 30 % of each of two truth leaves merged them
+SPLIT_COVER = 0.1  # a piece holding a tenth of a truth leaf is part of it, not debris
+OFF_PLANT_MM = 5.0  # a measured face this far from every truth face lies on no organ
 GAUGE_TOLERANCE_MM = 5.0  # a hull lies within a few mm of the true surface
 SEARCH_BOUND_MM = 50.0  # the turn search scores distances up to this (the median decides)
 
@@ -88,8 +102,13 @@ def match_leaves(labelled: LabelledMesh, truth_vertices: np.ndarray, truth_faces
     -------
     dict with ``pairs`` (list of (truth id, measured label, cover)),
     ``merged`` (measured labels holding several truth leaves), ``missed``
-    (truth ids without a pair), ``extra`` (measured leaves without a pair),
-    ``cover`` (truth ids x measured labels matrix as nested lists).
+    (truth ids without a pair), ``split`` ({truth id: measured labels each
+    covering >= SPLIT_COVER of it}, two or more), ``split_pieces`` (unpaired
+    measured labels covering >= SPLIT_COVER of a truth leaf), ``extra``
+    (measured leaves neither paired nor split pieces), ``lies_on`` ({measured
+    label: shares of its mesh area on truth leaves, stem, off the plant}),
+    ``cover`` (truth ids x measured labels matrix as nested lists); rules in
+    the module docstring.
     """
     from scipy.optimize import linear_sum_assignment
     from scipy.spatial import cKDTree
@@ -97,7 +116,8 @@ def match_leaves(labelled: LabelledMesh, truth_vertices: np.ndarray, truth_faces
     truth_ids = sorted(int(i) for i in np.unique(truth_leaf_id) if i >= 0)
     leaf_labels = labelled.leaf_labels
     out: dict[str, Any] = {"pairs": [], "merged": [], "missed": list(truth_ids),
-                           "extra": list(leaf_labels), "truth_ids": truth_ids,
+                           "extra": list(leaf_labels), "split": {}, "split_pieces": [],
+                           "lies_on": {}, "truth_ids": truth_ids,
                            "measured_labels": leaf_labels}
     if not truth_ids or not leaf_labels or labelled.mesh.is_empty:
         return out
@@ -129,6 +149,10 @@ def match_leaves(labelled: LabelledMesh, truth_vertices: np.ndarray, truth_faces
     paired_t = {p[0] for p in pairs}
     paired_m = {p[1] for p in pairs}
     to_stem = ~np.isin(label_of_truth_face, leaf_labels)  # stem, pot or unlabelled
+    split = {truth_ids[i]: [leaf_labels[j] for j in np.flatnonzero(cover[i] >= SPLIT_COVER)]
+             for i in range(len(truth_ids)) if np.count_nonzero(cover[i] >= SPLIT_COVER) >= 2}
+    pieces = [m for j, m in enumerate(leaf_labels)
+              if m not in paired_m and cover[:, j].max() >= SPLIT_COVER]
     out.update(
         area_shares=_area_shares(truth_ids, truth_leaf_id, t_area, to_stem, cover, pairs,
                                  leaf_labels),
@@ -136,10 +160,67 @@ def match_leaves(labelled: LabelledMesh, truth_vertices: np.ndarray, truth_faces
         merged=[leaf_labels[j] for j in range(len(leaf_labels))
                 if np.count_nonzero(cover[:, j] >= MERGE_COVER) >= 2],
         missed=[t for t in truth_ids if t not in paired_t],
-        extra=[m for m in leaf_labels if m not in paired_m],
+        split=split,
+        split_pieces=pieces,
+        extra=[m for m in leaf_labels if m not in paired_m and m not in pieces],
+        lies_on=_lies_on(labelled, mc, tc, truth_leaf_id, leaf_labels),
         cover=cover.round(4).tolist(),
     )
     return out
+
+
+def _lies_on(labelled: LabelledMesh, mc: np.ndarray, tc: np.ndarray,
+             truth_leaf_id: np.ndarray, leaf_labels: list[int]) -> dict[int, dict[str, float]]:
+    """Shares of each measured leaf's mesh area on truth leaves, the stem, off the plant.
+
+    Every measured face takes the organ of the nearest truth face (``mc`` and
+    ``tc`` are face centroids in the truth's frame); off the plant beyond
+    ``OFF_PLANT_MM``.
+    """
+    from scipy.spatial import cKDTree
+
+    dist, nearest = cKDTree(tc).query(mc)
+    on_leaf = truth_leaf_id[nearest] >= 0
+    off = dist > OFF_PLANT_MM
+    area = labelled.mesh.face_areas()
+    out = {}
+    for m in leaf_labels:
+        sel = labelled.face_labels == m
+        total = max(float(area[sel].sum()), 1e-12)
+        out[m] = {"leaf": float(area[sel & on_leaf & ~off].sum()) / total,
+                  "stem": float(area[sel & ~on_leaf & ~off].sum()) / total,
+                  "off_plant": float(area[sel & off].sum()) / total}
+    return out
+
+
+def instance_counts(match: dict[str, Any], measured: Traits) -> dict[str, Any]:
+    """Found / missed / merged / split / extra counts, debris area, recall and precision.
+
+    ``match`` is ``match_leaves``' result; ``measured`` the run's traits (its
+    leaf areas are the debris area's unit: flat leaf area, mm², as in traits.csv).
+    """
+    area = {lf.leaf_id: lf.area_mm2 for lf in measured.leaves}
+    n_truth, n_measured = len(match["truth_ids"]), len(match["measured_labels"])
+    found = len(match["pairs"])
+    debris = [{"measured_id": m, "area_mm2": round(float(area.get(m, 0.0)), 3),
+               **{k: round(v, 4) for k, v in match["lies_on"].get(m, {}).items()}}
+              for m in match["extra"]]
+    debris_area = float(sum(d["area_mm2"] for d in debris))
+    total = float(sum(area.get(m, 0.0) for m in match["measured_labels"]))
+    return {
+        "truth": n_truth, "measured": n_measured, "found": found,
+        "missed": len(match["missed"]), "merged": len(match["merged"]),
+        "split": len(match["split"]), "split_pieces": len(match["split_pieces"]),
+        "extra": len(match["extra"]),
+        "recall": found / n_truth if n_truth else float("nan"),
+        "precision": found / n_measured if n_measured else float("nan"),
+        "debris_area_mm2": debris_area,
+        "debris_share": debris_area / total if total > 0 else 0.0,
+        "missed_ids": list(match["missed"]),
+        "merged_ids": list(match["merged"]),
+        "split_ids": {str(t): ms for t, ms in match["split"].items()},
+        "extra_pieces": debris,
+    }
 
 
 def _area_shares(truth_ids: list[int], truth_leaf_id: np.ndarray, t_area: np.ndarray,
@@ -211,8 +292,10 @@ def evaluate_traits(run_dir: Path, truth_dir: Path) -> dict[str, Any] | None:
     unwarned = [p for p in m["pairs"] if p[1] not in said]
     quiet = trait_errors(truth, measured, unwarned)["mean_relative_error"]
     plant = plant_errors(run_dir / "plant_traits.json", truth_dir / "plant_traits.json")
+    counts = instance_counts(m, measured)
     return {
         "traits": {
+            "instances": counts,
             "mean_relative_error": errs["mean_relative_error"],
             "mean_relative_error_unwarned": quiet,
             "leaves_warned": len(m["pairs"]) - len(unwarned),
@@ -221,7 +304,9 @@ def evaluate_traits(run_dir: Path, truth_dir: Path) -> dict[str, Any] | None:
             "leaves_measured": len(m["measured_labels"]),
             "leaves_merged": len(m["merged"]),
             "leaves_missed": len(m["missed"]),
+            "leaves_split": len(m["split"]),
             "leaves_extra": len(m["extra"]),
+            "debris_area_mm2": counts["debris_area_mm2"],
             **({"frame_alignment": m["frame_alignment"]} if "frame_alignment" in m else {}),
             "pairs": [{"truth_id": t, "measured_id": mm, "cover": c} for t, mm, c in m["pairs"]],
             "per_leaf": errs["per_leaf"],
@@ -250,5 +335,6 @@ def plant_errors(measured_path: Path, truth_path: Path) -> dict[str, Any] | None
     for name in PLANT_TRAITS:
         if name in measured and name in truth and truth[name]:
             out[name] = {"measured": measured[name], "truth": truth[name],
+                         "error": measured[name] - truth[name],
                          "relative_error": (measured[name] - truth[name]) / truth[name]}
     return out or None
