@@ -17,7 +17,7 @@ def test_plant_errors_compare_each_trait(tmp_path):
     out = plant_errors(tmp_path / "m.json", tmp_path / "t.json")
     assert out["height_mm"]["relative_error"] == pytest.approx(-11 / 300)
     assert out["total_leaf_area_mm2"]["relative_error"] == pytest.approx(-0.01)
-    assert out["leaf_count"] == {"measured": 12, "truth": 12, "relative_error": 0.0}
+    assert out["leaf_count"] == {"measured": 12, "truth": 12, "error": 0, "relative_error": 0.0}
     assert set(out) == {"height_mm", "total_leaf_area_mm2", "leaf_count"}  # shared traits only
 
 
