@@ -69,3 +69,16 @@ def plantscan_add_commands(subparsers: argparse._SubParsersAction) -> None:
     A command sets ``func`` with ``parser.set_defaults(func=...)``; ``func(args)``
     returns the exit status.
     """
+
+
+@hookspec
+def plantscan_warm_up() -> str | None:
+    """Do now the one-time work a plugin would otherwise do on its first real use.
+
+    Called by ``plantscan warm-up`` (which ``make setup`` runs): a plugin with
+    just-in-time compiled kernels (numba ``cache=True``) runs them once on a
+    small input with the argument types a real run passes, so that the first
+    scan or processing run reads them from the cache instead of compiling.
+    Return one line saying what was done (printed), or None.  Every plugin's
+    result is collected; one that raises is reported and the others still run.
+    """

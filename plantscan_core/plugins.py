@@ -205,6 +205,18 @@ class PluginManager:
                 merged.update(part)
         return merged
 
+    def warm_up(self) -> list[tuple[str, str]]:
+        """Each plugin's ``plantscan_warm_up``: (plugin name, what it did or its error)."""
+        done = []
+        for impl in self.pm.hook.plantscan_warm_up.get_hookimpls():
+            try:
+                said = impl.function()
+            except Exception as exc:  # noqa: BLE001 - one plugin's failure is reported only
+                said = "failed: " + "".join(traceback.format_exception_only(type(exc), exc))
+            if said:
+                done.append((impl.plugin_name, said.strip()))
+        return done
+
     def add_commands(self, subparsers) -> None:
         """Let each plugin add CLI commands; one that fails is reported, the others still add."""
         for impl in self.pm.hook.plantscan_add_commands.get_hookimpls():

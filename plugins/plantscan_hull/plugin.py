@@ -30,3 +30,10 @@ def plantscan_evaluate(run_dir: Path, truth_dir: Path) -> dict[str, Any] | None:
 
     section = evaluate_hull(Path(run_dir), Path(truth_dir))
     return None if section is None else {"hull": section}
+
+
+@hookimpl
+def plantscan_warm_up() -> str:
+    from plantscan_hull.warmup import warm_up
+
+    return warm_up()

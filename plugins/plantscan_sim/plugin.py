@@ -177,3 +177,10 @@ class TruthMaskSegmenter(Segmenter):
 def plantscan_register_stages(registry) -> None:
     for cls in (SimScene, SimCamera, SimAxis, TruthCalibrator, TruthMaskSegmenter):
         registry.add(cls)
+
+
+@hookimpl
+def plantscan_warm_up() -> str:
+    from plantscan_sim.warmup import warm_up
+
+    return warm_up()

@@ -1,0 +1,71 @@
+"""``plantscan warm-up`` compiles every kernel signature a real scan and run use.
+
+The warm-up is what keeps the first ``plantscan demo`` from waiting a minute for
+numba (``make setup`` runs it).  Wall time is not asserted; what is asserted is
+the thing that makes the wait go away: after the warm-up, a virtual scan and the
+hull stages with their default parameters call no kernel with argument types the
+warm-up did not compile.  Run in a fresh interpreter, so that no signature comes
+from an earlier test.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+pytest.importorskip("numba")
+pytest.importorskip("plantscan_sim.api")
+pytestmark = pytest.mark.slow
+
+SCRIPT = r"""
+import json, sys
+from pathlib import Path
+from numba.core.registry import CPUDispatcher
+from plantscan_hull import kernels
+from plantscan_sim import render
+
+def signatures():
+    out = {}
+    for mod in (kernels, render):
+        for name in dir(mod):
+            d = getattr(mod, name)
+            if isinstance(d, CPUDispatcher):
+                out[f"{mod.__name__}.{name}"] = {str(s) for s in d.signatures}
+    return out
+
+from plantscan_core.plugins import get_manager
+warm = get_manager().warm_up()
+before = signatures()
+from plantscan_hull.evaluate import truth_silhouettes
+from plantscan_hull.stages import MarchingCubesMesher, OctreeHull
+from plantscan_sim.api import make_scan
+scan = make_scan(Path(sys.argv[1]) / "scan", "plastic-dicot", image_size=(240, 160),
+                 images_per_revolution=8, roles=("plant",))
+sils, cal = truth_silhouettes(scan)
+MarchingCubesMesher().mesh(OctreeHull().reconstruct(sils, cal))
+after = signatures()
+print(json.dumps({
+    "warm": warm,
+    "used": sorted(k for k, v in after.items() if v),
+    "new": {k: sorted(after[k] - before.get(k, set())) for k in after
+            if after[k] - before.get(k, set())},
+}))
+"""
+
+
+def test_warm_up_compiles_what_a_scan_and_the_hull_stages_use(tmp_path):
+    out = subprocess.run([sys.executable, "-c", SCRIPT, str(tmp_path)], capture_output=True,
+                         text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-3000:]
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    plugins = {name for name, _ in result["warm"]}
+    assert {"hull", "sim"} <= plugins, result["warm"]
+    assert not any(said.startswith("failed") for _, said in result["warm"]), result["warm"]
+    # The hull's sibling-group kernels and the renderer's raster kernels ran at all ...
+    assert "plantscan_hull.kernels._classify_group" in result["used"]
+    assert "plantscan_sim.render._raster_triangles" in result["used"]
+    # ... and none of them, nor any other, needed a signature the warm-up had not compiled.
+    assert result["new"] == {}
