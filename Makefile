@@ -12,7 +12,9 @@ $(STAMP): pyproject.toml $(wildcard plugins/*/__init__.py)
 	@test -x $(BIN)/python || $(PY) -m venv $(VENV) || { \
 	  echo "make: cannot create $(VENV): install python3-venv (apt-get install python3-venv)"; exit 1; }
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e '.[dev,parquet]'
+	$(BIN)/python -m pip install -q -e '.[dev,all]'
+	@# numba kernels compiled into their cache now, not during the first scan or run (~1 min)
+	$(BIN)/plantscan warm-up
 	@touch $(STAMP)
 
 setup: $(STAMP)

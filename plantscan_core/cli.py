@@ -99,14 +99,37 @@ def cmd_recipe_check(args) -> int:
     return 0
 
 
+def cmd_recipe_list(args) -> int:
+    from plantscan_core.recipe import RECIPES_DIR, shipped_recipes
+
+    for name in shipped_recipes():
+        print(name)
+    print(f"({RECIPES_DIR}; a name works from any folder: plantscan recipe check NAME)",
+          file=sys.stderr)
+    return 0
+
+
 def cmd_schema(args) -> int:
     print(json.dumps(recipe_json_schema(), indent=2))
     return 0
 
 
+def _positional_recipe(args) -> None:
+    """``plantscan scan RECIPE`` and ``plantscan scan --recipe RECIPE`` are the same."""
+    given = [r for r in (args.recipe_arg, args.recipe) if r]
+    if not given:
+        raise RecipeError([("RECIPE", "required: a recipe file or the name of a shipped recipe "
+                                      "(plantscan recipe list)")], "plantscan scan")
+    if len(set(given)) > 1:
+        raise RecipeError([("RECIPE", f"given twice ({given[0]!r} and --recipe {given[1]!r})")],
+                          "plantscan scan")
+    args.recipe = given[0]
+
+
 def cmd_scan(args) -> int:
     from plantscan_core.acquire import acquire, plan
 
+    _positional_recipe(args)
     manager = get_manager()
     recipe, raw = _load(args, manager)
     if args.sample_sheet:
@@ -292,6 +315,18 @@ def cmd_demo(args) -> int:
     return run_demo(Path(args.out), list(args.overrides), recipe_name=args.recipe)
 
 
+def cmd_warm_up(args) -> int:
+    """Run every plugin's one-time work now (numba kernels compiled into their cache)."""
+    import time
+
+    t0 = time.perf_counter()
+    done = get_manager().warm_up()
+    for plugin, said in done:
+        print(f"warm-up: {plugin}: {said}")
+    print(f"warm-up: {len(done)} plugin(s) in {time.perf_counter() - t0:.1f} s")
+    return 1 if any(said.startswith("failed:") for _, said in done) else 0
+
+
 def cmd_batch(args) -> int:
     _set_force(args)
     try:
@@ -349,13 +384,19 @@ def build_parser(manager: PluginManager | None = None) -> argparse.ArgumentParse
     pc.add_argument("recipe", help="recipe YAML file or shipped recipe name")
     pc.add_argument("--set", dest="overrides", action="append", default=[], metavar="PATH=VALUE")
     pc.set_defaults(func=cmd_recipe_check)
+    pl = rsub.add_parser("list", help="the shipped recipes, by name")
+    pl.set_defaults(func=cmd_recipe_list)
+    ps = rsub.add_parser("schema", help="print the JSON Schema of recipes (= plantscan schema)")
+    ps.set_defaults(func=cmd_schema)
     recipe.set_defaults(func=functools.partial(_print_help, recipe))
 
     p = sub.add_parser("schema", help="print the JSON Schema of recipes")
     p.set_defaults(func=cmd_schema)
 
     p = sub.add_parser("scan", help="acquire a scan with the recipe's rig (real or virtual)")
-    _add_recipe_args(p)
+    p.add_argument("recipe_arg", nargs="?", metavar="RECIPE",
+                   help="recipe YAML file or shipped recipe name (or --recipe)")
+    _add_recipe_args(p, required=False)
     p.add_argument("--out", help="scan folder to write")
     p.add_argument("--resume", action="store_true", help="continue an interrupted scan in --out")
     p.add_argument("--dry-run", action="store_true",
@@ -390,6 +431,10 @@ def build_parser(manager: PluginManager | None = None) -> argparse.ArgumentParse
     p.add_argument("--recipe", default="plastic-dicot", help="shipped recipe name or file")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="PATH=VALUE")
     p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("warm-up", help="compile the plugins' kernels now, so that the first "
+                       "scan and run do not wait for it (make setup runs it)")
+    p.set_defaults(func=cmd_warm_up)
 
     p = sub.add_parser("batch", help="process many scans in parallel on Dask")
     p.add_argument("scans", nargs="+", help="scan folders")

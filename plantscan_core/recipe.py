@@ -351,13 +351,47 @@ def read_recipe_file(path: Path) -> dict[str, Any]:
     return raw if raw is not None else {}
 
 
-RECIPES_DIR = Path(__file__).resolve().parent.parent / "recipes"
+def _shipped_recipes_dir() -> Path:
+    """The folder of the shipped recipes: ``recipes/`` of a source checkout, else the copy
+    a wheel installs under ``<prefix>/share/plantscan/recipes`` (``pip install``)."""
+    checkout = Path(__file__).resolve().parent.parent / "recipes"
+    if checkout.is_dir():
+        return checkout
+    from importlib import metadata
+
+    try:
+        dist = metadata.distribution("plantscan")
+        for f in dist.files or []:
+            if f.name.endswith(".yaml") and f.parent.name == "recipes" \
+                    and "share" in f.parts:
+                return Path(dist.locate_file(f)).resolve().parent
+    except metadata.PackageNotFoundError:
+        pass
+    return checkout
+
+
+RECIPES_DIR = _shipped_recipes_dir()
+
+
+def shipped_recipes() -> list[str]:
+    """Names of the shipped recipes (``plantscan recipe list``), sorted."""
+    return sorted(p.stem for p in RECIPES_DIR.glob("*.yaml"))
 
 
 def resolve_recipe_path(name_or_path: str | Path) -> Path:
-    """A recipe file path, or a bare name of a file in the shipped ``recipes/`` folder."""
+    """A recipe file path, or a bare name of a file in the shipped ``recipes/`` folder.
+
+    A path that does not exist but names a shipped recipe (``recipes/plastic-dicot.yaml``
+    outside the checkout) is an error that says to use the name instead.
+    """
     p = Path(name_or_path)
-    if p.exists() or p.suffix in (".yaml", ".yml") or "/" in str(name_or_path):
+    if p.exists():
+        return p
+    if p.suffix in (".yaml", ".yml") or "/" in str(name_or_path):
+        if (RECIPES_DIR / f"{p.stem}.yaml").exists():
+            raise RecipeError([("", f"no such file; plantscan ships a recipe of that name: "
+                                    f"use `{p.stem}` (works from any folder; `plantscan recipe "
+                                    "list` shows them all)")], str(p))
         return p
     shipped = RECIPES_DIR / f"{name_or_path}.yaml"
     return shipped if shipped.exists() else p
