@@ -40,3 +40,24 @@ class StageError(PlantScanError):
 
 class HardwareError(PlantScanError):
     """A camera or motion axis could not do what was asked."""
+
+
+def require_module(module: str, extra: str, what: str):
+    """Import ``module`` (a hardware backend's library) or say which extra installs it.
+
+    Hardware libraries are optional (``pip install 'plantscan[gphoto2]'``, ``[phidget]``,
+    ``[serial]``, ``[all]``): a lab PC that only processes scans has none of them.
+
+    Raises
+    ------
+    HardwareError
+        naming ``what`` needs it and the ``pip install`` line that adds it.
+    """
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:
+        raise HardwareError(
+            f"{what}: the Python package {module.split('.')[0]!r} is not installed "
+            f"({exc}); install it with: pip install 'plantscan[{extra}]'") from exc

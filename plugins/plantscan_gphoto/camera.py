@@ -22,7 +22,7 @@ from typing import Any, Literal
 
 from pydantic import Field
 
-from plantscan_core.errors import HardwareError
+from plantscan_core.errors import HardwareError, require_module
 from plantscan_core.stages import CameraBackend, CaptureRequest, StageParams
 
 log = logging.getLogger(__name__)
@@ -114,9 +114,7 @@ _claimed_lock = threading.Lock()
 
 
 def _gp():
-    import gphoto2
-
-    return gphoto2
+    return require_module("gphoto2", "gphoto2", "camera plugin gphoto2")
 
 
 def jpeg_size(data: bytes) -> tuple[int, int] | None:

@@ -21,7 +21,7 @@ from typing import Any, Protocol
 
 from pydantic import Field, field_validator
 
-from plantscan_core.errors import HardwareError
+from plantscan_core.errors import HardwareError, require_module
 from plantscan_core.stages import MotionAxis, StageParams
 from plantscan_core.timing import move_time_s
 
@@ -110,9 +110,8 @@ class Phidget22Port:
     """The real adapter: one phidget22 ``Stepper`` channel."""
 
     def __init__(self) -> None:
-        from Phidget22.Devices.Stepper import Stepper
-
-        self.stepper = Stepper()
+        stepper = require_module("Phidget22.Devices.Stepper", "phidget", "axis plugin phidget")
+        self.stepper = stepper.Stepper()
         self.velocity = 0.0
 
     def open(self, p: PhidgetParams) -> None:

@@ -24,15 +24,11 @@ import threading
 import time
 from typing import Literal
 
-import serial
 from pydantic import Field
 
-from plantscan_core.errors import HardwareError
+from plantscan_core.errors import HardwareError, require_module
 from plantscan_core.stages import MotionAxis, StageParams
 
-# A vanished USB-serial adapter surfaces as any of these; pyserial's ``in_waiting`` raises
-# termios.error (not an OSError) when the pty is gone mid-poll.
-LINK_ERRORS = (serial.SerialException, OSError, termios.error)
 
 log = logging.getLogger(__name__)
 
@@ -133,6 +129,11 @@ class GrblConnection:
         self.users = 0
         self.wco: dict[str, float] = {}
         self._buf = b""
+        # pyserial is the extra plantscan[serial]: imported when a link opens.  A vanished
+        # USB-serial adapter surfaces as any of these; pyserial's ``in_waiting`` raises
+        # termios.error (not an OSError) when the pty is gone mid-poll.
+        serial = require_module("serial", "serial", f"grbl {port}")
+        self._link_errors = (serial.SerialException, OSError, termios.error)
         try:
             self.ser = serial.serial_for_url(port, baudrate=baudrate, timeout=0.05,
                                              write_timeout=2.0)
@@ -179,7 +180,7 @@ class GrblConnection:
         try:
             self.ser.write(data)
             self.ser.flush()
-        except LINK_ERRORS as exc:
+        except self._link_errors as exc:
             raise GrblError(f"grbl {self.port}: serial link lost while writing ({exc})") from exc
 
     def _readline(self, deadline: float) -> str | None:
@@ -192,7 +193,7 @@ class GrblConnection:
                 return None
             try:
                 chunk = self.ser.read(self.ser.in_waiting or 1)
-            except LINK_ERRORS as exc:
+            except self._link_errors as exc:
                 raise GrblError(f"grbl {self.port}: serial link lost ({exc})") from exc
             self._buf += chunk
 
