@@ -800,6 +800,30 @@ class Traits:
             w.writerow([leaf.leaf_id] + [f"{getattr(leaf, c):.4f}" for c in LEAF_TRAIT_COLUMNS[1:]])
         return buf.getvalue()
 
+    def to_dataframe(self, plant_columns: bool = False):
+        """The per-leaf table as a pandas ``DataFrame`` (one row per leaf, ``traits.csv``'s
+        columns; units in the names: mm, mm2).
+
+        ``plant_columns=True`` adds the plant-level traits as ``plant_*`` columns
+        repeated on every row (as ``traits.parquet``), so that many plants'
+        frames concatenate into one table; they are always in ``df.attrs["plant"]``.
+        Needs pandas (``pip install 'plantscan[pandas]'``).
+        """
+        try:
+            import pandas as pd
+        except ImportError as exc:
+            raise ImportError("Traits.to_dataframe needs pandas: pip install "
+                              "'plantscan[pandas]'") from exc
+        columns = {name: [getattr(leaf, name) for leaf in self.leaves]
+                   for name in LEAF_TRAIT_COLUMNS}
+        df = pd.DataFrame(columns).astype({"leaf_id": "int64"})
+        if plant_columns:
+            for key, value in sorted(self.plant.items()):
+                if isinstance(value, (int, float)) and not isinstance(value, bool):
+                    df[f"plant_{key}"] = value
+        df.attrs["plant"] = dict(self.plant)
+        return df
+
     def save(self, path: Path, plant_path: Path | None = None) -> None:
         from plantscan_core.scanfolder import atomic_write_text
 
