@@ -270,19 +270,23 @@ def profile_table(info: dict[str, Any]) -> str:
 
     CPU above wall time means the stage used both cores; peak memory is the
     process's high-water mark when the stage ended (it never goes down);
-    warnings counts the warnings of the stage's report.
+    warnings counts the warnings of the stage's report.  Exporters are named by
+    their plugin (``export ply``).
     """
     cpu, rss = info.get("cpu_s", {}), info.get("peak_rss_mb", {})
-    lines = [f"{'stage':<16}{'wall s':>9}{'cpu s':>9}{'peak MB':>9}{'warnings':>9}  cached"]
+    lines = [f"{'stage':<20}{'wall s':>9}{'cpu s':>9}{'peak MB':>9}{'warnings':>9}  cached"]
     for stage, sec in info.get("timings_s", {}).items():
         if stage == "total":
             continue
         record = info.get("stages", {}).get(stage, {})
         warned = len((record.get("info") or {}).get("warnings") or [])
-        lines.append(f"{stage:<16}{sec:>9.2f}{cpu.get(stage, float('nan')):>9.2f}"
+        label = stage
+        if stage.startswith("export.") and record.get("plugin"):
+            label = f"export {record['plugin']}"  # export.1 -> export ply
+        lines.append(f"{label:<20}{sec:>9.2f}{cpu.get(stage, float('nan')):>9.2f}"
                      f"{rss.get(stage, float('nan')):>9.0f}{warned or '':>9}"
                      f"  {'yes' if record.get('cached') else ''}")
-    lines.append(f"{'total':<16}{info.get('timings_s', {}).get('total', 0.0):>9.2f}"
+    lines.append(f"{'total':<20}{info.get('timings_s', {}).get('total', 0.0):>9.2f}"
                  f"{cpu.get('total', float('nan')):>9.2f}{rss.get('total', float('nan')):>9.0f}")
     return "\n".join(lines)
 

@@ -3,11 +3,15 @@ files and the traits table use the same colour for the same leaf."""
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from plantscan_core.data import LabelledMesh, Mesh
 
-# Colour-blind-friendly qualitative palette (Okabe-Ito first, then Tableau), RGB 0..1.
+# Colour-blind-friendly qualitative palette (Okabe-Ito first, then Tableau), RGB 0..1: the
+# first twelve leaves.  Leaves beyond get colours picked as far as possible (CIELAB) from
+# every colour already in use, so no two labels of a plant share a colour (``leaf_palette``).
 _LEAF_PALETTE = np.array(
     [
         (0.902, 0.624, 0.000),
@@ -26,26 +30,73 @@ _LEAF_PALETTE = np.array(
 )
 STEM_RGB = np.array((0.30, 0.55, 0.20))
 POT_RGB = np.array((0.55, 0.45, 0.40))
+DEBRIS_RGB = np.array((0.40, 0.40, 0.40))
 UNASSIGNED_RGB = np.array((0.75, 0.75, 0.75))
 PLAIN_RGB = np.array((0.35, 0.65, 0.35))
+KIND_RGB = {"stem": STEM_RGB, "pot": POT_RGB, "debris": DEBRIS_RGB}
+# Extra leaf colours come from sRGB colours of medium lightness and chroma, the range of the
+# fixed palette (legible as a swatch on white and as a shaded surface, not neon): CIELAB
+# L* 35-85, chroma 30-75.
+_EXTRA_LIGHTNESS = (35.0, 85.0)
+_EXTRA_CHROMA = (30.0, 75.0)
 
 
-def leaf_colour(rank: int) -> np.ndarray:
-    """(3,) RGB 0..1 of the ``rank``-th leaf (ranks follow ``LabelledMesh.leaf_labels``)."""
-    return _LEAF_PALETTE[rank % len(_LEAF_PALETTE)]
+def _lab(rgb: np.ndarray) -> np.ndarray:
+    from skimage.color import rgb2lab
+
+    return rgb2lab(np.asarray(rgb, dtype=float).reshape(-1, 1, 3)).reshape(-1, 3)
+
+
+@functools.lru_cache(maxsize=8)
+def _palette(n: int) -> np.ndarray:
+    fixed = _LEAF_PALETTE[:n]
+    if n <= len(_LEAF_PALETTE):
+        return fixed
+    steps = np.linspace(0.0, 1.0, 18)
+    grid = np.stack(np.meshgrid(steps, steps, steps, indexing="ij"), axis=-1).reshape(-1, 3)
+    lab = _lab(grid)
+    chroma = np.hypot(lab[:, 1], lab[:, 2])
+    keep = ((lab[:, 0] >= _EXTRA_LIGHTNESS[0]) & (lab[:, 0] <= _EXTRA_LIGHTNESS[1])
+            & (chroma >= _EXTRA_CHROMA[0]) & (chroma <= _EXTRA_CHROMA[1]))
+    grid, lab = grid[keep], lab[keep]
+    # Greedy farthest point: each new colour is the candidate farthest (Delta E 1976) from
+    # all colours in use: the fixed palette, the organ kinds and the unassigned grey.
+    used = [*_LEAF_PALETTE, *KIND_RGB.values(), UNASSIGNED_RGB, PLAIN_RGB]
+    nearest = np.min(np.linalg.norm(lab[:, None, :] - _lab(np.array(used))[None], axis=2), 1)
+    extra = []
+    for _ in range(n - len(_LEAF_PALETTE)):
+        i = int(np.argmax(nearest))
+        extra.append(grid[i])
+        nearest = np.minimum(nearest, np.linalg.norm(lab - lab[i], axis=1))
+    return np.vstack([fixed, np.array(extra)])
+
+
+def leaf_palette(n: int) -> np.ndarray:
+    """(n, 3) RGB 0..1: ``n`` leaf colours, all different from each other and from the stem,
+    pot, debris and unassigned colours.
+
+    The first twelve are the fixed palette (a leaf keeps its colour whatever the
+    plant's leaf count); the others are chosen greedily, each the farthest in
+    CIELAB from every colour already used (deterministic).
+    """
+    return _palette(max(int(n), 0))
+
+
+def leaf_colour(rank: int, n_leaves: int | None = None) -> np.ndarray:
+    """(3,) RGB 0..1 of the ``rank``-th leaf of a plant of ``n_leaves`` leaves (ranks follow
+    ``LabelledMesh.leaf_labels``)."""
+    return leaf_palette(max(rank + 1, n_leaves or 0))[rank]
 
 
 def label_colours(labelled: LabelledMesh) -> dict[int, np.ndarray]:
-    """Label -> (3,) RGB 0..1 for every label in ``kinds`` (leaves by rank, stem, pot)."""
-    out: dict[int, np.ndarray] = {}
-    leaf_rank = {label: i for i, label in enumerate(labelled.leaf_labels)}
+    """Label -> (3,) RGB 0..1 for every label in ``kinds``: leaves by rank (never two the
+    same), stem, pot, debris by kind."""
+    leaves = labelled.leaf_labels
+    palette = leaf_palette(len(leaves))
+    out: dict[int, np.ndarray] = {label: palette[i] for i, label in enumerate(leaves)}
     for label, kind in labelled.kinds.items():
-        if kind == "leaf":
-            out[label] = leaf_colour(leaf_rank[label])
-        elif kind == "stem":
-            out[label] = STEM_RGB
-        else:
-            out[label] = POT_RGB
+        if kind != "leaf":
+            out[label] = KIND_RGB.get(kind, UNASSIGNED_RGB)
     return out
 
 

@@ -28,6 +28,7 @@ from plantscan_core.errors import PlantScanError
 from plantscan_core.scanfolder import atomic_write_text, now_iso
 from plantscan_core.stages import Exporter, RunResult, StageParams
 from plantscan_report import quality as quality_plots
+from plantscan_report import verdict as trust
 from plantscan_report.colours import PLAIN_RGB, hex_colour, label_colours
 from plantscan_report.tables import plant_id_of
 from plantscan_report.truth import match_leaves, read_truth_traits
@@ -45,13 +46,22 @@ section{background:#fff;border:1px solid #ddd;border-radius:6px;margin:16px 0;pa
 h2{font-size:1.2em;margin:8px 0} h3{font-size:1em;margin:10px 0 4px}
 table{border-collapse:collapse;margin:6px 0;font-size:.9em}
 td,th{border:1px solid #ddd;padding:3px 8px;text-align:right}
-th{background:#f0f0f0} td.l,th.l{text-align:left}
+th{background:#f0f0f0} td.l,th.l{text-align:left} #traits td.l{white-space:nowrap}
 .swatch{display:inline-block;width:12px;height:12px;border-radius:2px;margin-right:6px;
 vertical-align:middle;border:1px solid #888}
 .strip{display:flex;flex-wrap:wrap;gap:8px}
 figure{margin:0;font-size:.8em;text-align:center} figure img{display:block;width:240px;height:auto}
 .grid{display:flex;flex-wrap:wrap;gap:12px} .grid>div{flex:1 1 420px;min-width:320px}
 .note{color:#666;font-size:.85em} .bad{color:#a00}
+#verdict{border-width:2px} #verdict h2{display:flex;align-items:center;gap:10px}
+.flag{display:inline-block;padding:2px 10px;border-radius:12px;color:#fff;font-weight:600;
+font-size:.9em;text-transform:uppercase;letter-spacing:.03em}
+.flag-ok{background:#2e7d32} .flag-check{background:#b26a00} .flag-fail{background:#b00020}
+.flag-na{background:#757575} .lvl{font-weight:600} .lvl-ok{color:#2e7d32}
+.lvl-check{color:#b26a00} .lvl-fail{color:#b00020}
+#verdict ul{margin:4px 0 8px;padding-left:20px} #verdict li{margin:2px 0}
+tr.warned td{background:#fff4e0} td.reason{text-align:left;font-size:.85em;color:#7a4a00}
+details>summary{cursor:pointer;color:#2f5d3a;margin:6px 0}
 """
 
 
@@ -78,7 +88,8 @@ class _Figures:
             fig.update_layout(height=height)
         payload = _script_json(fig.to_json())
         style = f"height:{height}px" if height else ""
-        # Drawn once the whole page is laid out, so each plot gets its final width.
+        # Drawn once the whole page is laid out, so each plot gets its final width; a plot
+        # inside a closed <details> is resized when it opens (the page's toggle handler).
         return (f'<div id="{div}" class="plot" style="{style}"></div>\n'
                 f"<script>(function(){{var f={payload};"
                 f'document.addEventListener("DOMContentLoaded",function(){{Plotly.newPlot('
@@ -192,11 +203,20 @@ def _decimate(mesh: Mesh, target_faces: int,
     return Mesh(v, f), g
 
 
+def _label_anchor(mesh: Mesh) -> np.ndarray:
+    """(3,) a point on ``mesh`` for its number: the vertex nearest its vertices' centroid
+    (the centroid of a curved leaf floats off it)."""
+    v = mesh.vertices
+    return v[int(np.argmin(np.sum((v - v.mean(axis=0)) ** 2, axis=1)))]
+
+
 def _mesh_traces(run: RunResult, max_faces: int) -> list[Any]:
-    """One Mesh3d trace per label (leaf, stem, pot, unassigned) or one for a plain mesh."""
+    """One Mesh3d trace per label (leaf, stem, pot, debris, unassigned) or one for a plain
+    mesh, then one text trace numbering the leaves as in the traits table."""
     import plotly.graph_objects as go
 
     parts: list[tuple[str, Mesh, str]] = []
+    numbers: list[tuple[int, np.ndarray]] = []
     if run.labelled is not None and not run.labelled.mesh.is_empty:
         labelled: LabelledMesh = run.labelled
         colours = label_colours(labelled)
@@ -208,7 +228,10 @@ def _mesh_traces(run: RunResult, max_faces: int) -> list[Any]:
             kind = labelled.kinds.get(label, "unassigned") if label >= 0 else "unassigned"
             name = f"leaf {label}" if kind == "leaf" else kind
             colour = hex_colour(colours[label]) if label in colours else "#bfbfbf"
-            parts.append((name, small.submesh(label), colour))
+            sub = small.submesh(label)
+            parts.append((name, sub, colour))
+            if kind == "leaf" and len(sub.vertices):
+                numbers.append((label, _label_anchor(sub)))
     elif run.mesh is not None and not run.mesh.is_empty:
         parts.append(("plant", _decimate(run.mesh, max_faces)[0], hex_colour(PLAIN_RGB)))
     traces = []
@@ -220,6 +243,13 @@ def _mesh_traces(run: RunResult, max_faces: int) -> list[Any]:
             name=name, showlegend=True, flatshading=False, hoverinfo="name",
             lighting=dict(ambient=0.45, diffuse=0.8, specular=0.1, roughness=0.8),
         ))
+    if numbers:
+        xyz = np.array([p for _, p in numbers])
+        traces.append(go.Scatter3d(
+            x=xyz[:, 0], y=xyz[:, 1], z=xyz[:, 2], mode="text", name="leaf numbers",
+            text=[str(label) for label, _ in numbers], showlegend=True,
+            textfont=dict(size=16, color="#000"), hoverinfo="text",
+            hovertext=[f"leaf {label}" for label, _ in numbers]))
     return traces
 
 
@@ -233,14 +263,22 @@ def _mesh_section(run: RunResult, figs: _Figures, max_faces: int) -> str:
     fig.update_layout(
         scene=dict(aspectmode="data", xaxis_title="x (mm)", yaxis_title="y (mm)",
                    zaxis_title="z (mm)", camera=dict(eye=dict(x=1.7, y=1.7, z=1.0))),
-        margin=dict(l=0, r=0, t=0, b=0), legend=dict(itemsizing="constant"),
+        margin=dict(l=0, r=0, t=0, b=0),
+        # top left: plotly's toolbar sits top right and used to cover the last entries
+        legend=dict(itemsizing="constant", x=0.0, y=1.0, xanchor="left", yanchor="top",
+                    bgcolor="rgba(255,255,255,0.75)"),
     )
     mesh = run.labelled.mesh if run.labelled is not None else run.mesh
     note = (f"{len(mesh.vertices)} vertices, {len(mesh.faces)} faces, "
-            f"surface {mesh.area():.0f} mm²; drag to rotate, scroll to zoom, click a legend "
+            f"surface {trust.format_value('surface_mm2', mesh.area())}; the numbers are the "
+            "leaf ids of the traits table; drag to rotate, scroll to zoom, click a legend "
             "entry to hide a part.")
     return (f'<section id="plant3d"><h2>3D plant</h2>{figs.html(fig, 620)}'
             f'<p class="note">{_esc(note)}</p></section>')
+
+
+_LEAF_COLUMNS = (("length_mm", "length"), ("width_mm", "width"), ("area_mm2", "area"),
+                 ("perimeter_mm", "perimeter"))
 
 
 def _traits_section(run: RunResult) -> str:
@@ -248,57 +286,129 @@ def _traits_section(run: RunResult) -> str:
     if traits is None:
         return ""
     colours = label_colours(run.labelled) if run.labelled is not None else {}
+    notes = trust.leaf_notes(run)
+    confidence = [getattr(leaf, "confidence", math.nan) for leaf in traits.leaves]
+    has_confidence = any(isinstance(c, (int, float)) and math.isfinite(c) for c in confidence)
     rows = []
-    for leaf in traits.leaves:
+    for leaf, conf in zip(traits.leaves, confidence):
         swatch = (f'<span class="swatch" style="background:{hex_colour(colours[leaf.leaf_id])}">'
                   "</span>" if leaf.leaf_id in colours else "")
-        thick = (f"{100 * leaf.thick_share:.1f}" if math.isfinite(leaf.thick_share) else "—")
-        rows.append([f"{swatch}{leaf.leaf_id}", _fmt(leaf.length_mm), _fmt(leaf.width_mm),
-                     _fmt(leaf.area_mm2), _fmt(leaf.perimeter_mm), thick])
-    leaf_table = _table(["leaf", "length (mm)", "width (mm)", "area (mm²)", "perimeter (mm)",
-                         "thick area (%)"],
-                        rows) if rows else '<p class="note">No leaf was found.</p>'
-    plant_rows = [[_esc(k), _fmt(v)] for k, v in sorted(traits.plant.items())]
+        said = notes.get(leaf.leaf_id, [])
+        mark = ' <span title="warned about: see the reasons">⚠</span>' if said else ""
+        cells = [f"{swatch}{leaf.leaf_id}{mark}"]
+        cells += [_esc(trust.format_number(getattr(leaf, c), trust.unit_of(c).decimals))
+                  for c, _ in _LEAF_COLUMNS]
+        cells.append(_esc(trust.format_number(100 * leaf.thick_share, 1)))
+        if has_confidence:
+            cells.append(_esc(trust.format_number(conf, 2)))
+        reasons = "; ".join(dict.fromkeys(trust.short_reason(n) for n in said))
+        cells.append(_esc(reasons))
+        rows.append((cells, bool(said)))
+    header = ["leaf"] + [f"{label} ({trust.unit_of(c).text})" for c, label in _LEAF_COLUMNS]
+    header += ["thick area (%)"] + (["confidence"] if has_confidence else []) + ["warned about"]
+    if rows:
+        head = "".join(f'<th class="{"l" if i == 0 or h == "warned about" else ""}">{_esc(h)}'
+                       "</th>" for i, h in enumerate(header))
+        body = "".join(
+            f'<tr class="{"warned" if warned else ""}">'
+            + "".join(f'<td class="{"l" if i == 0 else "reason" if i == len(cells) - 1 else ""}">'
+                      f"{c}</td>" for i, c in enumerate(cells)) + "</tr>"
+            for cells, warned in rows)
+        leaf_table = f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
+    else:
+        leaf_table = '<p class="note">No leaf was found.</p>'
+    plant_rows = [[_esc(trust.label_of(k)), _esc(trust.format_value(k, v))]
+                  for k, v in sorted(traits.plant.items())
+                  if k != "quality" and not isinstance(v, (dict, list))]
     plant_table = _table(["plant trait", "value"], plant_rows) if plant_rows else ""
-    note = ('<p class="note">thick area: the share of a leaf\'s area where the reconstructed '
-            "surface is several times thicker than the leaf elsewhere (phantom volume the views "
-            "could not carve, or an organ fused with the leaf); that leaf's traits carry it.</p>"
-            if rows else "")
-    # what any stage said (the leaf stages' warnings name leaves: shown with the traits)
-    warnings = run.warnings()
-    warned = ("<h3>Warnings</h3><ul>" + "".join(f"<li>{_esc(w.message)}</li>"
-                                                for _, w in warnings) + "</ul>") if warnings else ""
+    n_warned = sum(1 for _, w in rows if w)
+    note = (f'<p class="note">{n_warned} of {len(rows)} leaves warned about (⚠, shaded): read '
+            "their numbers with care, the reasons are listed under Warnings. thick area: the "
+            "share of a leaf's area where the reconstructed surface is several times thicker "
+            "than the leaf elsewhere (phantom volume the views could not carve, or an organ "
+            "fused with the leaf); that leaf's traits carry it.</p>" if rows else "")
     return (f'<section id="traits"><h2>Traits</h2><div class="grid"><div>{leaf_table}{note}'
-            f"</div><div>{plant_table}</div></div>{warned}</section>")
+            f"</div><div>{plant_table}</div></div></section>")
+
+
+def _warnings_section(run: RunResult) -> str:
+    notes = trust.stage_notes(run)
+    if not notes:
+        return ""
+    by_section: dict[str, list[trust.StageNote]] = {}
+    for n in notes:
+        by_section.setdefault(n.section, []).append(n)
+    parts = ['<section id="warnings"><h2>Warnings</h2>']
+    for section, items in by_section.items():
+        parts.append(f"<h3>{_esc(trust.section_title(section, run))} ({len(items)})</h3><ul>"
+                     + "".join(f"<li>{_esc(n.message)}</li>" for n in items) + "</ul>")
+    parts.append("</section>")
+    return "".join(parts)
+
+
+def _verdict_section(run: RunResult) -> str:
+    """The first block: the plant flag and its reasons, then what to check before using it."""
+    v = trust.plant_verdict(run)
+    css = {"ok": "flag-ok", "check": "flag-check", "fail": "flag-fail"}.get(v.flag, "flag-na")
+    lines = []
+    if run.traits is not None:
+        notes = trust.leaf_notes(run)
+        warned = sum(1 for leaf in run.traits.leaves if leaf.leaf_id in notes)
+        lines.append(f"<b>Leaves</b>: {len(run.traits.leaves)} measured, {warned} warned about "
+                     "(marked ⚠ in the traits table)")
+    if run.calibration is not None:
+        level, text = trust.calibration_line(run.calibration.quality)
+        lines.append(f'<b>Calibration</b>: <span class="lvl lvl-{_esc(level)}">{_esc(level)}'
+                     f"</span> — {_esc(text)}")
+    counts = {}
+    for n in trust.stage_notes(run):
+        counts[n.section] = counts.get(n.section, 0) + 1
+    if counts:
+        lines.append("<b>Warnings</b>: " + ", ".join(
+            f"{_esc(trust.section_title(k, run))} {c}" for k, c in counts.items())
+            + ' (<a href="#warnings">list</a>)')
+    else:
+        lines.append("<b>Warnings</b>: none from any stage")
+    skipped = (run.info or {}).get("skipped") or []
+    if skipped:
+        lines.append(f"<b>Not run</b>: {_esc(', '.join(skipped))}")
+    reasons = "".join(f"<li>{_esc(r)}</li>" for r in v.reasons)
+    return (f'<section id="verdict"><h2>Can these numbers be trusted? <span class="flag {css}">'
+            f"{_esc(v.flag)}</span></h2>"
+            + (f"<ul>{reasons}</ul>" if reasons else "")
+            + "<ul>" + "".join(f"<li>{line}</li>" for line in lines) + "</ul></section>")
 
 
 def _calibration_section(run: RunResult, figs: _Figures) -> str:
+    """One line (the verdict of ``verdict.calibration_line``), the rest folded away."""
     cal = run.calibration
     if cal is None:
         return ""
+    level, text = trust.calibration_line(cal.quality)
     model_rows = [[_esc(name), _fmt(m.f, 6), _fmt(m.cu, 6), _fmt(m.cv, 6), _fmt(m.d1),
                    _fmt(m.d2), f"{m.width} × {m.height}"] for name, m in sorted(cal.models.items())]
-    out = ['<section id="calibration"><h2>Calibration</h2>',
-           _table(["camera", "f (px)", "cu (px)", "cv (px)", "d1", "d2", "image (px)"],
-                  model_rows),
-           f'<p class="note">{len(cal.poses)} calibrated (camera, tilt) poses; tilts '
-           f"{_esc(', '.join(f'{k}: {v:g}°' for k, v in sorted(cal.tilts_deg.items())))}; "
-           f"turntable angle scale {cal.angle_scale:.6f}"
-           f"{'; tilt axis modelled' if cal.tilt_axis is not None else ''}.</p>"]
+    details = [_table(["camera", "f (px)", "cu (px)", "cv (px)", "d1", "d2", "image (px)"],
+                      model_rows),
+               f'<p class="note">{len(cal.poses)} calibrated (camera, tilt) poses; tilts '
+               f"{_esc(', '.join(f'{k}: {v:g}°' for k, v in sorted(cal.tilts_deg.items())))}; "
+               f"turntable angle scale {cal.angle_scale:.6f}"
+               f"{'; tilt axis modelled' if cal.tilt_axis is not None else ''}.</p>"]
     if cal.quality:
         plots = quality_plots.quality_figures(cal.quality)
         if plots:
-            out.append('<div class="grid">')
+            details.append('<div class="grid">')
             for title, fig in plots:
-                out.append(f"<div><h3>{_esc(title)}</h3>{figs.html(fig, 320)}</div>")
-            out.append("</div>")
+                details.append(f"<div><h3>{_esc(title)}</h3>{figs.html(fig, 320)}</div>")
+            details.append("</div>")
         rows = [[_esc(k), _esc(v)] for k, v in quality_plots.quality_rows(cal.quality)]
         if rows:
-            out.append("<h3>Calibrator's quality report</h3>" + _table(["item", "value"], rows, 2))
-    else:
-        out.append('<p class="note">The calibrator reported no quality figures.</p>')
-    out.append("</section>")
-    return "".join(out)
+            details.append("<details><summary>Calibrator's quality report "
+                           f"({len(rows)} items)</summary>"
+                           + _table(["item", "value"], rows, 2) + "</details>")
+    return (f'<section id="calibration"><h2>Calibration</h2><p><span class="lvl '
+            f'lvl-{_esc(level)}">{_esc(level)}</span> — {_esc(text)}</p>'
+            f"<details><summary>Camera models, residual plots, the calibrator's report"
+            f"</summary>{''.join(details)}</details></section>")
 
 
 THUMB_WIDTH = 240  # px of a silhouette thumbnail
@@ -365,7 +475,7 @@ def _silhouette_section(run: RunResult, count: int, reduce: int) -> str:
 def _timings_section(run: RunResult, figs: _Figures) -> str:
     import plotly.graph_objects as go
 
-    timings = {str(k): float(v) for k, v in (run.timings or {}).items()
+    timings = {trust.section_title(str(k), run): float(v) for k, v in (run.timings or {}).items()
                if isinstance(v, (int, float))}
     if not timings:
         return ""
@@ -445,7 +555,37 @@ def _run_section(run: RunResult) -> str:
     for key, value in (run.info or {}).items():
         if isinstance(value, (str, int, float, bool)) and key not in ("scan", "run_dir"):
             rows.append([_esc(key), _esc(value)])
+    overrides = (run.info or {}).get("overrides") or []
+    if overrides:
+        rows.append(["--set", _esc(" ".join(overrides))])
+    exports = (run.info or {}).get("exports") or []
+    if exports:
+        rows.append(["files", _esc(", ".join(Path(e).name for e in exports))])
     return f'<section id="run"><h2>Run</h2>{_table(["item", "value"], rows, 2)}</section>'
+
+
+# Plots drawn inside a closed <details> have no width: redraw them when it opens.
+_DETAILS_RESIZE = ("<script>document.addEventListener('toggle',function(e){if(e.target.open)"
+                   "e.target.querySelectorAll('.js-plotly-plot').forEach(function(p){"
+                   "Plotly.Plots.resize(p);});},true);</script>")
+
+
+def _subtitle(run: RunResult) -> str:
+    """Species, scan date, what was captured, and the recipe (with its --set changes)."""
+    recipe_name = run.recipe.name if run.recipe is not None else ""
+    species = run.recipe.plant.species if run.recipe is not None else ""
+    info = run.scan.info if run.scan is not None else {}
+    species = info.get("species") or species
+    scanned = str(info.get("created") or "")
+    overrides = (run.info or {}).get("overrides") or []
+    recipe = f"recipe {recipe_name}" if recipe_name else ""
+    if recipe and overrides:
+        recipe += f" with --set {' '.join(overrides)}"
+    lines = [" · ".join(x for x in (f"species {species}" if species else "",
+                                    f"scanned {scanned.replace('T', ' ')}" if scanned else "",
+                                    recipe) if x),
+             trust.protocol_summary(run)]
+    return "".join(f"<p>{_esc(line)}</p>" for line in lines if line)
 
 
 def render_report(run: RunResult, thumbnails: int = 6, thumbnail_reduce: int = 4,
@@ -455,28 +595,25 @@ def render_report(run: RunResult, thumbnails: int = 6, thumbnail_reduce: int = 4
 
     figs = _Figures()
     plant_id = plant_id_of(run)
-    recipe_name = run.recipe.name if run.recipe is not None else ""
-    species = run.recipe.plant.species if run.recipe is not None else ""
-    species = (run.scan.info.get("species") if run.scan is not None else None) or species
     body = [
+        _verdict_section(run),
         _mesh_section(run, figs, max_faces),
         _traits_section(run),
+        _warnings_section(run),
         _truth_section(run, figs),
         _calibration_section(run, figs),
         _silhouette_section(run, thumbnails, thumbnail_reduce),
         _timings_section(run, figs),
         _run_section(run),
     ]
-    subtitle = " · ".join(x for x in (f"species {species}" if species else "",
-                                      f"recipe {recipe_name}" if recipe_name else "") if x)
     return "".join([
         "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">",
         '<meta name="viewport" content="width=device-width, initial-scale=1">',
         f"<title>plantscan report: {_esc(plant_id)}</title><style>{_CSS}</style>",
         # plotly.js inline (MIT); its source contains no "</script>" (checked in the tests).
         f'<script type="text/javascript">{get_plotlyjs()}</script></head><body>',
-        f"<header><h1>plantscan report: {_esc(plant_id)}</h1><p>{_esc(subtitle)}</p></header>",
-        "<main>", *[b for b in body if b], "</main></body></html>\n",
+        f"<header><h1>plantscan report: {_esc(plant_id)}</h1>{_subtitle(run)}</header>",
+        "<main>", *[b for b in body if b], "</main>", _DETAILS_RESIZE, "</body></html>\n",
     ])
 
 

@@ -15,7 +15,9 @@ pytestmark = pytest.mark.skipif(
     chromium_binary() is None,
     reason="chromium not installed (Debian: apt-get install -y chromium; `make` installs it)")
 
-PROBE = """JSON.stringify({
+PROBE = """const box = (sel) => { const r = document.querySelector(sel).getBoundingClientRect();
+                          return [r.left, r.top, r.width, r.height]; };
+JSON.stringify({
   plots: document.querySelectorAll('.js-plotly-plot').length,
   webgl: document.querySelectorAll('#plant3d canvas').length,
   legend: Array.from(document.querySelectorAll('#plant3d .legendtext')).map(e => e.textContent),
@@ -23,6 +25,15 @@ PROBE = """JSON.stringify({
   thumbs: Array.from(document.querySelectorAll('#silhouettes img')).filter(
       i => i.complete && i.naturalWidth > 0).length,
   title: document.title,
+  verdictFlag: document.querySelector('#verdict .flag').textContent,
+  verdictTop: document.querySelector('main section').id,
+  warnedRows: Array.from(document.querySelectorAll('#traits tr.warned td:first-child')).map(
+      e => e.textContent.trim()),
+  numbers: (() => { const d = document.querySelector('#plant3d .js-plotly-plot').data;
+                    const t = d.find(t => t.mode === 'text'); return t ? t.text : null; })(),
+  legendBox: box('#plant3d .legend'),
+  toolbarBox: box('#plant3d .modebar'),
+  calibrationFolded: !document.querySelector('#calibration details').open,
   box: (() => { const r = document.querySelector('#plant3d .plot').getBoundingClientRect();
                 return [r.left + scrollX, r.top + scrollY, r.width, r.height]; })()
 })"""
@@ -49,10 +60,20 @@ def test_report_renders_in_chromium_without_errors(synthetic_run, tmp_path: Path
     # Offline: the only URLs loaded are the file itself and its embedded data: images.
     assert {u.split(":", 1)[0] for u in page.requests} <= {"file", "data"}
     probe = json.loads(page.evaluated)
-    assert probe["plots"] == 5  # 3D view, truth scatter, 2 calibration plots, timings
+    # 3D view, truth scatter, 2 calibration plots (folded: drawn when opened), timings
+    assert probe["plots"] == 5
     assert probe["webgl"] >= 1  # plotly drew the 3D view in a WebGL canvas
-    assert probe["legend"] == ["leaf 0", "leaf 1", "stem"]
+    assert probe["legend"] == ["leaf 0", "leaf 1", "stem", "leaf numbers"]
     assert probe["leafRows"] == 2 and probe["thumbs"] == 6
+    # The verdict is the first block; no plant flag in this run: "not assessed".
+    assert probe["verdictTop"] == "verdict" and probe["verdictFlag"] == "not assessed"
+    assert probe["warnedRows"] == ["0 ⚠"]  # leaf 0 is named by a measure warning
+    assert probe["numbers"] == ["0", "1"]  # the 3D view numbers the leaves as the table
+    # The legend (top left) and plotly's toolbar (top right) do not overlap.
+    lx, ly, lw, lh = probe["legendBox"]
+    tx, ty, tw, th = probe["toolbarBox"]
+    assert lx + lw <= tx or tx + tw <= lx or ly + lh <= ty or ty + th <= ly
+    assert probe["calibrationFolded"]
     assert probe["title"].startswith('plantscan report: <script>alert("x")')  # text, not markup
     # The screenshot's 3D view shows both leaves in their colours: not a blank canvas.  The
     # legend (right 20 % of the view) is left out: its swatches alone have ~130 such pixels;

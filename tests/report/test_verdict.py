@@ -1,0 +1,121 @@
+"""The report's trust block, colours and numbers: what a scientist reads first.
+
+Colour distinctness is measured as CIELAB Delta E 1976: about 2.3 is a just
+noticeable difference; the fixed Okabe-Ito/Tableau palette's closest pair is
+16.2, so 15 is the bar for every pair of labels of one plant.
+"""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+from plantscan_report import verdict as trust
+from plantscan_report.colours import (
+    DEBRIS_RGB,
+    POT_RGB,
+    STEM_RGB,
+    UNASSIGNED_RGB,
+    _lab,
+    face_colours,
+    label_colours,
+    leaf_palette,
+)
+from plantscan_report.html_report import render_report
+from plantscan_report.meshes import ply_bytes, split_by_face_colour
+
+from plantscan_core.data import LabelledMesh, Mesh
+
+MIN_DELTA_E = 15.0
+
+
+def _many_leaves(n: int) -> LabelledMesh:
+    """``n`` one-triangle leaves (labels 1..n), a stem (0), a pot (n+1), debris (n+2)."""
+    k = n + 3
+    vertices = np.array([[i, 0.0, 0.0] for i in range(k)] + [[i, 1.0, 0.0] for i in range(k)]
+                        + [[i, 0.0, 1.0] for i in range(k)], float)
+    faces = np.array([[i, k + i, 2 * k + i] for i in range(k)])
+    labels = np.array([0] + list(range(1, n + 1)) + [n + 1, n + 2])
+    kinds = {0: "stem", **{i: "leaf" for i in range(1, n + 1)}, n + 1: "pot", n + 2: "debris"}
+    return LabelledMesh(Mesh(vertices, faces), labels, kinds)
+
+
+def test_forty_leaves_get_forty_distinct_colours_unlike_stem_pot_and_debris():
+    labelled = _many_leaves(40)
+    colours = label_colours(labelled)
+    leaves = np.array([colours[i] for i in labelled.leaf_labels])
+    assert len({tuple(np.round(c * 255).astype(int)) for c in colours.values()}) == 43
+    lab = _lab(leaves)
+    d = np.linalg.norm(lab[:, None] - lab[None], axis=2)
+    d[np.eye(len(lab), dtype=bool)] = np.inf
+    assert d.min() >= MIN_DELTA_E
+    others = _lab(np.array([STEM_RGB, POT_RGB, DEBRIS_RGB, UNASSIGNED_RGB]))
+    assert np.linalg.norm(lab[:, None] - others[None], axis=2).min() >= MIN_DELTA_E
+    # the first twelve leaves keep their colours whatever the plant's leaf count
+    np.testing.assert_array_equal(leaf_palette(40)[:12], leaf_palette(12))
+    # and the exported PLY carries 43 distinct colours for the 43 labels (was 13 for 18)
+    mesh, vc = split_by_face_colour(labelled.mesh, face_colours(labelled))
+    data = ply_bytes(mesh, vc)
+    body = data.split(b"end_header\n", 1)[1]
+    rgb = np.frombuffer(body, dtype=[("xyz", "<f4", (3,)), ("rgb", "u1", (3,))],
+                        count=len(mesh.vertices))["rgb"]
+    assert len({tuple(c) for c in rgb}) == 43
+
+
+def test_numbers_never_switch_to_scientific_notation():
+    assert trust.format_value("area_mm2", 18240.4) == "18\u2009240 mm²"
+    assert trust.format_value("area_mm2", 8110.2) == "8\u2009110 mm²"
+    assert trust.format_value("height_mm", 287.05) == "287.1 mm"
+    assert trust.format_value("leaf_count", 17.0) == "17"
+    assert trust.format_value("thick_share", 0.183) == "18.3 %"
+    assert trust.format_value("convex_hull_volume_mm3", 2.4331347e7) == "24\u2009331\u2009347 mm³"
+    assert "e+" not in trust.format_number(1.824e4, 1)
+    assert trust.format_number(float("nan"), 1) == "—"
+
+
+def test_calibration_line_levels():
+    assert trust.calibration_line({"rms_px": 0.2, "corners": 900})[0] == "ok"
+    level, text = trust.calibration_line({"rms_px": 0.2, "flags": ["board covers 40 %"]})
+    assert level == "check" and "board covers 40 %" in text
+    assert trust.calibration_line({"rms_px": 0.7})[0] == "check"
+    assert trust.calibration_line({"rms_px": 1.6})[0] == "fail"
+    assert trust.calibration_line({})[0] == "—"
+
+
+def _verdict_html(html: str) -> str:
+    return re.search(r'<section id="verdict">.*?</section>', html, re.S).group(0)
+
+
+def test_verdict_says_not_assessed_without_a_flag(synthetic_run):
+    html = render_report(synthetic_run, thumbnails=0)
+    block = _verdict_html(html)
+    assert html.index('id="verdict"') < html.index('id="plant3d"')  # first thing on the page
+    assert 'class="flag flag-na">not assessed' in block
+    assert "2 measured, 1 warned about" in block
+    assert "Calibration</b>: <span class=\"lvl lvl-ok\">ok" in block  # RMS 0.21 px, no notes
+    # the warned leaf's row is marked, with a short reason
+    row = re.search(r'<tr class="warned">(.*?)</tr>', html, re.S).group(1)
+    assert ">0 <span" in row and "phantom volume" in row
+
+
+@pytest.mark.parametrize("quality, flag, reason", [
+    ({"flag": "check", "reasons": ["3 of 12 leaves low confidence", "hull touches the box"]},
+     "check", "hull touches the box"),
+    ("fail", "fail", None),
+])
+def test_verdict_shows_the_plant_flag_and_its_reasons(synthetic_run, quality, flag, reason):
+    synthetic_run.traits.plant["quality"] = quality
+    block = _verdict_html(render_report(synthetic_run, thumbnails=0))
+    assert f'class="flag flag-{flag}">{flag}</span>' in block
+    if reason:
+        assert f"<li>{reason}</li>" in block
+    assert "not assessed" not in block
+
+
+def test_exports_are_named_by_plugin(synthetic_run):
+    synthetic_run.timings["export.0"] = 0.3
+    synthetic_run.info["stages"]["export.0"] = {"plugin": "ply"}
+    html = render_report(synthetic_run, thumbnails=0)
+    timings = re.search(r'<section id="timings">.*?</section>', html, re.S).group(0)
+    assert "export ply" in timings and "export.0" not in timings
