@@ -44,8 +44,8 @@ def read_mask(path: Path) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- PLY
-def write_ply(path: Path, mesh: Mesh, face_labels: np.ndarray | None = None) -> None:
-    """Binary little-endian PLY; with ``face_labels`` a per-face ``int leaf_id`` property."""
+def write_ply(path: Path, mesh: Mesh) -> None:
+    """Binary little-endian PLY of a mesh (float xyz, mm, turntable frame; int faces)."""
     v = mesh.vertices.astype("<f4")
     f = mesh.faces.astype("<i4")
     header = [
@@ -58,17 +58,10 @@ def write_ply(path: Path, mesh: Mesh, face_labels: np.ndarray | None = None) -> 
         "property float z",
         f"element face {len(f)}",
         "property list uchar int vertex_indices",
+        "end_header",
     ]
-    if face_labels is not None:
-        header.append("property int leaf_id")
-    header.append("end_header")
-    dt = [("n", "u1"), ("idx", "<i4", (3,))]
-    if face_labels is not None:
-        dt.append(("leaf_id", "<i4"))
-    faces = np.empty(len(f), dtype=dt)
+    faces = np.empty(len(f), dtype=[("n", "u1"), ("idx", "<i4", (3,))])
     faces["n"] = 3
     faces["idx"] = f
-    if face_labels is not None:
-        faces["leaf_id"] = np.asarray(face_labels, dtype="<i4")
     data = ("\n".join(header) + "\n").encode() + v.tobytes() + faces.tobytes()
     atomic_write_bytes(Path(path), data)

@@ -408,8 +408,7 @@ def _mesh(plugin: Mesher, run: StepRun) -> Mesh:
 
 def _segment_mesh(plugin: MeshSegmenter, run: StepRun) -> LabelledMesh:
     labelled = plugin.segment(run.results["mesh"])
-    labelled.save(run.path("labelled.npz"))
-    write_ply(run.path("labelled.ply"), labelled.mesh, labelled.face_labels)
+    labelled.save(run.path("labelled.npz"))  # its PLY (colours + labels): the ply exporter's
     return labelled
 
 

@@ -65,8 +65,11 @@ def traits_parquet_bytes(traits: Traits, plant_id: str, recipe_name: str,
     for name in LEAF_TRAIT_COLUMNS:
         columns[name] = [getattr(leaf, name) for leaf in traits.leaves]
     for key, value in sorted(traits.plant.items()):
-        if isinstance(value, (int, float)):
-            columns[f"plant_{key}"] = [float(value)] * n
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            continue  # flags and lists (the quality record) are not columns
+        # counts stay integers (leaf_count), measurements floats
+        count = isinstance(value, int) or key.endswith("_count")
+        columns[f"plant_{key}"] = [int(value) if count else float(value)] * n
     table = pa.table(columns)
     buf = io.BytesIO()
     pq.write_table(table, buf)

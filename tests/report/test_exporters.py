@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from plantscan_report import plugin
-from plantscan_report.colours import face_colours, leaf_colour
+from plantscan_report.colours import face_colours, label_colours, leaf_colour
 from plantscan_report.html_report import HtmlReportExporter
 from plantscan_report.truth import match_leaves, read_truth_traits
 from report_fixtures import HOSTILE_ID, HOSTILE_RECIPE
@@ -81,27 +81,73 @@ def _accessor(doc: dict, binary: bytes, index: int) -> np.ndarray:
     return np.frombuffer(raw, dtype=dtype).reshape(acc["count"], width)
 
 
-def test_glb_is_valid_gltf_with_exact_geometry_colours_and_metre_y_up_node(synthetic_run):
+def test_glb_is_valid_gltf_with_one_named_node_per_organ_and_metre_y_up_root(synthetic_run):
     (path,) = build("glb", synthetic_run).export(synthetic_run)
     doc, binary = _parse_glb(path.read_bytes())
-    prim = doc["meshes"][0]["primitives"][0]
-    faces = _accessor(doc, binary, prim["indices"]).reshape(-1, 3)
-    positions = _accessor(doc, binary, prim["attributes"]["POSITION"]).astype(float)
-    rgba = _accessor(doc, binary, prim["attributes"]["COLOR_0"])
-    acc = doc["accessors"][prim["attributes"]["POSITION"]]
-    np.testing.assert_allclose(acc["min"], positions.min(0))  # glTF requires exact min/max
-    np.testing.assert_allclose(acc["max"], positions.max(0))
     labelled = synthetic_run.labelled
-    tri = positions[faces]
-    areas = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    # float32 positions of a ~200 mm plant: ~1e-5 mm precision, so 1e-3 mm² on face areas.
-    np.testing.assert_allclose(areas, labelled.mesh.face_areas(), atol=1e-3)
-    got = _face_colours_of(rgba[:, :3] / 255.0, faces)
-    np.testing.assert_allclose(got, face_colours(labelled), atol=1.0 / 255 + 1e-9)
-    # The node maps the stem's top (z = 200 mm, turntable Z up) to 0.2 m along glTF's +Y.
-    m = np.array(doc["nodes"][0]["matrix"]).reshape(4, 4).T  # column-major in glTF
+    colours = label_colours(labelled)
+    root = doc["nodes"][0]
+    children = [doc["nodes"][i] for i in root["children"]]
+    assert [c["name"] for c in children] == ["leaf 0", "leaf 1", "stem"]
+    total_area = 0.0
+    for child, label in zip(children, (0, 1, 2), strict=True):
+        prim = doc["meshes"][child["mesh"]]["primitives"][0]
+        faces = _accessor(doc, binary, prim["indices"]).reshape(-1, 3)
+        positions = _accessor(doc, binary, prim["attributes"]["POSITION"]).astype(float)
+        rgba = _accessor(doc, binary, prim["attributes"]["COLOR_0"])
+        acc = doc["accessors"][prim["attributes"]["POSITION"]]
+        np.testing.assert_allclose(acc["min"], positions.min(0))  # glTF requires exact min/max
+        np.testing.assert_allclose(acc["max"], positions.max(0))
+        assert len(faces) == int(np.sum(labelled.face_labels == label))
+        tri = positions[faces]
+        total_area += 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0],
+                                                    tri[:, 2] - tri[:, 0]), axis=1).sum()
+        # 8-bit colour quantisation: 1/255 tolerance
+        np.testing.assert_allclose(rgba[:, :3] / 255.0, np.tile(colours[label], (len(rgba), 1)),
+                                   atol=1.0 / 255 + 1e-9)
+    # float32 positions of a ~200 mm plant: ~1e-5 mm precision, so 1e-2 mm² on the surface.
+    assert total_area == pytest.approx(labelled.mesh.area(), abs=1e-2)
+    # The root maps the stem's top (z = 200 mm, turntable Z up) to 0.2 m along glTF's +Y.
+    m = np.array(root["matrix"]).reshape(4, 4).T  # column-major in glTF
     np.testing.assert_allclose(m @ [0, 0, 200, 1], [0, 0.2, 0, 1], atol=1e-12)
     assert np.linalg.det(m[:3, :3]) / 1e-9 == pytest.approx(1.0)  # rotation times 1e-3 scale
+
+
+def _read_ply_faces(data: bytes) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """Header lines, vertices and faces of a binary PLY, parsed from its header alone."""
+    head, _, body = data.partition(b"end_header\n")
+    lines = head.decode().splitlines()
+    types = {"float": "<f4", "uchar": "u1", "int": "<i4"}
+    elements, current = [], None
+    for line in lines:
+        words = line.split()
+        if words[0] == "element":
+            current = (words[1], int(words[2]), [])
+            elements.append(current)
+        elif words[0] == "property" and words[1] == "list":
+            current[2].append(("n", types[words[2]]))
+            current[2].append((words[4], types[words[3]], (3,)))  # triangles
+        elif words[0] == "property":
+            current[2].append((words[2], types[words[1]]))
+    (_, nv, vdt), (_, nf, fdt) = elements
+    vertices = np.frombuffer(body, dtype=vdt, count=nv)
+    faces = np.frombuffer(body, dtype=fdt, count=nf, offset=vertices.nbytes)
+    return lines, vertices, faces
+
+
+def test_ply_carries_colours_and_labels_in_one_file(synthetic_run):
+    (path,) = build("ply", synthetic_run).export(synthetic_run)
+    lines, vertices, faces = _read_ply_faces(path.read_bytes())
+    labelled = synthetic_run.labelled
+    assert len(faces) == len(labelled.mesh.faces)
+    # leaf faces carry the traits table's leaf id, the stem -1; organ 1 leaf, 2 stem
+    is_leaf = np.isin(labelled.face_labels, labelled.leaf_labels)
+    np.testing.assert_array_equal(faces["leaf_id"], np.where(is_leaf, labelled.face_labels, -1))
+    np.testing.assert_array_equal(faces["organ"], np.where(is_leaf, 1, 2))
+    rgb = np.stack([vertices["red"], vertices["green"], vertices["blue"]], axis=1) / 255.0
+    got = _face_colours_of(rgb, faces["vertex_indices"])
+    np.testing.assert_allclose(got, face_colours(labelled), atol=1.0 / 255 + 1e-9)
+    assert any("organ: 0 unassigned, 1 leaf, 2 stem, 3 pot, 4 debris" in ln for ln in lines)
 
 
 def test_glb_is_read_by_another_implementation(synthetic_run):
@@ -141,6 +187,11 @@ def test_csv_and_parquet_hold_the_traits(synthetic_run):
     assert table["recipe"] == [HOSTILE_RECIPE] * 2
     np.testing.assert_allclose(table["area_mm2"], [x.area_mm2 for x in synthetic_run.traits.leaves])
     np.testing.assert_allclose(table["plant_height_mm"], [200.0, 200.0])
+    # counts are integers in the file, not floats
+    assert table["plant_leaf_count"] == [2, 2]
+    schema = pa.read_schema(synthetic_run.run_dir / "traits.parquet")
+    assert str(schema.field("plant_leaf_count").type) == "int64"
+    assert str(schema.field("leaf_id").type) == "int64"
 
 
 def _qvec_to_rotmat(q):
