@@ -19,7 +19,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 ORDER = ["render", "calibration", "segmentation", "hull", "leaves", "batch", "store",
-         "end_to_end"]
+         "end_to_end", "first_run"]
 
 
 def assemble() -> Path:

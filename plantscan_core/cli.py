@@ -75,14 +75,14 @@ def cmd_plugins(args) -> int:
     console = Console()
     table = Table(title="plantscan stages")
     for col in ("stage", "name", "plugin", "distribution", "version"):
-        table.add_column(col)
+        table.add_column(col, overflow="fold")  # a narrow terminal wraps, never cuts, names
     for r in manager.registry:  # in pipeline order
         table.add_row(r.stage, r.name, r.plugin, r.distribution, r.version)
     console.print(table)
     if manager.failed:
         ft = Table(title="plugins that failed to load", style="red")
         for col in ("plugin", "entry point", "distribution", "error"):
-            ft.add_column(col)
+            ft.add_column(col, overflow="fold")
         for f in manager.failed:
             ft.add_row(f.name, f.value, f.distribution, f.error)
         console.print(ft)
