@@ -24,7 +24,7 @@ from plantscan_core.recipe import (
     validate_recipe,
 )
 from plantscan_core.scanfolder import ScanFolder
-from plantscan_core.stages import RunResult, Stage, StageContext
+from plantscan_core.stages import RunResult, Stage, StageContext, StageReport
 
 RecipeLike = str | Path | Recipe | dict
 
@@ -120,7 +120,8 @@ def load_run(path: str | Path, *, silhouettes: bool = False, volume: bool = Fals
     """Read a run folder written by ``process`` (or ``plantscan process``) back.
 
     The small results are read: calibration, mesh, labelled mesh, traits, the
-    run record (``info``, ``timings``).  ``silhouettes=True`` also reads every
+    run record (``info``, ``timings``) and every stage's report (``reports``:
+    counts, figures, warnings).  ``silhouettes=True`` also reads every
     mask (one bool image per plant view: large for 18 MP scans) and
     ``volume=True`` the hull's field (512 MB at 512^3).  A result whose file is
     absent (its stage did not run) is None.
@@ -131,7 +132,7 @@ def load_run(path: str | Path, *, silhouettes: bool = False, volume: bool = Fals
         ``path`` is not a run folder (no ``run.json``), or a file is unreadable.
     """
     from plantscan_core.data import Volume
-    from plantscan_core.pipeline import MASKS_DIR, read_mask
+    from plantscan_core.runfolder import MASKS_DIR, read_mask
 
     run_dir = Path(path)
     record = run_dir / "run.json"
@@ -172,6 +173,13 @@ def load_run(path: str | Path, *, silhouettes: bool = False, volume: bool = Fals
         masks = [(v, run_dir / MASKS_DIR / f"{v.index:05d}.png") for v in views]
         result.silhouettes = Silhouettes([Silhouette(v, read_mask(m)) for v, m in masks
                                           if m.exists()])
+    # what every stage said of its work, as the run that wrote the folder had it
+    for section, record in info.get("stages", {}).items():
+        if isinstance(record, dict) and "info" in record:
+            result.reports[section] = StageReport.from_dict(record["info"])
+    for name in RunResult.STEP_RESULTS:
+        if getattr(result, name) is not None:
+            result.results[name] = getattr(result, name)
     return result
 
 

@@ -807,13 +807,9 @@ class Traits:
         ``plant_columns=True`` adds the plant-level traits as ``plant_*`` columns
         repeated on every row (as ``traits.parquet``), so that many plants'
         frames concatenate into one table; they are always in ``df.attrs["plant"]``.
-        Needs pandas (``pip install 'plantscan[pandas]'``).
         """
-        try:
-            import pandas as pd
-        except ImportError as exc:
-            raise ImportError("Traits.to_dataframe needs pandas: pip install "
-                              "'plantscan[pandas]'") from exc
+        import pandas as pd
+
         columns = {name: [getattr(leaf, name) for leaf in self.leaves]
                    for name in LEAF_TRAIT_COLUMNS}
         df = pd.DataFrame(columns).astype({"leaf_id": "int64"})

@@ -576,7 +576,11 @@ def _subtitle(run: RunResult) -> str:
     species = run.recipe.plant.species if run.recipe is not None else ""
     info = run.scan.info if run.scan is not None else {}
     species = info.get("species") or species
-    scanned = str(info.get("created") or "")
+    scanned = ""
+    if run.scan is not None:
+        from plantscan_core.metadata import scan_summary
+
+        scanned = scan_summary(run.scan)["acquired_at"]  # scan.yaml's, else the first image's
     overrides = (run.info or {}).get("overrides") or []
     recipe = f"recipe {recipe_name}" if recipe_name else ""
     if recipe and overrides:

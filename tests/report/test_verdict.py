@@ -115,7 +115,7 @@ def test_verdict_shows_the_plant_flag_and_its_reasons(synthetic_run, quality, fl
 
 def test_exports_are_named_by_plugin(synthetic_run):
     synthetic_run.timings["export.0"] = 0.3
-    synthetic_run.info["stages"]["export.0"] = {"plugin": "ply"}
+    synthetic_run.info.setdefault("stages", {})["export.0"] = {"plugin": "ply"}
     html = render_report(synthetic_run, thumbnails=0)
     timings = re.search(r'<section id="timings">.*?</section>', html, re.S).group(0)
     assert "export ply" in timings and "export.0" not in timings
