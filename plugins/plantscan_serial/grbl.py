@@ -29,7 +29,6 @@ from pydantic import Field
 from plantscan_core.errors import HardwareError, require_module
 from plantscan_core.stages import MotionAxis, StageParams
 
-
 log = logging.getLogger(__name__)
 
 # GRBL 1.1 error and alarm codes (grbl/doc/csv/error_codes_en_US.csv, alarm_codes_en_US.csv).
