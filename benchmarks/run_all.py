@@ -18,8 +18,8 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-ORDER = ["render", "calibration", "segmentation", "hull", "leaves", "batch", "store",
-         "end_to_end", "first_run"]
+ORDER = ["population", "render", "calibration", "segmentation", "hull", "leaves", "batch",
+         "store", "end_to_end", "first_run"]
 
 
 def assemble() -> Path:
