@@ -80,10 +80,20 @@ def frustum(z0: float, z1: float, r0: float, r1: float, n: int = 96, attr: int =
     return revolve(np.array([[0.0, z0], [r0, z0], [r1, z1], [0.0, z1]]), n, attr)
 
 
+MIN_STEP_MM = 1e-4  # points of a polyline closer than this are one point (tube tangents)
+
+
 def tube(points: np.ndarray, radii, n: int = 10, attr: int = 0) -> TriMesh:
     """Closed tube along a polyline ``(N, 3)`` with radius per point (stems, petioles)."""
     pts = np.asarray(points, dtype=float)
     radii = np.broadcast_to(np.asarray(radii, dtype=float), (len(pts),))
+    # A growing plant's organs start at zero length (an internode not yet elongated, a
+    # sessile petiole): repeated points have no tangent, so they are dropped, and a tube
+    # with no length left is no mesh at all.
+    keep = np.concatenate([[True], np.linalg.norm(np.diff(pts, axis=0), axis=1) > MIN_STEP_MM])
+    pts, radii = pts[keep], radii[keep]
+    if len(pts) < 2:
+        return _mesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), attr)
     tang = np.gradient(pts, axis=0)
     tang /= np.linalg.norm(tang, axis=1, keepdims=True)
     ref = np.array([0.0, 0.0, 1.0]) if abs(tang[0, 2]) < 0.9 else np.array([1.0, 0.0, 0.0])
