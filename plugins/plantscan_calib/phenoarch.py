@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from plantscan_calib.solver import Detection
+from plantscan_calib.model import Detection
 from plantscan_core.data import (
     Calibration,
     CameraModel,

@@ -11,13 +11,9 @@ import numpy as np
 from pydantic import Field
 
 from plantscan_calib.detect import BoardSpec, detect_charuco, detect_chessboard
-from plantscan_calib.solver import (
-    CalibrationError,
-    Detection,
-    SolveOptions,
-    calibrate_turntable,
-    label_identical_boards,
-)
+from plantscan_calib.initialise import label_identical_boards
+from plantscan_calib.model import CalibrationError, Detection
+from plantscan_calib.solver import SolveOptions, solve_turntable
 from plantscan_core.data import Calibration, ViewRecord
 from plantscan_core.errors import DataError
 from plantscan_core.hookspecs import hookimpl
@@ -37,7 +33,9 @@ class TurntableCalibrator(Calibrator):
 
     name = "turntable"
 
-    class Params(StageParams):
+    class Params(SolveOptions):
+        """The board, its detection and the solver's options (``SolveOptions``)."""
+
         board: Literal["chessboard", "charuco"] = "chessboard"
         cols: int = Field(9, ge=2, description="inner corners along the board's rows")
         rows: int = Field(6, ge=2, description="inner corners along the board's columns")
@@ -47,23 +45,6 @@ class TurntableCalibrator(Calibrator):
         dictionary: str = "DICT_5X5_100"
         detect_max_side_px: int = Field(800, ge=128,
                                         description="pyramid top size for chessboard detection")
-        min_views: int = Field(3, ge=1, description="fewest board detections per camera and tilt")
-        fix_principal_point: bool = False
-        fix_distortion: bool = False
-        fit_aspect: bool = Field(False, description="estimate the pixel aspect ratio "
-                                 "(fy = f * aspect); off: square pixels, as the seed")
-        fit_angle_scale: bool = False
-        joint_tilt_axis: bool = Field(True, description="solve the (camera, tilt) poses as one "
-                                      "rigid tilting arm (one axis, one angle error per tilt)")
-        angle_jitter_deg: float | None = Field(None, gt=0)
-        outlier_sigma: float = Field(4.0, gt=1)
-        min_outlier_px: float = Field(0.3, ge=0, description="a corner closer than this is "
-                                      "never rejected as an outlier")
-        cauchy_scale_px: float = Field(1.0, gt=0)
-        max_rms_px: float = Field(2.0, gt=0)
-        max_rejected_fraction: float = Field(0.05, ge=0, le=1)
-        lowest_corner_height_mm: float = 0.0
-        cross_validate: bool = True
         boards: int = Field(1, ge=1, description="boards on the turntable: ChArUco board k "
                             "uses the k-th block of marker ids; identical chessboards are told "
                             "apart by the turntable angles at which each faces the cameras")
@@ -75,19 +56,6 @@ class TurntableCalibrator(Calibrator):
             return BoardSpec(p.board, p.cols, p.rows, p.square_mm, p.marker_mm, p.dictionary)
         except ValueError as exc:
             raise CalibrationError(f"calibrate.params: {exc}") from None
-
-    def solve_options(self) -> SolveOptions:
-        p = self.params
-        return SolveOptions(fix_principal_point=p.fix_principal_point,
-                            fix_distortion=p.fix_distortion, fit_angle_scale=p.fit_angle_scale,
-                            fit_aspect=p.fit_aspect, joint_tilt_axis=p.joint_tilt_axis,
-                            angle_jitter_deg=p.angle_jitter_deg, outlier_sigma=p.outlier_sigma,
-                            min_outlier_px=p.min_outlier_px,
-                            cauchy_scale_px=p.cauchy_scale_px, min_views=p.min_views,
-                            max_rms_px=p.max_rms_px,
-                            max_rejected_fraction=p.max_rejected_fraction,
-                            lowest_corner_height_mm=p.lowest_corner_height_mm,
-                            cross_validate=p.cross_validate)
 
     def calibrate(self, scan) -> Calibration:
         views = scan.views_by_role("calibration")
@@ -104,13 +72,22 @@ class TurntableCalibrator(Calibrator):
         _check_detections(views, found, spec, self.params.min_views, scan.root)
         boards = {k: spec.object_points() for k in range(self.params.boards)}
         tilts = {v.tilt_index: v.tilt_deg for v in views}
-        cal = calibrate_turntable(dets, boards, sizes, tilts, self.solve_options(),
-                                  symmetric_boards=spec.symmetric)
+        solved = solve_turntable(dets, boards, sizes, tilts, self.params,
+                                 symmetric_boards=spec.symmetric)
+        cal, quality = solved.calibration, solved.quality
         per_ct = Counter((v.camera, v.tilt_index) for v in views)
         cal.quality["board_found"] = {
             f"{c}/t{t}": {"found": found.get((c, t), 0), "views": n}
             for (c, t), n in sorted(per_ct.items())}
         cal.quality["board"] = spec.__dict__ | {}
+        self.report.count("views", len(views))
+        self.report.count("detections", quality.detections)
+        self.report.count("corners", quality.corners)
+        if quality.rejected_corners is not None:
+            self.report.count("rejected_corners", quality.rejected_corners)
+        self.report.note({"rms_px": quality.rms_px, "corner_noise_px": quality.corner_noise_px,
+                          "max_px": quality.max_px})
+        self.report.warnings += quality.flags
         return cal
 
 

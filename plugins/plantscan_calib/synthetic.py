@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from plantscan_calib.detect import BoardSpec
-from plantscan_calib.solver import Detection
+from plantscan_calib.model import Detection
 from plantscan_core.data import (
     Calibration,
     CameraModel,

@@ -44,9 +44,16 @@ def test_registered_through_the_hook():
 def test_turntable_calibrates_a_rendered_scan(board_scan, tmp_path):
     rig, root = board_scan
     scan = ScanFolder.open(root)
-    cal = TurntableCalibrator(_params()).calibrate(scan)
+    calibrator = TurntableCalibrator(_params())
+    cal = calibrator.calibrate(scan)
     q = cal.quality
     assert set(q["board_found"]) == {"cam0/t0", "cam1/t0"}
+    # The stage's report: the counts and figures a user checks first, the flags coded.
+    report = calibrator.report
+    assert report.counts["detections"] == sum(v["found"] for v in q["board_found"].values())
+    assert report.counts["corners"] == q["corners"]
+    assert report.figures["rms_px"] == q["rms_px"]
+    assert [w.message for w in report.warnings] == q["flags"]
     assert all(v["found"] >= 5 for v in q["board_found"].values())
     err = compare_calibrations(cal, rig.truth, volume_points())
     # 960x640 images (1 px ~ 0.75 mm at the board), ~20 views of 54 corners per camera:
