@@ -1,6 +1,6 @@
 """Turntable-constrained bundle adjustment of feature tracks (pyceres).
 
-The model is the chessboard calibrator's (``plantscan_calib.solver``) with the
+The model is the chessboard calibrator's (``plantscan_calib.model``) with the
 board corners replaced by free 3D points: a point ``X`` (turntable frame at
 angle 0) seen from camera ``c`` at tilt ``t`` and turntable stop ``k`` projects
 as ``CameraModel(R_ct (Rz(theta_k * s + e_k) X - C_ct))``.  Unknowns: per camera
@@ -18,7 +18,7 @@ One Ceres residual block per track (a Python cost per observation spent most
 of the solve in the Python call); its projections and Jacobian (central
 differences of the closed-form projection, in one compiled call) are computed
 by ``_observe_track``, whose plain reference is
-``plantscan_calib.solver.project_mats``.
+``plantscan_calib.model.project_mats``.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from plantscan_calib.solver import project_mats, rotmats, rotvec
+from plantscan_calib.model import project_mats, rotmats, rotvec, turn_deg
 
 from plantscan_core.data import CameraModel, Pose
 from plantscan_sfm.features import SfmView, Tracks
@@ -337,9 +337,9 @@ def residuals(state: TurntableState, views: list[SfmView], tracks: Tracks) -> np
         ks = np.array(ks)
         p = state.poses[v.group]
         uv = project_mats(state.intrinsics[v.view.camera][None], rotmats(p[:3]), p[None, 3:6],
-                          np.eye(3)[None], np.zeros((1, 3)), state.scale,
-                          state.stops[stop_key(v)], state.points[tracks.track[ks]],
-                          v.view.angle_deg)[0]
+                          np.eye(3)[None], np.zeros((1, 3)),
+                          turn_deg(v.view.angle_deg, state.scale, state.stops[stop_key(v)]),
+                          state.points[tracks.track[ks]])[0]
         # project_mats has no cheirality test: points behind the camera are invalid.
         rz = np.radians(v.view.angle_deg * state.scale[0] + state.stops[stop_key(v)][0])
         c, s = math.cos(rz), math.sin(rz)

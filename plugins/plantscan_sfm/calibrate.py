@@ -21,7 +21,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from plantscan_calib.solver import fit_tilt_axis, rotmats, rotvec
+from plantscan_calib.initialise import fit_tilt_axis
+from plantscan_calib.model import rotmats, rotvec
 
 from plantscan_core.data import Calibration, CameraModel, Pose, ViewRecord, rotation_z
 from plantscan_sfm import bundle, features, initialise

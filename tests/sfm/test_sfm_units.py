@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 import pytest
-from plantscan_calib.solver import project_mats, rotmats
+from plantscan_calib.model import project_mats, rotmats, turn_deg
 
 from plantscan_core.errors import DataError
 
@@ -54,8 +54,8 @@ def test_track_kernel_is_the_chessboard_solvers_projection():
     assert _observe_track(p, offsets, thetas, uv_obs, res, jac, True)
     for o in range(4):
         ref = project_mats(intr[None], rotmats(pose[:3]), pose[None, 3:], np.eye(3)[None],
-                           np.zeros((1, 3)), np.array([scale]), np.array([stops[o]]), x[None],
-                           thetas[o])[0, 0]
+                           np.zeros((1, 3)), turn_deg(thetas[o], np.array([scale]),
+                                                      np.array([stops[o]])), x[None])[0, 0]
         # Same closed form, other code: agree to rounding (1e-9 px).
         assert np.allclose(res[2 * o:2 * o + 2], ref - uv_obs[o], atol=1e-9)
 
