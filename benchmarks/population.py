@@ -106,14 +106,19 @@ def scan_raw(key: PlantKey, recipe: Path, roles: Sequence[str]) -> dict[str, Any
 
 
 def rig_hash(raw: dict[str, Any]) -> str:
-    """A short hash of what the images depend on apart from the plant (rig, board, pot,
-    lights, protocol, size): scans with equal hashes share a session calibration."""
+    """A short hash of what the images depend on apart from the seed (rig, board, pot,
+    lights, protocol, size, and the generators' ``GENERATOR_VERSION``): scans with equal
+    hashes share a session calibration."""
     scan = copy.deepcopy(raw["scan"])
     params = dict(scan.get("scene", {}).get("params") or {})
     for k in ("preset", "seed", "age"):
         params.pop(k, None)
     scan["scene"]["params"] = params
     scan.pop("roles", None)
+    from plantscan_sim.families import GENERATOR_VERSION
+
+    if GENERATOR_VERSION != 1:  # version 1 renders were cached before the version existed
+        scan["generator_version"] = GENERATOR_VERSION
     text = json.dumps(scan, sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:10]
 
@@ -269,6 +274,13 @@ def plant_row(key: PlantKey, evaluation: dict[str, Any], truth_dir: Path,
         row[f"{name}_measured"] = None if p is None else p["measured"]
         row[f"{name}_rel_error"] = None if p is None else p["relative_error"]
     row["leaves_warned"] = t.get("leaves_warned")
+    # what the earlier stages left: silhouettes, phantom volume of the hull, calibration
+    sil, hull = evaluation.get("silhouettes") or {}, evaluation.get("hull") or {}
+    row["silhouette_iou_mean"] = (sil.get("iou") or {}).get("mean")
+    row["hull_phantom_voxels"] = hull.get("hull_to_truth_mean_voxels")
+    row["hull_leaves_lost"] = hull.get("leaves_lost")
+    cal = (evaluation.get("calibration") or {}).get("camera_centre_error_mm") or {}
+    row["camera_centre_error_mm"] = cal.get("mean")
     if timing:
         row["process_wall_s"] = round(timing["wall_s"], 2)
         row["process_cpu_s"] = round(timing["cpu_s"], 2)
@@ -307,11 +319,13 @@ def run_population(families: Sequence[str], seeds: Sequence[int], protocol: str 
                    size: tuple[int, int] = DEFAULT_SIZE, *, resolution: int | None = None,
                    recipe_dir: Path | None = None, runs: Path, cache: Path = DEFAULT_CACHE,
                    calibrate_each: bool = False, overrides: Sequence[str] = (),
-                   log=print) -> tuple[list[dict], list[dict]]:
+                   reuse_runs: bool = False, log=print) -> tuple[list[dict], list[dict]]:
     """Scan (cached), process and evaluate every (family, seed); (plant rows, leaf rows).
 
     A plant whose processing fails is a row with ``error`` set and every truth
-    leaf missed (it counts against recall); the run goes on.
+    leaf missed (it counts against recall); the run goes on.  ``reuse_runs``
+    takes a plant's finished run folder as it is (its evaluation.json and
+    run.json timings) instead of processing it again: to re-tabulate.
     """
     plants, leaves = [], []
     extra = list(overrides)
@@ -332,6 +346,15 @@ def run_population(families: Sequence[str], seeds: Sequence[int], protocol: str 
             run_dir = runs / family / key.label()
             truth_dir = scan / "ground_truth"
             timing, error, evaluation = None, None, {}
+            done = run_dir / "evaluation.json"
+            if reuse_runs and done.exists():
+                evaluation = json.loads(done.read_text())
+                info = json.loads((run_dir / "run.json").read_text())
+                timing = {"wall_s": info["timings_s"]["total"], "cpu_s": info["cpu_s"]["total"]}
+                row = plant_row(key, evaluation, truth_dir, timing)
+                plants.append(row)
+                leaves += leaf_rows(key, evaluation)
+                continue
             try:
                 timing = process_plant(scan, recipe, run_dir, calibration, extra)
                 evaluation = evaluate_plant(run_dir, truth_dir)
@@ -397,6 +420,10 @@ def family_summary(plants: list[dict], leaves: list[dict]) -> dict[str, Any]:
         else math.nan
     walls = [p["process_wall_s"] for p in plants if p.get("process_wall_s") is not None]
     cpus = [p["process_cpu_s"] for p in plants if p.get("process_cpu_s") is not None]
+    for k in ("silhouette_iou_mean", "hull_phantom_voxels", "camera_centre_error_mm"):
+        v = [p[k] for p in plants if p.get(k) is not None]
+        s[k] = float(np.median(v)) if v else math.nan
+    s["hull_leaves_lost"] = sum(p.get("hull_leaves_lost") or 0 for p in plants)
     s["wall_s"] = float(np.median(walls)) if walls else math.nan
     s["cpu_s"] = float(np.median(cpus)) if cpus else math.nan
     return s
@@ -437,6 +464,15 @@ def tabulate(plants: list[dict], leaves: list[dict]) -> str:
             + " | " + " / ".join(_pct(x) for x in s["plant_total_leaf_area_mm2"])
             + f" | {_pct(s['leaf_count_exact'], 0)}, {s['leaf_count_mean_abs']:.1f} "
             f"| {s['wall_s']:.1f} ({s['cpu_s']:.1f}) |")
+    out += ["", "What the stages before the leaves left (medians over plants): silhouette IoU "
+            "against the truth masks, the hull's mean distance to the truth surface in voxels "
+            "(phantom volume: large when views cannot carve the space between leaves), truth "
+            "leaves with no hull surface, camera-centre error of the session calibration.", "",
+            "| family | silhouette IoU | hull → truth, voxels | leaves lost by the hull "
+            "| camera centre error mm |", "|---|---|---|---|---|"]
+    for f, s in sums.items():
+        out.append(f"| {f} | {s['silhouette_iou_mean']:.4f} | {s['hull_phantom_voxels']:.1f} "
+                   f"| {s['hull_leaves_lost']} | {s['camera_centre_error_mm']:.2f} |")
     return "\n".join(out)
 
 
@@ -469,6 +505,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cache", type=Path, default=DEFAULT_CACHE)
     ap.add_argument("--calibrate-each", action="store_true",
                     help="render the board with every plant and calibrate per plant")
+    ap.add_argument("--reuse-runs", action="store_true",
+                    help="take finished run folders as they are (re-tabulate)")
     ap.add_argument("--title", default="", help="heading of this run's section")
     args = ap.parse_args(argv)
 
@@ -483,7 +521,7 @@ def main(argv: list[str] | None = None) -> int:
                                     resolution=args.resolution, recipe_dir=args.recipe_dir,
                                     runs=runs, cache=args.cache,
                                     calibrate_each=args.calibrate_each,
-                                    overrides=args.overrides,
+                                    overrides=args.overrides, reuse_runs=args.reuse_runs,
                                     log=lambda m: print(m, flush=True))
     table = tabulate(plants, leaves)
     csv_path = args.out.with_suffix(".csv")

@@ -52,6 +52,9 @@ from plantscan_sim.geometry import (
 )
 
 FAMILIES = ("dicot", "rosette", "branched", "grass", "seedling")
+# Bump when a change makes a seed give another plant: cached renders of the old plants
+# (benchmarks/population.py) are then not reused.
+GENERATOR_VERSION = 1
 ORGANS = ("stem", "petiole", "blade", "sheath", "rachis", "inflorescence")
 ORGAN_CODE = {name: code for code, name in enumerate(ORGANS)}
 VISIBLE_SHARE = 0.15  # a leaf below 15 % of its final length is still hidden in the bud
