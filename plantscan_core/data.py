@@ -701,6 +701,9 @@ def _compact_indices(faces: np.ndarray) -> np.ndarray:
     return faces
 
 
+LABEL_KINDS = ("leaf", "stem", "pot", "debris")  # stored by index in labelled.npz: append only
+
+
 @dataclass
 class LabelledMesh:
     """A mesh with a label per face.
@@ -711,12 +714,19 @@ class LabelledMesh:
     face_labels : (F,) int32 array
         ``-1`` unassigned; otherwise a key of ``kinds``.
     kinds : dict label -> str
-        What each label is: ``"leaf"``, ``"stem"`` or ``"pot"``.
+        What each label is: one of ``LABEL_KINDS`` — ``"leaf"``, ``"stem"``, ``"pot"``, or
+        ``"debris"`` (surface that is no organ: phantom volume, pot remnants, crumbs; kept
+        in the labelled mesh, never counted as leaf).
+    evidence : dict label -> dict str -> float
+        What the segmenter knows of each label that bears on how far its traits can be
+        trusted (e.g. ``phantom_share``, ``fragments``); the measurer turns it into a
+        confidence.  Empty when the segmenter says nothing.
     """
 
     mesh: Mesh
     face_labels: np.ndarray
     kinds: dict[int, str] = field(default_factory=dict)
+    evidence: dict[int, dict[str, float]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.face_labels = np.asarray(self.face_labels, dtype=np.int32).reshape(-1)
@@ -736,17 +746,24 @@ class LabelledMesh:
         return Mesh(self.mesh.vertices[used], inverse.reshape(-1, 3))
 
     def save(self, path: Path) -> None:
-        kinds = np.array([[k, ("leaf", "stem", "pot").index(v)] for k, v in self.kinds.items()],
+        kinds = np.array([[k, LABEL_KINDS.index(v)] for k, v in self.kinds.items()],
                          dtype=np.int64).reshape(-1, 2)
         # Uncompressed, as Mesh.save: the run cache is read back far more often than shipped.
+        import json
+
+        evidence = json.dumps({str(k): v for k, v in self.evidence.items()})
         np.savez(Path(path), vertices=self.mesh.vertices, faces=_compact_indices(self.mesh.faces),
-                 face_labels=self.face_labels, kinds=kinds)
+                 face_labels=self.face_labels, kinds=kinds, evidence=np.array(evidence))
 
     @classmethod
     def load(cls, path: Path) -> LabelledMesh:
         with np.load(Path(path)) as z:
-            kinds = {int(k): ("leaf", "stem", "pot")[int(v)] for k, v in z["kinds"]}
-            return cls(Mesh(z["vertices"], z["faces"]), z["face_labels"], kinds)
+            import json
+
+            kinds = {int(k): LABEL_KINDS[int(v)] for k, v in z["kinds"]}
+            evidence = ({int(k): v for k, v in json.loads(str(z["evidence"])).items()}
+                        if "evidence" in z else {})  # files before the field have none
+            return cls(Mesh(z["vertices"], z["faces"]), z["face_labels"], kinds, evidence)
 
 
 # --------------------------------------------------------------------------- traits

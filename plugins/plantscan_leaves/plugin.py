@@ -1,4 +1,5 @@
-"""plantscan_leaves: leaf segmentation (``curvature-regions``) and leaf traits (``leaf-geometry``).
+"""plantscan_leaves: leaf segmentation (``learned-organs``, ``curvature-regions``) and leaf traits
+(``leaf-geometry``).
 
 See ``docs/leaves.md`` for the method, parameters and per-species guidance.
 """
@@ -14,6 +15,7 @@ from plantscan_core.hookspecs import hookimpl
 from plantscan_core.stages import Measurer, MeshSegmenter
 from plantscan_leaves.evaluate import evaluate_traits
 from plantscan_leaves.measure import LeafGeometryParams, measure_plant
+from plantscan_leaves.organs import LearnedOrgansParams, segment_organs
 from plantscan_leaves.segment import CurvatureRegionsParams, segment_leaves
 
 log = logging.getLogger(__name__)
@@ -27,6 +29,18 @@ class CurvatureRegions(MeshSegmenter):
 
     def segment(self, mesh: Mesh) -> LabelledMesh:
         labelled, self.report = segment_leaves(mesh, self.params)
+        return labelled
+
+
+class LearnedOrgans(MeshSegmenter):
+    """Leaves, stem and debris by an organ classifier learned from the virtual scanner."""
+
+    name = "learned-organs"
+    Params = LearnedOrgansParams
+
+    def segment(self, mesh: Mesh) -> LabelledMesh:
+        labelled, info = segment_organs(mesh, self.params)
+        self.info = info
         return labelled
 
 
@@ -44,6 +58,7 @@ class LeafGeometry(Measurer):
 @hookimpl
 def plantscan_register_stages(registry) -> None:
     registry.add(CurvatureRegions)
+    registry.add(LearnedOrgans)
     registry.add(LeafGeometry)
 
 

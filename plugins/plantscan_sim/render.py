@@ -901,3 +901,19 @@ if HAVE_NUMBA:
                         y += sigma * noise[r, c, ch]
                     y = np.rint(y)
                     out[r, c, 2 - ch] = min(max(y, 0.0), 255.0)
+
+
+def silhouette_mask(vertices: np.ndarray, faces: np.ndarray, camera) -> np.ndarray:
+    """(H, W) bool: the pixels whose centre lies in the projection of a mesh (no rendering).
+
+    ``vertices`` (V, 3) mm, turntable frame; ``faces`` (F, 3); ``camera`` a posed
+    ``Camera``.  The exact silhouette of a closed mesh seen by that camera, at a
+    thousandth of a render's cost: training data for the leaf stages
+    (``scripts/train_organ_model.py``); a render's truth mask may differ on pixels the
+    surface covers by about half (its anti-aliased coverage decides there).
+    """
+    w, h = camera.model.width, camera.model.height
+    uv = camera.project(np.asarray(vertices, float))
+    out = np.zeros((h, w), np.uint8)
+    _raster_triangles(np.ascontiguousarray(uv[faces]), np.zeros(len(faces)), out)
+    return out.view(bool)
