@@ -34,15 +34,16 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from plantscan_core.data import LEAF_TRAIT_COLUMNS
+from plantscan_core.data import LEAF_TRAIT_COLUMNS, leaf_value_text
 from plantscan_core.errors import PlantScanError
 from plantscan_core.scanfolder import atomic_write_text
 
 SUMMARY_CSV = "batch_summary.csv"
 TRAITS_CSV = "traits_all.csv"
 ERROR_TXT = "batch_error.txt"
-SUMMARY_COLUMNS = ("scan", "plant_id", "status", "error", "seconds", "cpu_seconds", "leaf_count",
-                   "total_leaf_area_mm2", "height_mm", "run_dir", "worker")
+SUMMARY_COLUMNS = ("scan", "plant_id", "status", "quality_flag", "quality_reasons", "error",
+                   "seconds", "cpu_seconds", "leaf_count", "total_leaf_area_mm2", "height_mm",
+                   "run_dir", "worker")
 # who the plant is, from its metadata (the recipe, the scan, the sample sheet)
 METADATA_COLUMNS = ("investigation_id", "study_id", "species", "genotype", "accession",
                     "treatment", "replicate", "sowing_date")
@@ -55,7 +56,9 @@ class PlantOutcome:
 
     scan: str
     plant_id: str = ""
-    status: str = "failed"  # "ok" | "failed"
+    status: str = "failed"  # "ok" | "failed": whether it ran, not whether to trust it
+    quality_flag: str = ""  # the plant's flag, "ok" | "check" | "fail" (docs/leaves.md, Trust)
+    quality_reasons: str = ""  # "; "-separated
     error: str = ""
     seconds: float = 0.0
     cpu_seconds: float = 0.0  # CPU time of the worker process while it ran this plant
@@ -193,6 +196,8 @@ def process_plant(scan_dir: str, recipe_path: str, overrides: Sequence[str], run
             plant = result.traits.plant
             outcome.total_leaf_area_mm2 = _float_or_none(plant.get("total_leaf_area_mm2"))
             outcome.height_mm = _float_or_none(plant.get("height_mm"))
+            outcome.quality_flag = str(plant.get("quality_flag") or "")
+            outcome.quality_reasons = "; ".join(plant.get("quality_reasons") or [])
             outcome.leaves = [{c: getattr(leaf, c) for c in LEAF_TRAIT_COLUMNS}
                               for leaf in result.traits.leaves]
         outcome.status = "ok"
@@ -279,7 +284,7 @@ def write_traits(plants: list[PlantOutcome], path: Path) -> None:
         who += [plant.get("factors", {}).get(k, "") for k in factors]
         for leaf in p.leaves:
             w.writerow([p.scan, p.plant_id, p.scan_time, *who, leaf["leaf_id"],
-                        *(f"{leaf[c]:.4f}" for c in LEAF_TRAIT_COLUMNS[1:])])
+                        *(leaf_value_text(leaf[c]) for c in LEAF_TRAIT_COLUMNS[1:])])
     atomic_write_text(path, buf.getvalue())
 
 

@@ -768,7 +768,7 @@ class LabelledMesh:
 
 # --------------------------------------------------------------------------- traits
 LEAF_TRAIT_COLUMNS = ("leaf_id", "length_mm", "width_mm", "area_mm2", "perimeter_mm",
-                      "thick_share")
+                      "thick_share", "confidence", "confidence_reasons", "quality_flag")
 TRAIT_NAMES = ("length", "width", "area", "perimeter")
 
 
@@ -779,7 +779,10 @@ class LeafTraits:
     ``thick_share`` is a quality figure, not a trait: the share (0-1) of the
     leaf's area where its reconstructed surface is much thicker than the leaf
     elsewhere (phantom volume of a visual hull, or an organ fused with it;
-    see docs/leaves.md).  NaN when the measurer does not say.
+    see docs/leaves.md).  NaN when the measurer does not say.  ``confidence``
+    (0-1) says how far the traits can be trusted, ``confidence_reasons`` the
+    reason codes behind a low one (``;``-separated), ``quality_flag`` ``ok`` or
+    ``check`` (confidence under 0.5); NaN / empty when the measurer does not say.
     """
 
     leaf_id: int
@@ -788,6 +791,9 @@ class LeafTraits:
     area_mm2: float
     perimeter_mm: float
     thick_share: float = math.nan
+    confidence: float = math.nan
+    confidence_reasons: str = ""
+    quality_flag: str = ""
 
     def trait(self, name: str) -> float:
         """Value of ``name`` in ``TRAIT_NAMES`` (length, width, area, perimeter)."""
@@ -796,6 +802,11 @@ class LeafTraits:
         if name not in column:
             raise ValueError(f"unknown trait {name!r}; valid: {', '.join(TRAIT_NAMES)}")
         return float(getattr(self, column[name]))
+
+
+def leaf_value_text(value: float | str) -> str:
+    """How a ``LeafTraits`` column is written in a table: numbers to 4 decimals, text as is."""
+    return value if isinstance(value, str) else f"{value:.4f}"
 
 
 @dataclass
@@ -814,7 +825,8 @@ class Traits:
         w = csv.writer(buf, lineterminator="\n")
         w.writerow(LEAF_TRAIT_COLUMNS)
         for leaf in self.leaves:
-            w.writerow([leaf.leaf_id] + [f"{getattr(leaf, c):.4f}" for c in LEAF_TRAIT_COLUMNS[1:]])
+            w.writerow([leaf.leaf_id] + [leaf_value_text(getattr(leaf, c))
+                                         for c in LEAF_TRAIT_COLUMNS[1:]])
         return buf.getvalue()
 
     def to_dataframe(self, plant_columns: bool = False):
@@ -852,7 +864,9 @@ class Traits:
         leaves = [
             LeafTraits(int(r["leaf_id"]), float(r["length_mm"]), float(r["width_mm"]),
                        float(r["area_mm2"]), float(r["perimeter_mm"]),
-                       float(r.get("thick_share") or "nan"))  # tables before the column
+                       # tables before these columns (older runs, the truth) still load
+                       float(r.get("thick_share") or "nan"), float(r.get("confidence") or "nan"),
+                       r.get("confidence_reasons") or "", r.get("quality_flag") or "")
             for r in rows
         ]
         return cls(leaves)

@@ -210,8 +210,6 @@ def inward_thickness(mesh: Mesh, faces: np.ndarray) -> np.ndarray:
 
 def surface_samples(mesh: Mesh, topo: geo.MeshTopology | None = None) -> SurfaceSamples:
     """The samples of ``mesh`` (a closed plant surface, any unit) and their features."""
-    from plantscan_leaves.segment import face_curvature  # one curvature estimate in the plugin
-
     topo = topo or geo.topology(mesh.faces)
     u = mesh_unit(mesh, topo)
     v, f = mesh.vertices, mesh.faces
@@ -235,7 +233,7 @@ def surface_samples(mesh: Mesh, topo: geo.MeshTopology | None = None) -> Surface
     for s in BLOCK_SCALES:
         block = _block_features(moments, s_centroid, lo, s * u)
         feats += list(block.T)
-    kf = face_curvature(mesh, topo, CURVATURE_UNITS * u) * (CURVATURE_UNITS * u)
+    kf = geo.face_curvature(mesh, topo, CURVATURE_UNITS * u) * (CURVATURE_UNITS * u)
     concave = np.full(ns, np.inf)
     np.minimum.at(concave, face_sample, kf)
     feats += [concave, per_sample(kf)]

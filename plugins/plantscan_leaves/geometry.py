@@ -313,3 +313,42 @@ def cell_normal_tensors(points: np.ndarray, normals: np.ndarray, weights: np.nda
         m[:, a, b] = m[:, b, a] = acc[:, c]
     return keys, m, inv, np.concatenate([lo, dims.astype(float)])
 
+
+def face_curvature(mesh, topo: MeshTopology, smoothing_mm: float) -> np.ndarray:
+    """(F,) smallest normal curvature across each face's edges, 1/mm (< 0 concave).
+
+    Curvature across the edge shared by faces i, j is
+    ``(n_j - n_i) . (c_j - c_i) / |c_j - c_i|^2`` with normals ``n`` and
+    centroids ``c`` of the surface smoothed at ``smoothing_mm``; outward
+    normals make convex edges positive.
+    """
+    v, f = mesh.vertices, mesh.faces
+    edge_mm = float(np.mean(row_norm(v[topo.edges[:, 0]] - v[topo.edges[:, 1]])))
+    vop = vertex_adjacency_operator(len(v), topo.edges)
+    vs = taubin(v, vop, diffusion_steps(smoothing_mm / 2, edge_mm, 30))
+    n, _ = face_normals_areas(vs, f)
+    fop = face_adjacency_operator(len(f), topo.face_pairs)
+    n = smooth(fop, n, diffusion_steps(smoothing_mm, edge_mm * 0.6))
+    n /= np.maximum(row_norm(n), 1e-12)[:, None]
+    c = face_centroids(vs, f)
+    i, j = topo.face_pairs[:, 0], topo.face_pairs[:, 1]
+    dc = c[j] - c[i]
+    k = np.einsum("ij,ij->i", n[j] - n[i], dc) / np.maximum(np.einsum("ij,ij->i", dc, dc), 1e-12)
+    kf = np.full(len(f), np.inf)
+    np.minimum.at(kf, i, k)
+    np.minimum.at(kf, j, k)
+    kf[~np.isfinite(kf)] = 0.0
+    return kf
+
+
+def components(n: int, pairs: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """(n,) connected component of each node in ``keep`` over ``pairs`` (P, 2); -1 elsewhere."""
+    from scipy.sparse.csgraph import connected_components
+
+    sel = keep[pairs[:, 0]] & keep[pairs[:, 1]]
+    p = pairs[sel]
+    g = sparse.csr_matrix((np.ones(len(p), np.int8), (p[:, 0], p[:, 1])), shape=(n, n))
+    _, lab = connected_components(g, directed=False)
+    lab = lab.astype(np.int64)
+    lab[~keep] = -1
+    return lab

@@ -114,6 +114,10 @@ class LeafGeometryParams(StageParams):
                     "for length and width, 'width' for the width only (rim-to-rim paths "
                     "cross two rims, a length path starts at the cut base)")
     min_leaf_faces: int = Field(20, ge=1, description="leaves with fewer faces are skipped")
+    min_plant_views: int = Field(
+        0, ge=0, description="plant views this recipe's plants need (the family's protocol): "
+                             "fewer flag the plant 'check', fewer than half 'fail' "
+                             "(docs/leaves.md, Trust); 0: no check")
 
 
 @dataclass
@@ -222,6 +226,43 @@ def _two_side_length(graphs: list[sparse.csr_matrix], vertices: np.ndarray, a: i
     return float(np.mean(lengths)) if lengths else float("nan")
 
 
+@dataclass
+class _Slab:
+    """One leaf's closed slab as the measurement steps share it.
+
+    ``v`` (V, 3) smoothed vertices, ``f`` faces with the hole caps appended after the
+    first ``n_leaf`` (the leaf's own faces), ``topo`` the capped slab's topology (None
+    until the outline needs it), ``leaf_topo`` the leaf faces' own, ``edge_mm`` the mean
+    edge, ``detached`` the other pieces of the label (vertices, faces) or None.
+    """
+
+    v: np.ndarray
+    f: np.ndarray
+    n_leaf: int
+    topo: geo.MeshTopology | None
+    leaf_topo: geo.MeshTopology
+    edge_mm: float
+    border_length: float
+    detached: tuple[np.ndarray, np.ndarray] | None
+
+    @property
+    def leaf(self) -> slice:
+        return slice(0, self.n_leaf)
+
+
+@dataclass
+class _Sides:
+    """Geodesic graphs over resampled points of each side of the slab (see ``_side_graphs``)."""
+
+    nodes: np.ndarray
+    q: np.ndarray
+    crest: np.ndarray
+    g_all: sparse.csr_matrix
+    g_a: sparse.csr_matrix
+    g_b: sparse.csr_matrix
+    spacing: float
+
+
 def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
                  base_hint: np.ndarray | None = None) -> LeafMeasurement | None:
     """Flat-leaf traits of one leaf surface (a closed or nearly closed slab).
@@ -235,15 +276,56 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
         of the leaf's geodesic diameter, the one nearer to it is the base.
     """
     p = params
-    v0, f = mesh.vertices, mesh.faces
-    if len(f) < p.min_leaf_faces:
+    if len(mesh.faces) < p.min_leaf_faces:
         return None
+    slab = _closed_slab(mesh, p)
+    sheet = _cell_sheet_axes(*_leaf_faces_geometry(slab), p.sheet_scale_mm)
+    vert_axis = _axes_at(slab.v, *sheet, p.sheet_scale_mm)
+    face_side, fa = _face_sides(slab, vert_axis)
+    area = 0.5 * float(np.sum((fa * np.abs(face_side))[slab.leaf]))
+    rim_length, outline_kind, outline_lines = _outline(slab, vert_axis, face_side, fa, p)
+    perimeter = rim_length
+    # mean slab thickness: enclosed volume over planform area (exact for a flat slab; an
+    # open cut at the stem leaves this an estimate, used only by the rim correction)
+    thickness = _enclosed_volume(slab.v, slab.f) / max(area, 1e-9)
+    sides = _side_graphs(slab, face_side, p)
+    base, tip, dist_b, pred_b = _base_and_tip(sides, base_hint)
+    midrib_idx = np.array(_path(pred_b, tip))
+    sigma = p.path_smoothing_mm
+    rim_excess = (math.pi / 2 - 1) * thickness if p.rim_correction else 0.0
+    length, mid_pts = _midrib_length(sides, base, tip, dist_b, midrib_idx, sigma,
+                                     rim_excess if p.rim_correction is True else 0.0)
+    tip_extension_mm, ext_tip = 0.0, None
+    if slab.detached is not None:
+        tip_extension_mm, ext_area, ext_tip = _detached_tips(sides, base, tip, slab.detached,
+                                                             sigma, base_hint is None)
+        length += tip_extension_mm
+        perimeter += 2.0 * tip_extension_mm  # both edges of the tip
+        area += ext_area
+    width = _width(sides, mid_pts, dist_b, outline_lines, sheet, slab.edge_mm, rim_excess, p)
+    traits = LeafTraits(leaf_id, float(length), float(width), area, perimeter)
+    base_v, tip_v = sides.nodes[base], sides.nodes[tip]
+    tip_point = slab.v[tip_v] if ext_tip is None else ext_tip
+    return LeafMeasurement(traits, thickness, slab.v[base_v], tip_point,
+                           slab.v[sides.nodes[midrib_idx]],
+                           {"rim_length_mm": rim_length, "outline": outline_kind,
+                            "border_length_mm": slab.border_length,
+                            "tip_extension_mm": tip_extension_mm})
+
+
+def _closed_slab(mesh: Mesh, p: LeafGeometryParams) -> _Slab:
+    """The label's largest connected piece, lightly smoothed, every hole capped.
+
+    A leaf label may also hold stray crumbs (left by the segmentation): the largest
+    piece is measured; the others may carry a blade tip the hull broke off a voxel or
+    two from the blade (``_detached_tips``).  A leaf cut from the stem, or holed where
+    the segmentation gave a patch to a neighbour, is closed again by a fan over each
+    hole; its outline then crosses each cap instead of ending there (caps are not leaf
+    surface: no area, no side).
+    """
+    v0, f = mesh.vertices, mesh.faces
     topo = geo.topology(f)
-    # a leaf label may also hold stray crumbs (left by the segmentation): measure its largest
-    # connected piece
     main = _largest_piece(len(f), topo.face_pairs, np.ones(len(f), bool), mesh.face_areas())
-    # the other pieces: a blade tip the hull broke off a voxel or two from the blade may be
-    # among them (it extends the length, below)
     detached = (v0, f[~main]) if not main.all() else None
     if not main.all():
         used, f = np.unique(f[main], return_inverse=True)
@@ -254,150 +336,142 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
     v = geo.taubin(v0, vop, geo.diffusion_steps(p.smoothing_mm, edge_mm, 50))
     border = topo.edges[topo.edge_face_count == 1]
     border_length = float(geo.row_norm(v[border[:, 0]] - v[border[:, 1]]).sum())
-    n_leaf_faces = len(f)
-    leaf_topo = topo
+    n_leaf, leaf_topo, capped_topo = len(f), topo, topo
     if topo.border_edges:
-        # a leaf cut from the stem, or holed where the segmentation gave a patch to a
-        # neighbour: cap every hole so the slab is closed again; its outline then crosses
-        # each cap instead of ending there (caps are not leaf surface: no area, no side)
         v, f = close_holes(v, f, topo, 2.0 * edge_mm)
-        topo = None  # the capped slab's topology, built only if the outline needs it
-    fn, fa = geo.face_normals_areas(v, f)
-    fc = geo.face_centroids(v, f)
-    cell = p.sheet_scale_mm
-    leaf = slice(0, n_leaf_faces)
-    keys, axes, grid = _cell_sheet_axes(fc[leaf], fn[leaf], fa[leaf], cell)
-    vert_axis = _axes_at(v, keys, axes, grid, cell)
-    face_axis = vert_axis[f].sum(axis=1)  # cells are oriented, so corner axes agree in sign
+        capped_topo = None  # the capped slab's topology, built only if the outline needs it
+    return _Slab(v, f, n_leaf, capped_topo, leaf_topo, edge_mm, border_length, detached)
+
+
+def _leaf_faces_geometry(slab: _Slab) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Centroids, normals and areas of the leaf's own faces (not the caps)."""
+    fn, fa = geo.face_normals_areas(slab.v, slab.f[slab.leaf])
+    return geo.face_centroids(slab.v, slab.f[slab.leaf]), fn, fa
+
+
+def _face_sides(slab: _Slab, vert_axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(F,) ``n . N`` of every face (caps included; > 0 side A, < 0 side B) and (F,) areas."""
+    fn, fa = geo.face_normals_areas(slab.v, slab.f)
+    face_axis = vert_axis[slab.f].sum(axis=1)  # cells are oriented: corner axes agree in sign
     face_axis /= np.maximum(geo.row_norm(face_axis), 1e-12)[:, None]
-    area = 0.5 * float(np.sum((fa * np.abs(np.einsum("ij,ij->i", fn, face_axis)))[:n_leaf_faces]))
+    return np.einsum("ij,ij->i", fn, face_axis), fa
 
-    # rim crest: where the slab's two sides (n . N > 0 and < 0) meet (see _outline_length)
-    face_side = np.einsum("ij,ij->i", fn, face_axis)
-    outline_sigma = (p.outline_smoothing_mm if p.outline_smoothing_mm is not None
-                     else float(np.clip(8.0 * edge_mm, 1.5, 5.0)))
-    # the crest on the leaf as it is (an outline open at the stem cut is closed by its chord),
-    # the two sides' border on the capped slab
-    vertex_side = np.einsum("ij,ij->i", geo.vertex_normals(v, f[leaf]), vert_axis)
-    rim_length, outline_kind, outline_lines = _outline_length(
-        v, f, topo, f[leaf], leaf_topo, vertex_side, face_side, fa, outline_sigma)
-    perimeter = rim_length
 
-    # mean slab thickness: enclosed volume over planform area (exact for a flat slab; an
-    # open cut at the stem leaves this an estimate, used only by the rim correction)
-    thickness = _enclosed_volume(v, f) / max(area, 1e-9)
+def _outline(slab: _Slab, vert_axis: np.ndarray, face_side: np.ndarray, fa: np.ndarray,
+             p: LeafGeometryParams) -> tuple[float, str, list[np.ndarray]]:
+    """The rim crest's length, which line it is, and its pieces (``_outline_length``): the
+    crest on the leaf as it is (an outline open at the stem cut is closed by its chord),
+    the two sides' border on the capped slab."""
+    sigma = (p.outline_smoothing_mm if p.outline_smoothing_mm is not None
+             else float(np.clip(8.0 * slab.edge_mm, 1.5, 5.0)))
+    vertex_side = np.einsum("ij,ij->i", geo.vertex_normals(slab.v, slab.f[slab.leaf]),
+                            vert_axis)
+    return _outline_length(slab, vertex_side, face_side, fa, sigma)
 
-    # geodesic graphs on a resampled copy of each side: a shortest path along mesh edges
-    # of a marching-cubes grid is a staircase (up to ~40 % too long on a diagonal); joining
-    # every pair of points closer than 3 spacings makes the path directions dense enough
-    # a vertex is on side A (B) when one of its faces faces A (B) or is a rim face; the crest
-    # is the vertices on both (rim faces and the vertices around them)
+
+SIDE_CREST = 0.35  # a vertex with a face this close to edge-on (|n . N|) is on both sides
+
+
+def _side_graphs(slab: _Slab, face_side: np.ndarray, p: LeafGeometryParams) -> _Sides:
+    """Geodesic graphs on a resampled copy of each side of the slab.
+
+    A shortest path along mesh edges of a marching-cubes grid is a staircase (up to
+    ~40 % too long on a diagonal); joining every pair of points closer than 3 spacings
+    makes the path directions dense enough.  A vertex is on side A (B) when one of its
+    faces faces A (B) or is a rim face; the crest is the vertices on both, and its
+    points are shared by both sides' graphs, so paths of both sides end on them.
+    Points a 200th of the leaf's size apart give paths as exact as denser ones (their
+    error scales with spacing / length), and far cheaper on a big leaf.
+    """
+    v, f, n = slab.v, slab.f, slab.n_leaf
     fmax = np.full(len(v), -np.inf)
     fmin = np.full(len(v), np.inf)
     for c in range(3):  # leaf faces only: a cap's normal says nothing about the sides
-        np.maximum.at(fmax, f[:n_leaf_faces, c], face_side[:n_leaf_faces])
-        np.minimum.at(fmin, f[:n_leaf_faces, c], face_side[:n_leaf_faces])
-    on_a = fmax > -0.35
-    on_b = fmin < 0.35
-    # paths through points a 200th of the leaf's size apart are as exact as through denser
-    # ones (their error scales with spacing / length), and far cheaper on a big leaf
-    spacing = max(p.graph_spacing_mm, edge_mm,
+        np.maximum.at(fmax, f[:n, c], face_side[:n])
+        np.minimum.at(fmin, f[:n, c], face_side[:n])
+    on_a, on_b = fmax > -SIDE_CREST, fmin < SIDE_CREST
+    spacing = max(p.graph_spacing_mm, slab.edge_mm,
                   float(np.linalg.norm(np.ptp(v, axis=0))) / p.graph_points_per_size)
-    # crest points are shared by both sides' graphs, so paths of both sides end on them
-    pts_c = _downsample(np.flatnonzero(on_a & on_b), v, spacing)
-    pts_a = _downsample(np.flatnonzero(on_a & ~on_b), v, spacing)
-    pts_b = _downsample(np.flatnonzero(on_b & ~on_a), v, spacing)
-    nodes = np.concatenate([pts_c, pts_a, pts_b])
+    pts = [_downsample(np.flatnonzero(sel), v, spacing)
+           for sel in (on_a & on_b, on_a & ~on_b, on_b & ~on_a)]
+    nodes = np.concatenate(pts)
     q = v[nodes]
-    kind = np.repeat([0, 1, 2], [len(pts_c), len(pts_a), len(pts_b)])
+    kind = np.repeat([0, 1, 2], [len(x) for x in pts])
     g_all, g_a, g_b = _radius_graphs(q, kind, 3.0 * spacing)
-    crest = np.arange(len(pts_c))
-    if len(crest) == 0:
-        crest = np.arange(len(nodes))
-    # base and tip are the two ends of the leaf's geodesic diameter (double sweep); the base
-    # is the end nearer to where the leaf attaches.  (The crest point nearest to the stem is
-    # not used directly: a drooping blade's tip may hang close to another stem.)
-    d0 = dijkstra(g_all, directed=True, indices=int(crest[0]))
+    crest = np.arange(len(pts[0])) if len(pts[0]) else np.arange(len(nodes))
+    return _Sides(nodes, q, crest, g_all, g_a, g_b, spacing)
+
+
+def _base_and_tip(sides: _Sides, base_hint: np.ndarray | None
+                  ) -> tuple[int, int, np.ndarray, np.ndarray]:
+    """Base, tip (node indices), distances and predecessors from the base over the surface.
+
+    Base and tip are the two ends of the leaf's geodesic diameter (double sweep); the
+    base is the end nearer to where the leaf attaches.  (The crest point nearest to the
+    stem is not used directly: a drooping blade's tip may hang close to another stem.)
+    """
+    crest, g = sides.crest, sides.g_all
+    d0 = dijkstra(g, directed=True, indices=int(crest[0]))
     end1 = int(crest[np.argmax(np.where(np.isfinite(d0[crest]), d0[crest], -1))])
-    d1, pred1 = dijkstra(g_all, directed=True, indices=end1, return_predecessors=True)
+    d1, pred1 = dijkstra(g, directed=True, indices=end1, return_predecessors=True)
     end2 = int(crest[np.argmax(np.where(np.isfinite(d1[crest]), d1[crest], -1))])
-    base, tip = end1, end2
-    dist_b, pred_b = d1, pred1
     if base_hint is not None:
         hint = np.asarray(base_hint, float)
-        if np.linalg.norm(q[end2] - hint) < np.linalg.norm(q[end1] - hint):
-            base, tip = end2, end1
-            dist_b, pred_b = dijkstra(g_all, directed=True, indices=base,
-                                      return_predecessors=True)
-    midrib_idx = np.array(_path(pred_b, tip))
-    sigma = p.path_smoothing_mm
-    rim_excess = (math.pi / 2 - 1) * thickness if p.rim_correction else 0.0
-    length_rim_excess = rim_excess if p.rim_correction is True else 0.0
-    # a path over one side is never twice the shortest path over both (limit: speed)
-    length = (_two_side_length([g_a, g_b], q, base, tip, sigma, 2.0 * dist_b[tip])
-              - length_rim_excess)
+        if np.linalg.norm(sides.q[end2] - hint) < np.linalg.norm(sides.q[end1] - hint):
+            d2, pred2 = dijkstra(g, directed=True, indices=end2, return_predecessors=True)
+            return end2, end1, d2, pred2
+    return end1, end2, d1, pred1
+
+
+def _midrib_length(sides: _Sides, base: int, tip: int, dist_b: np.ndarray,
+                   midrib_idx: np.ndarray, sigma: float, rim_excess: float
+                   ) -> tuple[float, np.ndarray]:
+    """Base-to-tip length over the two sides (``_two_side_length``) and the smoothed midrib.
+
+    A path over one side is never twice the shortest path over both (the limit is for
+    speed).  Where neither side joins base and tip on its own (a side broken by phantom
+    volume or the segmentation): the shortest path over the whole surface.
+    """
+    q = sides.q
+    length = _two_side_length([sides.g_a, sides.g_b], q, base, tip, sigma,
+                              2.0 * dist_b[tip]) - rim_excess
     mid_pts = geo.smooth_polyline(q[midrib_idx], sigma) if len(midrib_idx) > 2 else q[midrib_idx]
     if not np.isfinite(length):
-        # neither side joins base and tip on its own (a side broken by phantom volume or
-        # the segmentation): the shortest path over the whole surface
         length = geo.polyline_length(mid_pts)
+    return float(length), mid_pts
 
-    tip_extension_mm = 0.0
-    ext_tip = None
-    if detached is not None:
-        # beyond the tip; beyond the base too when nothing says where the leaf attaches
-        # (with a stem, a piece beyond the base is a crumb between leaf and stem)
-        ends = [(base, tip)] + ([(tip, base)] if base_hint is None else [])
-        for start, end in ends:
-            ext, ext_area, ext_end = _tip_extension(q, g_all, start, end, detached, spacing,
-                                                    sigma)
-            if ext > 0:
-                tip_extension_mm += ext
-                length += ext
-                perimeter += 2.0 * ext  # both edges of the tip
-                area += ext_area
-                if end == tip:
-                    ext_tip = ext_end
 
-    # width: crest points binned in stations along the smoothed midrib
-    mid_axis = _axes_at(mid_pts, keys, axes, grid, cell)
-    tangent = np.gradient(mid_pts, axis=0) if len(mid_pts) > 1 else np.zeros((1, 3))
-    across = np.cross(tangent, mid_axis)
-    valid = crest[np.isfinite(dist_b[crest])]  # crest points of the base's piece
-    from scipy.spatial import cKDTree
+def _detached_tips(sides: _Sides, base: int, tip: int, detached, sigma: float,
+                   both_ends: bool) -> tuple[float, float, np.ndarray | None]:
+    """Length, area and new tip point the label's other pieces add beyond the tip (beyond
+    the base too when nothing says where the leaf attaches: with a stem, a piece beyond
+    the base is a crumb between leaf and stem)."""
+    total, area, ext_tip = 0.0, 0.0, None
+    for start, end in [(base, tip)] + ([(tip, base)] if both_ends else []):
+        ext, ext_area, ext_end = _tip_extension(sides.q, sides.g_all, start, end, detached,
+                                                sides.spacing, sigma)
+        if ext > 0:
+            total += ext
+            area += ext_area
+            if end == tip:
+                ext_tip = ext_end
+    return total, area, ext_tip
 
-    _, k = cKDTree(mid_pts).query(q[valid])
-    unit_across = across / np.maximum(geo.row_norm(across), 1e-12)[:, None]
-    lateral = np.einsum("ij,ij->i", q[valid] - mid_pts[k], unit_across[k])
-    mid_len = geo.polyline_length(mid_pts)
-    nbins = max(int(mid_len / max(2.0 * spacing, mid_len / 60.0)), 1)
-    station = np.minimum((k * nbins) // len(mid_pts), nbins - 1)
-    # lateral extent of the crest at each station (exact for a leaf flat across), then the
-    # rim-to-rim path over each side at the widest stations (right for a leaf curled across;
-    # a path much longer than the extent went round a gap or a misplaced rim point)
-    u_max = np.full(nbins, -np.inf)
-    u_min = np.full(nbins, np.inf)
-    np.maximum.at(u_max, station, lateral)
-    np.minimum.at(u_min, station, lateral)
-    extent = np.where(np.isfinite(u_max) & np.isfinite(u_min), u_max - u_min, 0.0)
-    # where the outline passes a station, its lateral extent is the one used: the crest
-    # nodes at a station's extremes sit on the peaks of the rough rim's zig-zag (+0.3…+2 mm
-    # on 512^3 dicot hulls), the outline smoothed at the zig-zag's scale (two mean edges:
-    # a marching-cubes rim zig-zags over a few voxels) does not, and at leaf-scale
-    # curvature (radius >= 30 mm) that smoothing moves it by < 0.03 mm
-    pieces = [geo.smooth_polyline(line, 2.0 * edge_mm) for line in outline_lines
-              if len(line) > 2]
-    if pieces:
-        op = np.concatenate(pieces)
-        _, ko = cKDTree(mid_pts).query(op)
-        lat_o = np.einsum("ij,ij->i", op - mid_pts[ko], unit_across[ko])
-        st_o = np.minimum((ko * nbins) // len(mid_pts), nbins - 1)
-        o_max = np.full(nbins, -np.inf)
-        o_min = np.full(nbins, np.inf)
-        np.maximum.at(o_max, st_o, lat_o)
-        np.minimum.at(o_min, st_o, lat_o)
-        seen = np.isfinite(o_max) & np.isfinite(o_min) & (o_max > 0) & (o_min < 0)
-        extent = np.where(seen, o_max - o_min, extent)
+
+WIDTH_PATH_SLACK = 1.25  # a rim-to-rim path longer than this x the lateral extent went astray
+
+
+def _width(sides: _Sides, mid_pts: np.ndarray, dist_b: np.ndarray, outline_lines: list,
+           sheet: tuple, edge_mm: float, rim_excess: float, p: LeafGeometryParams) -> float:
+    """The widest station's rim-to-rim width (``_station_extents``, then the two-side path).
+
+    At the ``width_stations`` stations of largest lateral extent the same two-side path
+    runs rim to rim (right for a leaf curled across); a path shorter than the extent, or
+    more than ``WIDTH_PATH_SLACK`` x longer, went round a gap or a misplaced rim point:
+    the extent is used there.
+    """
+    extent, station, valid, lateral = _station_extents(sides, mid_pts, dist_b, outline_lines,
+                                                       sheet, edge_mm, p)
     width = 0.0
     for st in np.argsort(-extent)[: p.width_stations]:
         if extent[st] <= 0:
@@ -408,20 +482,62 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
             continue
         li = valid[in_st[np.argmax(lateral[in_st])]]
         ri = valid[in_st[np.argmin(lateral[in_st])]]
-        w = _two_side_length([g_a, g_b], q, int(li), int(ri), sigma,
-                             1.5 * extent[st] + 10 * spacing) - rim_excess
-        if not (np.isfinite(w) and extent[st] <= w <= 1.25 * extent[st]):
+        w = _two_side_length([sides.g_a, sides.g_b], sides.q, int(li), int(ri),
+                             p.path_smoothing_mm,
+                             1.5 * extent[st] + 10 * sides.spacing) - rim_excess
+        if not (np.isfinite(w) and extent[st] <= w <= WIDTH_PATH_SLACK * extent[st]):
             w = float(extent[st])
         width = max(width, w)
-    midrib_idx = nodes[midrib_idx]
-    base, tip = nodes[base], nodes[tip]
+    return width
 
-    traits = LeafTraits(leaf_id, float(length), float(width), area, perimeter)
-    tip_point = v[tip] if ext_tip is None else ext_tip
-    return LeafMeasurement(traits, thickness, v[base], tip_point, v[midrib_idx],
-                           {"rim_length_mm": rim_length, "outline": outline_kind,
-                            "border_length_mm": border_length,
-                            "tip_extension_mm": tip_extension_mm})
+
+def _station_extents(sides: _Sides, mid_pts: np.ndarray, dist_b: np.ndarray,
+                     outline_lines: list, sheet: tuple, edge_mm: float, p: LeafGeometryParams):
+    """Lateral extent of the leaf at stations along the smoothed midrib.
+
+    Crest points (of the base's piece) are binned in stations along the midrib and
+    their lateral offset measured across it in the local leaf plane (exact for a leaf
+    flat across).  Where the outline passes a station, its lateral extent is the one
+    used: the crest nodes at a station's extremes sit on the peaks of the rough rim's
+    zig-zag (+0.3…+2 mm on 512^3 dicot hulls), the outline smoothed at the zig-zag's
+    scale (two mean edges: a marching-cubes rim zig-zags over a few voxels) does not,
+    and at leaf-scale curvature (radius >= 30 mm) that smoothing moves it by < 0.03 mm.
+    Returns (extent per station, station of each crest point, the crest nodes, their
+    lateral offsets).
+    """
+    from scipy.spatial import cKDTree
+
+    q, crest = sides.q, sides.crest
+    mid_axis = _axes_at(mid_pts, *sheet, p.sheet_scale_mm)
+    tangent = np.gradient(mid_pts, axis=0) if len(mid_pts) > 1 else np.zeros((1, 3))
+    across = np.cross(tangent, mid_axis)
+    unit_across = across / np.maximum(geo.row_norm(across), 1e-12)[:, None]
+    valid = crest[np.isfinite(dist_b[crest])]
+    tree = cKDTree(mid_pts)
+    _, k = tree.query(q[valid])
+    lateral = np.einsum("ij,ij->i", q[valid] - mid_pts[k], unit_across[k])
+    mid_len = geo.polyline_length(mid_pts)
+    nbins = max(int(mid_len / max(2.0 * sides.spacing, mid_len / 60.0)), 1)
+
+    def extents(ks: np.ndarray, lat: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        st = np.minimum((ks * nbins) // len(mid_pts), nbins - 1)
+        hi = np.full(nbins, -np.inf)
+        lo = np.full(nbins, np.inf)
+        np.maximum.at(hi, st, lat)
+        np.minimum.at(lo, st, lat)
+        return st, hi, lo
+
+    station, u_max, u_min = extents(k, lateral)
+    extent = np.where(np.isfinite(u_max) & np.isfinite(u_min), u_max - u_min, 0.0)
+    pieces = [geo.smooth_polyline(line, 2.0 * edge_mm) for line in outline_lines
+              if len(line) > 2]
+    if pieces:
+        op = np.concatenate(pieces)
+        _, ko = tree.query(op)
+        _, o_max, o_min = extents(ko, np.einsum("ij,ij->i", op - mid_pts[ko], unit_across[ko]))
+        seen = np.isfinite(o_max) & np.isfinite(o_min) & (o_max > 0) & (o_min < 0)
+        extent = np.where(seen, o_max - o_min, extent)
+    return extent, station, valid, lateral
 
 
 def thick_shares(mesh: Mesh, face_labels: np.ndarray, leaf_labels: list[int]
@@ -604,16 +720,14 @@ def _largest_piece(nf: int, pairs: np.ndarray, member: np.ndarray, area: np.ndar
     return member & (comp == np.argmax(piece_area))
 
 
-def _outline_length(v: np.ndarray, f: np.ndarray, topo: geo.MeshTopology | None,
-                    leaf_faces: np.ndarray,
-                    leaf_topo: geo.MeshTopology, vertex_side: np.ndarray, face_side: np.ndarray,
+def _outline_length(slab: _Slab, vertex_side: np.ndarray, face_side: np.ndarray,
                     area: np.ndarray, sigma: float) -> tuple[float, str, list[np.ndarray]]:
     """Length (mm) of the rim crest of a slab, smoothed by ``sigma`` mm, how it was traced,
     and its raw pieces (each ``(P, 3)`` mm, in order along the line).
 
-    ``v, f, topo`` is the capped slab (``topo`` None: not built yet),
-    ``leaf_faces, leaf_topo`` the leaf's own faces (the first ones of
-    ``f``).  ``"crest"``: the zero line of
+    ``slab.v, slab.f, slab.topo`` is the capped slab (``topo`` None: not built yet),
+    its first ``n_leaf`` faces (topology ``leaf_topo``) the leaf's own.  ``"crest"``: the
+    zero line of
     ``vertex_side`` (n . N at the vertices), exact where the rim is clean, over
     the leaf's own faces when its open border is short (a cut at the base,
     closed by its chord) and over the capped slab otherwise; used when it is
@@ -626,6 +740,8 @@ def _outline_length(v: np.ndarray, f: np.ndarray, topo: geo.MeshTopology | None,
     between the two sides, placed within a triangle (so coarse triangles make it
     a little short: -1 % to -4 % on the truth meshes' 4 mm triangles).
     """
+    v, f, topo, leaf_topo = slab.v, slab.f, slab.topo, slab.leaf_topo
+    leaf_faces = f[slab.leaf]
     nf = len(f)
     e = leaf_topo.edges[leaf_topo.edge_face_count == 1]
     border = float(geo.row_norm(v[e[:, 0]] - v[e[:, 1]]).sum())
@@ -868,9 +984,15 @@ def _submeshes(labelled: LabelledMesh, labels: list[int]):
         yield Mesh(vertices[idx], lut[f])
 
 
-def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = None
+def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = None,
+                  plant_views: int | None = None
                   ) -> tuple[Traits, list[LeafMeasurement], StageReport]:
-    """Traits of every leaf of ``labelled`` and of the whole plant, and the warnings."""
+    """Traits of every leaf of ``labelled`` and of the whole plant, and the warnings.
+
+    Every leaf gets a confidence and the plant a quality flag (``plantscan_leaves.trust``);
+    ``plant_views`` (the views the hull was carved from, when known) is checked against
+    ``min_plant_views``.
+    """
     p = params or LeafGeometryParams()
     report = StageReport()
     mesh = labelled.mesh
@@ -878,7 +1000,9 @@ def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = No
         msg = "mesh is empty: traits table left empty"
         log.warning(msg)
         report.warn("empty-mesh", msg)
-        return Traits([], plant_traits(mesh, [])), [], report
+        traits = Traits([], plant_traits(mesh, []))
+        _judge(traits, [], labelled, p, plant_views, report)
+        return traits, [], report
     leaf_labels = labelled.leaf_labels
     if not leaf_labels:
         msg = "no leaf in the labelled mesh: traits table left empty"
@@ -921,6 +1045,18 @@ def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = No
     done = thread_map(one, leaf_labels, _submeshes(labelled, leaf_labels))
     measurements = [m for m, _ in done if m is not None]
     report.warnings += [w for _, w in done if w is not None]
+    _thick_and_outline_checks(labelled, measurements, report)
+    leaves = [m.traits for m in measurements]
+    traits = Traits(leaves, plant_traits(mesh, leaves))
+    _judge(traits, measurements, labelled, p, plant_views, report)
+    return traits, measurements, report
+
+
+def _thick_and_outline_checks(labelled: LabelledMesh, measurements: list[LeafMeasurement],
+                              report: StageReport) -> None:
+    """Each leaf's ``thick_share`` (and a warning at ``THICK_WARN_SHARE``), and the
+    perimeter-against-length warnings."""
+    mesh = labelled.mesh
     shares = thick_shares(mesh, labelled.face_labels, [m.traits.leaf_id for m in measurements])
     for m in measurements:
         if m.traits.leaf_id not in shares:
@@ -938,5 +1074,31 @@ def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = No
     for w in inconsistent_leaves([m.traits for m in measurements]):
         log.warning(w.message)
         report.warnings.append(w)
-    leaves = [m.traits for m in measurements]
-    return Traits(leaves, plant_traits(mesh, leaves)), measurements, report
+
+
+def _judge(traits: Traits, measurements: list[LeafMeasurement], labelled: LabelledMesh,
+           p: LeafGeometryParams, plant_views: int | None, report: StageReport) -> None:
+    """Each leaf's confidence and the plant's quality flag, into ``traits`` and ``report``."""
+    from plantscan_leaves.trust import REASON_TEXT, leaf_trust, plant_quality
+
+    trusts = []
+    for m in measurements:
+        leaf = m.traits
+        t = leaf_trust(leaf, labelled.evidence.get(leaf.leaf_id))
+        leaf.confidence, leaf.confidence_reasons = t.confidence, ";".join(t.reasons)
+        leaf.quality_flag = "check" if t.low else "ok"
+        trusts.append(t)
+        if t.low:
+            report.warn("low-confidence", f"leaf {leaf.leaf_id}: confidence {t.confidence:.2f}: "
+                        + "; ".join(REASON_TEXT[r] for r in t.reasons), leaf=leaf.leaf_id)
+    areas = labelled.mesh.face_areas() if len(labelled.mesh.faces) else np.zeros(0)
+    debris = [k for k, kind in labelled.kinds.items() if kind == "debris"]
+    debris_area = float(areas[np.isin(labelled.face_labels, debris)].sum()) / 2.0
+    leaf_area = float(traits.plant.get("total_leaf_area_mm2", 0.0))
+    share = debris_area / leaf_area if leaf_area > 0 else (1.0 if debris_area > 0 else 0.0)
+    flag, reasons = plant_quality(trusts, share, plant_views, p.min_plant_views)
+    traits.plant.update(quality_flag=flag, quality_reasons=reasons,
+                        debris_area_mm2=debris_area,
+                        low_confidence_leaves=sum(t.low for t in trusts))
+    if flag != "ok":
+        report.warn("plant-quality", f"plant flagged '{flag}': " + "; ".join(reasons))

@@ -28,11 +28,9 @@ from importlib import resources
 
 import numpy as np
 from pydantic import Field
-from scipy import sparse
-from scipy.sparse.csgraph import connected_components
 
 from plantscan_core.data import LabelledMesh, Mesh
-from plantscan_core.stages import StageParams
+from plantscan_core.stages import StageParams, StageReport
 from plantscan_leaves import geometry as geo
 from plantscan_leaves.features import FEATURE_NAMES, SurfaceSamples, surface_samples
 
@@ -88,17 +86,6 @@ def shipped_model() -> OrganModel:
                         "plantscan_leaves.features computes; retrain it "
                         "(scripts/train_organ_model.py)")
     return OrganModel(boosters["organ"], boosters["phantom"], boosters["merge"])
-
-
-def _components(n: int, pairs: np.ndarray, keep: np.ndarray) -> np.ndarray:
-    """Connected components of the nodes ``keep`` over ``pairs``; -1 elsewhere."""
-    sel = keep[pairs[:, 0]] & keep[pairs[:, 1]]
-    p = pairs[sel]
-    g = sparse.csr_matrix((np.ones(len(p), np.int8), (p[:, 0], p[:, 1])), shape=(n, n))
-    _, lab = connected_components(g, directed=False)
-    lab = lab.astype(np.int64)
-    lab[~keep] = -1
-    return lab
 
 
 def grow(labels: np.ndarray, pairs: np.ndarray, open_: np.ndarray) -> np.ndarray:
@@ -203,12 +190,12 @@ def leaf_fragments(samples: SurfaceSamples, prob: np.ndarray, p: InstanceParams)
     cls = prob.argmax(axis=1)
     leafish = (cls == LEAF) | (cls == EDGE)
     concave = samples.features[:, FEATURE_NAMES.index("concave_curvature")]
-    core = _components(n, pairs, (cls == LEAF) & (concave > -CREASE))
+    core = geo.components(n, pairs, (cls == LEAF) & (concave > -CREASE))
     nc = int(core.max()) + 1
     big = np.bincount(core[core >= 0], half_area[core >= 0], nc) >= p.min_core_units2 * u * u
     frag = grow(_renumber(np.where((core >= 0) & big[np.maximum(core, 0)], core, -1)), pairs,
                 leafish)
-    rest = _components(n, pairs, leafish & (frag < 0))
+    rest = geo.components(n, pairs, leafish & (frag < 0))
     frag = np.where(rest >= 0, frag.max() + 1 + rest, frag)
     frag = _renumber(frag)
     g = int(frag.max()) + 1 if (frag >= 0).any() else 0
@@ -450,27 +437,26 @@ class LearnedOrgansParams(StageParams):
 
 
 def segment_organs(mesh: Mesh, params: LearnedOrgansParams | None = None,
-                   model: OrganModel | None = None) -> tuple[LabelledMesh, dict]:
+                   model: OrganModel | None = None) -> tuple[LabelledMesh, StageReport]:
     """Label every face of ``mesh`` leaf *i*, stem or debris with the learned organ model.
 
     Returns the labelled mesh (0 stem, 1..n leaves, n+1 debris when there is any) and
-    the work counts and warnings (``samples``, ``fragments``, ``leaves``, ``warnings``);
-    ``labelled.evidence`` holds, per leaf label, what its trust is judged on
-    (``phantom_share``: its area share the phantom model puts on phantom volume;
-    ``fragments``: how many fragments were merged into it; ``weakest_merge``: the
-    lowest merge probability among those merges).
+    the report (counts ``samples``, ``fragments``, ``merges``, ``leaves``,
+    ``debris_faces``; warnings).  ``labelled.evidence`` holds, per leaf label, what its
+    trust is judged on (``phantom_share``: its area share the phantom model puts on
+    phantom volume; ``fragments``: how many fragments were merged into it;
+    ``weakest_merge``: the lowest merge probability among those merges).
     """
     p = params or LearnedOrgansParams()
-    info: dict = {"warnings": []}
+    report = StageReport()
     if mesh.is_empty:
-        info["warnings"].append("mesh is empty: no leaf to segment")
-        return LabelledMesh(mesh, np.zeros(0, np.int32), {}), info
+        report.warn("empty-mesh", "mesh is empty: no leaf to segment")
+        return LabelledMesh(mesh, np.zeros(0, np.int32), {}), report
     model = model or shipped_model()
     topo = geo.topology(mesh.faces)
     if topo.non_manifold_edges:
-        info["warnings"].append(f"mesh has {topo.non_manifold_edges} non-manifold edges (used "
-                                "by more than two faces); they are treated as ordinary "
-                                "connections")
+        report.warn("non-manifold", f"mesh has {topo.non_manifold_edges} non-manifold edges "
+                    "(used by more than two faces); they are treated as ordinary connections")
     samples = surface_samples(mesh, topo)
     prob, phantom = model.predict(samples.features)
     ip = InstanceParams(p.min_core_area_units2, p.min_leaf_area_units2)
@@ -480,14 +466,15 @@ def segment_organs(mesh: Mesh, params: LearnedOrgansParams | None = None,
                        merged=lambda f, g, q: merges.append((f, g, q)))
     inst = sample_instances(samples, prob, frags, root, ip)
     labelled = labelled_from_samples(mesh, samples, inst)
-    info.update(samples=samples.n, fragments=frags.n, merges=len(merges),
-                leaves=len(labelled.leaf_labels),
-                debris_faces=int(np.count_nonzero(inst[samples.face_sample] == -2)))
+    report.note({"samples": samples.n, "fragments": frags.n, "merges": len(merges),
+                 "leaves": len(labelled.leaf_labels),
+                 "debris_faces": int(np.count_nonzero(inst[samples.face_sample] == -2)),
+                 "unit_mm": samples.unit_mm})
     labelled.evidence = _leaf_evidence(samples, inst, phantom, frags, root, merges)
     if not labelled.leaf_labels:
-        info["warnings"].append("no leaf found on the mesh (everything looks like stem or "
-                                "debris)")
-    return labelled, info
+        report.warn("no-leaf", "no leaf found on the mesh (everything looks like stem or "
+                    "debris)")
+    return labelled, report
 
 
 def _leaf_evidence(samples: SurfaceSamples, inst: np.ndarray, phantom: np.ndarray,
@@ -513,6 +500,7 @@ def _leaf_evidence(samples: SurfaceSamples, inst: np.ndarray, phantom: np.ndarra
         if leaf is not None:
             weakest[leaf] = min(weakest[leaf], q)
     for i in range(n):
-        out[i + 1] = {"phantom_share": float(ph[i]), "fragments": int(pieces[i]),
-                      "weakest_merge": float(weakest[i])}
+        out[i + 1] = {"phantom_share": round(float(ph[i]), 4), "fragments": int(pieces[i]),
+                      "weakest_merge": round(float(weakest[i]), 4),
+                      "area_units2": round(float(area[i]) / 2.0 / samples.unit_mm ** 2, 1)}
     return out

@@ -39,8 +39,7 @@ class LearnedOrgans(MeshSegmenter):
     Params = LearnedOrgansParams
 
     def segment(self, mesh: Mesh) -> LabelledMesh:
-        labelled, info = segment_organs(mesh, self.params)
-        self.info = info
+        labelled, self.report = segment_organs(mesh, self.params)
         return labelled
 
 
@@ -51,7 +50,9 @@ class LeafGeometry(Measurer):
     Params = LeafGeometryParams
 
     def measure(self, labelled: LabelledMesh) -> Traits:
-        traits, _, self.report = measure_plant(labelled, self.params)
+        scan = self.context.scan
+        views = None if scan is None else len(scan.views_by_role("plant"))
+        traits, _, self.report = measure_plant(labelled, self.params, views)
         return traits
 
 

@@ -37,6 +37,7 @@ from scipy.spatial import cKDTree
 from plantscan_core.data import LabelledMesh, Mesh
 from plantscan_core.stages import StageParams, StageReport
 from plantscan_leaves import geometry as geo
+from plantscan_leaves.geometry import face_curvature
 
 log = logging.getLogger(__name__)
 
@@ -137,13 +138,7 @@ class CurvatureRegionsParams(StageParams):
 
 def _regions_of(nf: int, pairs: np.ndarray, keep: np.ndarray) -> np.ndarray:
     """Connected components of the faces ``keep`` over ``pairs``; -1 elsewhere."""
-    sel = keep[pairs[:, 0]] & keep[pairs[:, 1]]
-    p = pairs[sel]
-    g = sparse.csr_matrix((np.ones(len(p), np.int8), (p[:, 0], p[:, 1])), shape=(nf, nf))
-    _, lab = connected_components(g, directed=False)
-    lab = lab.astype(np.int64)
-    lab[~keep] = -1
-    return lab
+    return geo.components(nf, pairs, keep)
 
 
 def _grow(labels: np.ndarray, pairs: np.ndarray) -> np.ndarray:
@@ -173,33 +168,6 @@ def _relabel(labels: np.ndarray) -> np.ndarray:
     present[labels[ok]] = True
     new_id = np.cumsum(present) - 1
     return np.where(ok, new_id[np.maximum(labels, 0)], -1)
-
-
-def face_curvature(mesh: Mesh, topo: geo.MeshTopology, smoothing_mm: float) -> np.ndarray:
-    """(F,) smallest normal curvature across each face's edges, 1/mm (< 0 concave).
-
-    Curvature across the edge shared by faces i, j is
-    ``(n_j - n_i) . (c_j - c_i) / |c_j - c_i|^2`` with normals ``n`` and
-    centroids ``c`` of the surface smoothed at ``smoothing_mm``; outward
-    normals make convex edges positive.
-    """
-    v, f = mesh.vertices, mesh.faces
-    edge_mm = float(np.mean(geo.row_norm(v[topo.edges[:, 0]] - v[topo.edges[:, 1]])))
-    vop = geo.vertex_adjacency_operator(len(v), topo.edges)
-    vs = geo.taubin(v, vop, geo.diffusion_steps(smoothing_mm / 2, edge_mm, 30))
-    n, _ = geo.face_normals_areas(vs, f)
-    fop = geo.face_adjacency_operator(len(f), topo.face_pairs)
-    n = geo.smooth(fop, n, geo.diffusion_steps(smoothing_mm, edge_mm * 0.6))
-    n /= np.maximum(geo.row_norm(n), 1e-12)[:, None]
-    c = geo.face_centroids(vs, f)
-    i, j = topo.face_pairs[:, 0], topo.face_pairs[:, 1]
-    dc = c[j] - c[i]
-    k = np.einsum("ij,ij->i", n[j] - n[i], dc) / np.maximum(np.einsum("ij,ij->i", dc, dc), 1e-12)
-    kf = np.full(len(f), np.inf)
-    np.minimum.at(kf, i, k)
-    np.minimum.at(kf, j, k)
-    kf[~np.isfinite(kf)] = 0.0
-    return kf
 
 
 def _region_shape(c: np.ndarray, normals: np.ndarray, areas: np.ndarray, labels: np.ndarray,

@@ -29,7 +29,8 @@ PROCESSING = {
                     "params": {"resolution": 48, "k": 3, "bbox": [-300, -300, 0, 300, 300, 480]}},
     "mesh": {"plugin": "marching-cubes"},
     "segment_mesh": {"plugin": "curvature-regions"},
-    "measure": {"plugin": "leaf-geometry"},
+    # 16 plant views where the recipe asks for 36: every plant is flagged (fewer than half)
+    "measure": {"plugin": "leaf-geometry", "params": {"min_plant_views": 36}},
     "export": [{"plugin": "csv"}, {"plugin": "html-report", "params": {"thumbnails": 2}}],
 }
 

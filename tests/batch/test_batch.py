@@ -28,6 +28,10 @@ def _check_two_good_one_corrupt(out: Path, scans: dict[str, Path]) -> list[dict[
     rows = {Path(r["scan"]).name: r for r in _csv(out / "batch_summary.csv")}
     assert set(rows) == {"good1", "good2", "corrupt"}
     assert rows["good1"]["status"] == rows["good2"]["status"] == "ok"
+    # ran, but not to be trusted: the summary says so and why (16 views, the recipe needs 36)
+    for name in ("good1", "good2"):
+        assert rows[name]["quality_flag"] == "fail"
+        assert "16 plant views, fewer than the 36" in rows[name]["quality_reasons"]
     bad = rows["corrupt"]
     assert bad["status"] == "failed"
     # The error names the stage and the unreadable image file, so the technician can act.
@@ -43,6 +47,8 @@ def _check_two_good_one_corrupt(out: Path, scans: dict[str, Path]) -> list[dict[
         assert len(mine) == len(run_traits.leaves) == int(rows[name]["leaf_count"]) > 0
         assert [float(r["area_mm2"]) for r in mine] == pytest.approx(
             [leaf.area_mm2 for leaf in run_traits.leaves], abs=1e-4)  # CSV keeps 4 decimals
+        assert [r["quality_flag"] for r in mine] == [lf.quality_flag for lf in run_traits.leaves]
+        assert all(0.0 <= float(r["confidence"]) <= 1.0 for r in mine)
         # run.json of the plant's run folder is the pipeline's: every stage ran.
         info = json.loads((out / name / "run.json").read_text())
         assert {"calibrate", "segment", "reconstruct", "mesh", "segment_mesh",

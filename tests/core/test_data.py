@@ -109,16 +109,22 @@ def test_tilt_axis_moves_camera_about_the_axis():
 
 
 def test_traits_csv_round_trip_and_bad_trait_name():
-    t = Traits([LeafTraits(0, 152.6, 74.5, 8535.6, 350.89, 0.031)], {"leaf_count": 1})
+    t = Traits([LeafTraits(0, 152.6, 74.5, 8535.6, 350.89, 0.031, 0.3, "phantom;outline",
+                           "check")], {"leaf_count": 1})
     back = Traits.from_csv(t.to_csv())
     assert back.leaves[0].trait("area") == pytest.approx(8535.6)
     assert back.leaves[0].thick_share == pytest.approx(0.031)
+    assert back.leaves[0].confidence == pytest.approx(0.3)
+    assert (back.leaves[0].confidence_reasons, back.leaves[0].quality_flag) == (
+        "phantom;outline", "check")
     header = "leaf_id,length_mm,width_mm,area_mm2,perimeter_mm"
-    assert t.to_csv().splitlines()[0] == header + ",thick_share"
-    # a table written before the quality column (or by another tool) still reads
+    assert t.to_csv().splitlines()[0] == (
+        header + ",thick_share,confidence,confidence_reasons,quality_flag")
+    # a table written before the quality columns (or by another tool) still reads
     old = Traits.from_csv(header + "\n0,152.6,74.5,8535.6,350.89\n")
     assert old.leaves[0].perimeter_mm == pytest.approx(350.89)
-    assert np.isnan(old.leaves[0].thick_share)
+    assert np.isnan(old.leaves[0].thick_share) and np.isnan(old.leaves[0].confidence)
+    assert old.leaves[0].quality_flag == ""
     with pytest.raises(ValueError, match="valid: length, width, area, perimeter"):
         t.leaves[0].trait("volume")
 

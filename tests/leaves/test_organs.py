@@ -37,7 +37,7 @@ def test_every_leaf_of_the_mock_plant_is_one_label(mock_plant, mock_organs):
     for leaf in range(len(plant.leaves)):  # and almost all of each leaf is in its label
         label = next(lab for lab, (p, _) in purity.items() if p == leaf)
         assert np.mean(labelled.face_labels[part == leaf] == label) > 0.95
-    assert info["leaves"] == len(plant.leaves)
+    assert info.counts["leaves"] == len(plant.leaves)
 
 
 def test_features_and_labels_are_the_same_in_centimetres(mock_plant, mock_organs):
@@ -72,4 +72,4 @@ def test_a_leaf_broken_in_two_is_one_leaf(mock_plant):
     labels = labelled.face_labels
     halves = [np.bincount(labels[(truth == 1) & (side == s)]).argmax() for s in (-1.0, 1.0)]
     assert halves[0] == halves[1] and halves[0] in labelled.leaf_labels
-    assert info["leaves"] == len(plant.leaves)
+    assert info.counts["leaves"] == len(plant.leaves)

@@ -11,6 +11,7 @@ import pytest
 import yaml
 from plantscan_sim import read_truth_cameras
 from plantscan_sim.geometry import TriMesh, frustum
+from plantscan_sim.render import silhouette_mask
 
 from plantscan_core.data import Calibration, Camera
 
@@ -24,19 +25,9 @@ def _truth_foreground_mesh(gt) -> TriMesh:
     return TriMesh.concat([plant, pot_mesh])
 
 
-def _rasterise(mesh: TriMesh, cam: Camera) -> np.ndarray:
-    """Fill every projected triangle (1/16 px precision); independent of the ray caster."""
-    h, w = cam.model.height, cam.model.width
-    uv = cam.project(mesh.vertices)
-    out = np.zeros((h, w), np.uint8)
-    pts = np.round(uv * 16).astype(np.int32)[mesh.faces]
-    for tri in pts:
-        cv2.fillConvexPoly(out, tri, 255, lineType=cv2.LINE_8, shift=4)
-    return out > 0
-
-
 def test_masks_are_the_projection_of_the_truth_mesh(small_scan):
-    # Projecting plant.npz + the pot of pot.yaml with each view's exact camera reproduces the
+    # Projecting plant.npz + the pot of pot.yaml with each view's exact camera
+    # (silhouette_mask, the rasteriser the organ model's training carves with) reproduces the
     # truth mask: IoU >= 0.99 away from edges (pixels within 1 px of the mask boundary
     # are partial-coverage pixels where rasteriser and 50 %-coverage rule may differ).
     gt = small_scan.ground_truth_dir
@@ -47,7 +38,7 @@ def test_masks_are_the_projection_of_the_truth_mesh(small_scan):
     kernel = np.ones((3, 3), np.uint8)
     for view in plant_views:
         mask = cv2.imread(str(gt / "masks" / f"{view.index:05d}.png"), cv2.IMREAD_GRAYSCALE) > 127
-        proj = _rasterise(mesh, cams[view.index])
+        proj = silhouette_mask(mesh.vertices, mesh.faces, cams[view.index])
         m8 = mask.astype(np.uint8)
         edge = cv2.dilate(m8, kernel).astype(bool) & ~cv2.erode(m8, kernel).astype(bool)
         keep = ~edge
@@ -130,7 +121,8 @@ def test_plant_sway_is_rendered_and_recorded(tmp_path):
         keep = ~(cv2.dilate(m8, kernel).astype(bool) & ~cv2.erode(m8, kernel).astype(bool))
 
         def iou(mesh, mask=mask, keep=keep, cam=cam):
-            proj = _rasterise(TriMesh.concat([mesh, pot]), cam)
+            both = TriMesh.concat([mesh, pot])
+            proj = silhouette_mask(both.vertices, both.faces, cam)
             return np.sum(mask & proj & keep) / np.sum((mask | proj) & keep)
 
         assert iou(swayed) >= 0.99

@@ -1,0 +1,57 @@
+"""Leaf confidence and the plant quality flag (``plantscan_leaves.trust``)."""
+
+from __future__ import annotations
+
+import pytest
+from plantscan_leaves.measure import LeafGeometryParams, measure_plant
+from plantscan_leaves.trust import LOW_CONFIDENCE, Trust, leaf_trust, plant_quality
+
+from plantscan_core.data import LeafTraits
+
+
+def _leaf(length=100.0, width=50.0, area=3900.0, perimeter=240.0, thick=0.0) -> LeafTraits:
+    return LeafTraits(1, length, width, area, perimeter, thick)
+
+
+def test_a_plain_leaf_is_trusted():
+    t = leaf_trust(_leaf(), {"phantom_share": 0.05, "fragments": 1, "weakest_merge": 1.0,
+                             "area_units2": 3900.0})
+    assert t.confidence == 1.0 and t.reasons == [] and not t.low
+
+
+@pytest.mark.parametrize("leaf, evidence, reason", [
+    (_leaf(), {"phantom_share": 0.4}, "phantom"),
+    (_leaf(thick=0.2), {}, "phantom"),
+    (_leaf(perimeter=150.0), {}, "outline"),  # under 1.8 x 100 mm
+    (_leaf(), {"fragments": 3, "weakest_merge": 0.55}, "rejoined"),
+    (_leaf(), {"area_units2": 120.0}, "small"),
+    (_leaf(area=1000.0), {}, "shape"),  # 0.2 of the 100 x 50 mm rectangle
+])
+def test_each_reason_lowers_the_confidence(leaf, evidence, reason):
+    t = leaf_trust(leaf, evidence)
+    assert reason in t.reasons and t.confidence < LOW_CONFIDENCE
+
+
+def test_plant_flag_and_its_reasons():
+    good, low = Trust(1.0), Trust(0.3, ["phantom"])
+    assert plant_quality([good] * 12, 0.0, 72, 72) == ("ok", [])
+    flag, why = plant_quality([good] * 10 + [low] * 2, 0.0, 72, 72)
+    assert flag == "check" and why == ["2 of 12 leaves have low confidence"]
+    flag, why = plant_quality([good] * 12, 0.2, 72, 72)
+    assert flag == "check" and "debris is 20 % of the leaf area" in why
+    flag, why = plant_quality([good] * 12, 0.0, 24, 36)  # under-viewed: check
+    assert flag == "check" and "24 plant views, fewer than the 36" in why[0]
+    flag, why = plant_quality([good] * 12, 0.0, 12, 36)  # fewer than half: fail
+    assert flag == "fail" and "12 plant views" in why[0]
+    assert plant_quality([], 0.0, 72, 72)[0] == "fail"
+    assert plant_quality([low] * 3 + [good] * 3, 0.0, 72, 72)[0] == "fail"
+
+
+def test_measured_mock_plant_carries_confidence_and_flag(mock_plant, mock_plant_measured):
+    labelled, _ = mock_plant_measured
+    traits, _, report = measure_plant(labelled, LeafGeometryParams(min_plant_views=36), 12)
+    assert all(0.0 <= lf.confidence <= 1.0 for lf in traits.leaves)
+    assert all(lf.quality_flag in ("ok", "check") for lf in traits.leaves)
+    assert traits.plant["quality_flag"] == "fail"
+    assert any("12 plant views" in r for r in traits.plant["quality_reasons"])
+    assert report.warnings_about(code="plant-quality")
