@@ -43,7 +43,7 @@ import os
 import signal
 import sys
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -55,6 +55,7 @@ from plantscan_core.plugins import PluginManager
 from plantscan_core.recipe import Recipe
 from plantscan_core.scanfolder import IMAGES_DIR, ScanFolder, now_iso
 from plantscan_core.stages import CameraBackend, CaptureRequest, MotionAxis, StageContext
+from plantscan_core.trajectory import Stop, order_stops
 
 CAPTURE_TMP_MARK = ".capture"
 """Infix of the temporary name a camera writes to (``.NAME.capture.EXT``)."""
@@ -91,28 +92,55 @@ class PlannedView:
         return (self.role, self.camera, self.tilt_index, self.angle_index)
 
 
-def all_tilts(recipe: Recipe) -> list[float]:
-    """Every tilt of the protocol: the scan's tilts first, then role-only tilts.
+def all_tilts(recipe: Recipe, planned: Sequence[Sequence[Stop]] = ()) -> list[float]:
+    """Every tilt of the protocol: the scan's tilts first, then role-only tilts, then the
+    adaptive planner's candidate tilts and those of ``planned`` stops.
 
     A view's ``tilt_index`` is its tilt's position in this list.
     """
     tilts = list(recipe.scan.tilts_deg)
-    for role in recipe.scan.enabled_roles():
-        for t in recipe.scan.role_tilts(role):
-            if t not in tilts:
-                tilts.append(t)
+    more = [t for role in recipe.scan.enabled_roles() for t in recipe.scan.role_tilts(role)]
+    more += recipe.scan.adaptive_tilts() + [s.tilt_deg for r in planned for s in r]
+    for t in more:
+        if t not in tilts:
+            tilts.append(t)
     return tilts
 
 
-def plan(recipe: Recipe) -> list[PlannedView]:
-    """Every view of the protocol in capture order (cameras innermost)."""
-    tilts = all_tilts(recipe)
+def plan(recipe: Recipe, registry=None, planned: Sequence[Sequence[Stop]] = ()
+         ) -> list[PlannedView]:
+    """Every view of the protocol in capture order (cameras innermost).
+
+    Calibration and background views go tilt by tilt, turntable angle
+    ascending.  The plant views of a ``scan.trajectory`` are visited in the
+    quickest order by the rig's timing model (``trajectory.order_stops``), as is
+    each round of ``planned`` stops (``ScanFolder.planned_rounds``) after them,
+    from where the rig stands.  ``registry`` gives the plugins' timing
+    parameters (default: every installed plugin); it changes only the order.
+    """
+    tilts = all_tilts(recipe, planned)
+    scan = recipe.scan
     out: list[PlannedView] = []
-    for role in recipe.scan.enabled_roles():
-        for tilt in recipe.scan.role_tilts(role):
-            for ai, angle in enumerate(recipe.scan.role_angles(role)):
-                for cam in recipe.scan.cameras:
-                    out.append(PlannedView(role, cam.name, tilts.index(tilt), tilt, ai, angle))
+    motion = None
+    for role in scan.enabled_roles():
+        role_stops = scan.role_stops(role)
+        if role == "plant" and (scan.trajectory is not None or planned):
+            from plantscan_core.timing import rig_motion
+
+            motion = rig_motion(recipe, registry)
+            at = (0.0, 0.0)
+            if scan.trajectory is not None:
+                role_stops, _ = order_stops(role_stops, motion)
+            ordered = list(role_stops)
+            for stops_of_round in planned:
+                at = ordered[-1].position if ordered else at
+                ordered += order_stops(list(stops_of_round), motion, at)[0]
+            role_stops = ordered
+        for stop in role_stops:
+            ti = tilts.index(stop.tilt_deg)
+            for cam in scan.cameras:
+                out.append(PlannedView(role, cam.name, ti, stop.tilt_deg, stop.index,
+                                       stop.pan_deg))
     return out
 
 
@@ -284,7 +312,8 @@ def acquire(
     manager : PluginManager that builds the cameras, axes and scene.
     raw_recipe : the recipe as read (stored in ``scan.yaml``); defaults to ``recipe`` dumped.
     resume : continue a scan already in ``out`` (its protocol and rig must match);
-        finished images are never rewritten.
+        finished images are never rewritten.  The planned stops the folder records
+        (``planned_views.jsonl``, an adaptive scan's) are part of its protocol.
     stop_after : capture at most this many *new* images, then return (tests of interruption).
     on_role_start : called with the role name before its first image, once every
         earlier image is committed (real rigs: ask the user to mount the target
@@ -356,7 +385,8 @@ def _acquire(recipe: Recipe, out: Path, manager: PluginManager, lock: FolderLock
         scene.setup(scan)
 
     done = scan.done_keys()
-    todo = [v for v in plan(recipe) if v.key not in done]
+    planned = [[s.stop for s in r.stops] for r in scan.planned_rounds()]
+    todo = [v for v in plan(recipe, manager.registry, planned) if v.key not in done]
     if stop_after is not None:
         todo = todo[: max(0, stop_after)]
     with _Signals() as signals:

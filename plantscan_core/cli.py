@@ -93,9 +93,11 @@ def cmd_plugins(args) -> int:
 def cmd_recipe_check(args) -> int:
     manager = get_manager()
     recipe, _ = _load(args, manager)
-    print(f"{args.recipe}: OK ({recipe.name}: {len(recipe.scan.cameras)} camera(s), "
-          f"{len(recipe.scan.tilts_deg)} tilt(s), {recipe.scan.images_per_revolution} "
-          "angles per revolution)")
+    scan = recipe.scan
+    stops = scan.role_stops("plant")
+    print(f"{args.recipe}: OK ({recipe.name}: {len(scan.cameras)} camera(s), "
+          f"{len(scan.role_tilts('plant'))} plant tilt(s), {len(stops)} plant stop(s) = "
+          f"{len(stops) * len(scan.cameras)} plant images)")
     return 0
 
 
@@ -156,6 +158,10 @@ def cmd_scan(args) -> int:
             print(f"{len(plan(recipe))} images planned")
             return 0
         print(estimate_scan_time(recipe, manager.registry))
+        if args.adaptive:
+            from plantscan_core.adaptive import describe_budget
+
+            print(describe_budget(recipe, manager.registry))
         return 0
     if args.out is None:
         raise PlantScanError("--out: required (the scan folder to write)")
@@ -169,9 +175,41 @@ def cmd_scan(args) -> int:
                     "plant": "place the plant on the turntable"}[role]
             input(f"{role}: {what}, then press Enter ")
 
-    scan = acquire(recipe, Path(args.out), manager, raw_recipe=raw, resume=args.resume,
-                   on_role_start=on_role_start, progress=sys.stderr.isatty())
+    if args.adaptive:
+        from plantscan_core.adaptive import scan_adaptive
+
+        scan = scan_adaptive(recipe, Path(args.out), manager, raw_recipe=raw,
+                             resume=args.resume, on_role_start=on_role_start,
+                             progress=sys.stderr.isatty(),
+                             calibration_path=Path(args.calibration) if args.calibration
+                             else None)
+    else:
+        scan = acquire(recipe, Path(args.out), manager, raw_recipe=raw, resume=args.resume,
+                       on_role_start=on_role_start, progress=sys.stderr.isatty())
     print(f"{scan.root}: {len(scan.views)} images")
+    return 0
+
+
+def cmd_plan(args) -> int:
+    from plantscan_core.adaptive import describe_plan, plan_next, record_round
+    from plantscan_core.scanfolder import ScanFolder
+
+    manager = get_manager()
+    recipe, _ = _recipe_from_scan_or_args(args, manager)
+    scan = ScanFolder.open(Path(args.scan))
+    rr = plan_next(scan.root, recipe, manager, run_dir=Path(args.out) if args.out else None,
+                   calibration_path=Path(args.calibration) if args.calibration else None,
+                   progress=sys.stderr.isatty())
+    print(describe_plan(rr.view_plan, len(recipe.scan.cameras)))
+    print(f"{rr.run_dir / 'plan.json'}: the plan (quick processing {rr.processing_s:.1f} s, "
+          f"planner {rr.planner_s:.1f} s)")
+    if args.record:
+        if not rr.view_plan.stops:
+            raise PlantScanError(f"{scan.root}: nothing to record, the plan has no stop")
+        rnd = record_round(scan, recipe, rr.view_plan, rr.planner,
+                           {"processing_s": rr.processing_s, "planner_s": rr.planner_s})
+        print(f"{scan.root}: round {rnd.round} recorded in planned_views.jsonl; capture it "
+              f"with: plantscan scan --recipe ... --out {scan.root} --resume")
     return 0
 
 
@@ -405,9 +443,25 @@ def build_parser(manager: PluginManager | None = None) -> argparse.ArgumentParse
     p.add_argument("--resume", action="store_true", help="continue an interrupted scan in --out")
     p.add_argument("--dry-run", action="store_true",
                    help="check the recipe and print the timing model; move nothing")
+    p.add_argument("--adaptive", action="store_true",
+                   help="after the protocol's views, plan and capture more where the hull is "
+                   "unsure, in rounds, within scan.adaptive's budgets (docs/trajectories.md)")
+    p.add_argument("--calibration", help="--adaptive: a calibration YAML for the quick runs "
+                   "instead of the recipe's calibrator (a session calibration)")
     _add_sample_sheet_arg(p)
     _add_force(p)
     p.set_defaults(func=cmd_scan)
+
+    p = sub.add_parser("plan", help="where more views would carve a scan's hull: the next "
+                       "stops (pan, tilt), with their predicted gain and why")
+    p.add_argument("scan", help="scan folder")
+    _add_recipe_args(p, required=False)
+    p.add_argument("--calibration", help="use this calibration YAML instead of calibrating")
+    p.add_argument("--out", help="run folder of the quick processing (default SCAN/planning)")
+    p.add_argument("--record", action="store_true",
+                   help="record the stops as the scan's next round (planned_views.jsonl): "
+                   "scan --resume then captures them")
+    p.set_defaults(func=cmd_plan)
 
     p = sub.add_parser("calibrate", help="calibrate the rig from a scan's calibration views")
     p.add_argument("scan", help="scan folder")

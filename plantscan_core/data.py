@@ -355,6 +355,10 @@ class TiltAxis:
                    int(d.get("reference_tilt_index", 0)))
 
 
+TILT_MATCH_DEG = 1e-6
+"""Two tilts this close are the same tilt (recipes round stops to 1e-6 deg)."""
+
+
 @dataclass
 class Calibration:
     """Cameras of a turntable rig: the camera of any (camera, tilt, turntable angle).
@@ -421,11 +425,27 @@ class Calibration:
         return solved / self.angle_scale
 
     def camera_for_view(self, view: ViewRecord) -> Camera:
-        """The camera that took ``view`` (its measured angle when known)."""
+        """The camera that took ``view`` (its measured angle when known).
+
+        A view whose tilt index this calibration knows at another tilt (a
+        calibration of another protocol's scan, whose tilt list differs) is
+        placed by its tilt in degrees (``camera_at_stop``).
+        """
         angle = self.view_angle_deg(view)
+        known = self.tilts_deg.get(view.tilt_index)
+        if known is not None and abs(known - view.tilt_deg) > TILT_MATCH_DEG:
+            return self.camera_at_stop(view.camera, view.tilt_deg, angle)
         if (view.camera, view.tilt_index) not in self.poses and self.tilt_axis is not None:
             return self.camera_at_tilt(view.camera, view.tilt_deg, angle)
         return self.camera_at(view.camera, view.tilt_index, angle)
+
+    def camera_at_stop(self, camera: str, tilt_deg: float, angle_deg: float) -> Camera:
+        """The camera at a rig position given in degrees: the calibrated pose of that tilt
+        when there is one, else through the tilt-arm axis model (``KeyError`` without)."""
+        for ti, t in sorted(self.tilts_deg.items()):
+            if abs(t - tilt_deg) <= TILT_MATCH_DEG and (camera, ti) in self.poses:
+                return self.camera_at(camera, ti, angle_deg)
+        return self.camera_at_tilt(camera, tilt_deg, angle_deg)
 
     def camera_at_tilt(self, camera: str, tilt_deg: float, angle_deg: float) -> Camera:
         """Camera at any tilt angle, through the tilt-arm axis model."""

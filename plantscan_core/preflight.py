@@ -165,7 +165,9 @@ def recipe_plan(recipe, image_size: tuple[int, int] | None = None, workers: int 
 
     scan = recipe.scan
     w, h = image_size or scan.image_size
-    views = len(scan.cameras) * len(scan.role_tilts("plant")) * len(scan.role_angles("plant"))
+    views = len(scan.cameras) * len(scan.role_stops("plant"))
+    if scan.adaptive is not None:  # an adaptive scan may grow to its image budget
+        views = max(views, scan.adaptive.max_plant_images)
     reduce = recipe.segment.reduce if recipe.segment is not None else 1
     if reduce == "auto":
         reduce = auto_reduce(max(w, h), AUTO_REDUCE_MIN_LONG_SIDE_PX)

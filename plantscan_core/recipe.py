@@ -18,6 +18,13 @@ from plantscan_core.data import ROLES
 from plantscan_core.errors import PluginError, RecipeError
 from plantscan_core.metadata import ExperimentSpec, PlantSpec
 from plantscan_core.steps import CORE_TABLE, StageTable
+from plantscan_core.trajectory import (
+    TRAJECTORY_KINDS,
+    RigLimits,
+    Stop,
+    Trajectory,
+    duplicate_stops,
+)
 from plantscan_core.userfiles import InputFileError, load_yaml, parse_yaml
 
 
@@ -62,6 +69,36 @@ class RoleSpec(_Model):
     images_per_revolution: int | None = Field(default=None, ge=1, le=3600)
 
 
+class AdaptiveSpec(_Model):
+    """``plantscan scan --adaptive``: plan more plant views where the hull is unsure.
+
+    After the base views (the plant role's grid or trajectory) the scan is
+    processed quickly (a coarse hull), the recipe's ``plan`` stage chooses the
+    next stops among the candidates, they are captured, and so on until the
+    predicted gain is small or a budget is spent (docs/trajectories.md).
+    """
+
+    max_plant_images: int = Field(100, ge=1, le=100_000,
+                                  description="plant images of the whole scan, base included")
+    max_capture_s: float | None = Field(
+        360.0, gt=0.0, le=1e6, description="capture time of the plant role by the timing "
+        "model, base included (null: no time budget)")
+    tilts_deg: list[FiniteFloat] | None = Field(
+        None, min_length=1, description="tilts the planner may choose (each gets a background "
+        "plate per camera); default: the plant views' tilts")
+    pan_step_deg: float = Field(5.0, ge=0.1, le=90.0,
+                                description="candidate turntable angles every this many deg")
+    stops_per_round: int = Field(8, ge=1, le=1000,
+                                 description="stops planned per round (before re-planning)")
+    max_rounds: int = Field(4, ge=1, le=100)
+    min_gain_fraction: float = Field(
+        0.005, ge=0.0, le=1.0, description="stop when a round is predicted to carve less than "
+        "this share of the hull's volume")
+    resolution: int = Field(128, ge=16, le=1024,
+                            description="voxels along the longest side of the coarse hull the "
+                            "planner works on (reconstruct.params.resolution of the quick runs)")
+
+
 def _default_roles() -> dict[str, RoleSpec]:
     return {
         "calibration": RoleSpec(),
@@ -84,6 +121,14 @@ class ScanSpec(_Model):
     image_format: Literal["png", "jpg"] = "png"
     jpeg_quality: int = Field(default=95, ge=1, le=100)
     roles: dict[str, RoleSpec] = Field(default_factory=_default_roles)
+    trajectory: Trajectory | None = Field(
+        None, description="the plant views as (pan, tilt) stops: a list or a generator "
+        "(grid, per-tilt, spiral, golden-angle, views); default: tilts_deg x "
+        "images_per_revolution (docs/trajectories.md)")
+    limits: RigLimits = Field(default_factory=RigLimits,
+                              description="what the rig can do: tilt travel, axis speeds")
+    adaptive: AdaptiveSpec | None = Field(
+        None, description="settings of plantscan scan --adaptive (defaults when absent)")
 
     @field_validator("image_size")
     @classmethod
@@ -110,18 +155,51 @@ class ScanSpec(_Model):
         return v
 
     def role_tilts(self, role: str) -> list[float]:
+        """The distinct tilts of ``role``'s stops, in order.
+
+        The background plates default to every tilt a plant view may be taken
+        at: the plant views' and the adaptive planner's candidates.
+        """
         spec = self.roles.get(role)
-        return list(spec.tilts_deg) if spec and spec.tilts_deg is not None else list(self.tilts_deg)
+        if role == "plant" and self.trajectory is not None:
+            return _distinct(s.tilt_deg for s in self.trajectory.stops())
+        if spec and spec.tilts_deg is not None:
+            return list(spec.tilts_deg)
+        if role == "background":
+            return _distinct([*self.tilts_deg, *self.role_tilts("plant"),
+                              *self.adaptive_tilts()])
+        return list(self.tilts_deg)
 
     def role_angles(self, role: str) -> list[float]:
-        """Commanded turntable angles (deg) of ``role``: evenly spaced over a revolution."""
+        """Commanded turntable angles (deg) of ``role``'s grid: evenly spaced over a revolution."""
         spec = self.roles.get(role)
         n = spec.images_per_revolution if spec and spec.images_per_revolution else None
         n = n or self.images_per_revolution
         return [i * 360.0 / n for i in range(n)]
 
+    def role_stops(self, role: str) -> list[Stop]:
+        """The rig positions of ``role`` (the plant's trajectory, else tilts x angles)."""
+        if role == "plant" and self.trajectory is not None:
+            return self.trajectory.stops()
+        angles = self.role_angles(role)
+        return [Stop(a, t, i) for t in self.role_tilts(role) for i, a in enumerate(angles)]
+
+    def adaptive_tilts(self) -> list[float]:
+        """Tilts the adaptive planner may choose (``adaptive.tilts_deg``, default the plant's)."""
+        if self.adaptive is None or self.adaptive.tilts_deg is None:
+            return self.role_tilts("plant") if self.adaptive is not None else []
+        return list(self.adaptive.tilts_deg)
+
     def enabled_roles(self) -> list[str]:
         return [r for r in ROLES if r in self.roles and self.roles[r].enabled]
+
+
+def _distinct(values) -> list[float]:
+    out: list[float] = []
+    for v in values:
+        if v not in out:
+            out.append(float(v))
+    return out
 
 
 class Recipe(_Model):
@@ -144,6 +222,9 @@ class Recipe(_Model):
     calibrate: StageSpec | None = None
     segment: SegmentSpec | None = None
     reconstruct: StageSpec | None = None
+    plan: StageSpec | None = Field(None, description="the view planner (plugin next-best-view): "
+                                   "where more views would carve the hull (plantscan plan, "
+                                   "plantscan scan --adaptive)")
     mesh: StageSpec | None = None
     segment_mesh: StageSpec | None = None
     measure: StageSpec | None = None
@@ -254,12 +335,13 @@ def validate_recipe(raw: Any, registry=None, source: str = "recipe") -> Recipe:
     try:
         recipe = Recipe.model_validate(raw)
     except ValidationError as exc:
-        errors = unknown + [(_loc(e["loc"]), e["msg"]) for e in exc.errors()
+        errors = unknown + [(_loc(_trajectory_loc(e["loc"])), e["msg"]) for e in exc.errors()
                             if not e["loc"] or e["loc"][0] not in dict(unknown)]
         # Still check the plugin sections that parsed, so all errors come out together.
         errors += _check_plugins_raw(raw, registry)
         raise RecipeError(errors, source) from None
-    errors = unknown + (check_plugins(recipe, registry) if registry is not None else [])
+    errors = unknown + (check_plugins(recipe, registry) + check_limits(recipe, registry)
+                        if registry is not None else [])
     errors += _check_protocol(recipe)
     if errors:
         raise RecipeError(errors, source)
@@ -281,16 +363,108 @@ def _check_protocol(recipe: Recipe) -> list[tuple[str, str]]:
     tilt_lists = [("scan.tilts_deg", scan.tilts_deg)] + [
         (f"scan.roles.{role}.tilts_deg", spec.tilts_deg) for role, spec in scan.roles.items()
         if spec.tilts_deg is not None]
+    if scan.adaptive is not None and scan.adaptive.tilts_deg is not None:
+        tilt_lists.append(("scan.adaptive.tilts_deg", scan.adaptive.tilts_deg))
     for where, tilts in tilt_lists:
         for i, t in enumerate(tilts):
             if not -90.0 <= t <= 90.0:
                 errors.append((f"{where}.{i}", f"tilt {t:g} outside [-90, 90] deg"))
-    if "plant" in scan.roles and scan.roles["plant"].enabled and "background" in scan.roles:
-        bg, pl = set(scan.role_tilts("background")), set(scan.role_tilts("plant"))
-        if scan.roles["background"].enabled and not pl <= bg:
-            errors.append(("scan.roles.background.tilts_deg",
-                           f"plant tilts {sorted(pl - bg)} have no background plate"))
+            elif not scan.limits.tilt_ok(t):
+                errors.append((f"{where}.{i}", _outside_limits(t, scan)))
+    errors += _check_trajectory(scan)
+    plant_on = "plant" in scan.roles and scan.roles["plant"].enabled
+    if plant_on and "background" in scan.roles and scan.roles["background"].enabled:
+        bg = set(scan.role_tilts("background"))
+        for what, tilts in (("plant", scan.role_tilts("plant")),
+                            ("adaptive", scan.adaptive_tilts())):
+            if not set(tilts) <= bg:
+                errors.append(("scan.roles.background.tilts_deg",
+                               f"{what} tilts {sorted(set(tilts) - bg)} have no background "
+                               "plate"))
+    calibration = scan.roles.get("calibration")
+    if plant_on and calibration is not None and calibration.enabled \
+            and recipe.calibrate is not None:
+        cal = set(scan.role_tilts("calibration"))
+        other = (set(scan.role_tilts("plant")) | set(scan.adaptive_tilts())) - cal
+        if other and len(cal) < 2:
+            errors.append(("scan.roles.calibration.tilts_deg",
+                           f"plant tilts {sorted(other)} are not calibrated, and one "
+                           "calibration tilt cannot give the tilt axis their cameras come "
+                           "from: calibrate at two tilts or more"))
     return errors
+
+
+def _outside_limits(tilt: float, scan: ScanSpec) -> str:
+    lo, hi = scan.limits.tilt_deg
+    return f"tilt {tilt:g} outside the rig's tilt range [{lo:g}, {hi:g}] deg (scan.limits.tilt_deg)"
+
+
+# A recipe lists at most this many stops outside the rig's limits (the count is given).
+MAX_STOP_ERRORS = 5
+
+
+def _check_trajectory(scan: ScanSpec) -> list[tuple[str, str]]:
+    """The plant trajectory: inside the rig's limits, no stop twice, one way of giving it."""
+    traj = scan.trajectory
+    if traj is None:
+        return []
+    errors: list[tuple[str, str]] = []
+    plant = scan.roles.get("plant")
+    if plant is not None and (plant.tilts_deg is not None or plant.images_per_revolution):
+        errors.append(("scan.roles.plant", "give the plant views either as scan.trajectory or "
+                       "as roles.plant.tilts_deg / images_per_revolution, not both"))
+    stops = traj.stops()
+    bad = [(i, s) for i, s in enumerate(stops)
+           if not -90.0 <= s.tilt_deg <= 90.0 or not scan.limits.tilt_ok(s.tilt_deg)]
+    for i, s in bad[:MAX_STOP_ERRORS]:
+        where = f"scan.trajectory.views.{i}" if traj.kind == "views" else "scan.trajectory"
+        errors.append((where, f"stop {i} (pan {s.pan_deg:g}, tilt {s.tilt_deg:g} deg): "
+                       + _outside_limits(s.tilt_deg, scan)))
+    if len(bad) > MAX_STOP_ERRORS:
+        errors.append(("scan.trajectory", f"{len(bad)} stops in all are outside the rig's tilt "
+                       "range"))
+    for first, again in duplicate_stops(stops)[:MAX_STOP_ERRORS]:
+        errors.append(("scan.trajectory", f"stop {again} repeats stop {first} (pan "
+                       f"{stops[first].pan_deg:g}, tilt {stops[first].tilt_deg:g} deg)"))
+    tilts = {s.tilt_deg for s in stops} | set(scan.adaptive_tilts())
+    if len(tilts) > 1 and scan.tilt_arm is None:
+        errors.append(("scan.tilt_arm", f"the plant views' {len(tilts)} tilts need a tilt_arm "
+                       "axis"))
+    return errors
+
+
+def check_limits(recipe: Recipe, registry) -> list[tuple[str, str]]:
+    """Axis speeds set above the rig's limits (``scan.limits``), from each plugin's Params."""
+    errors: list[tuple[str, str]] = []
+    lim = recipe.scan.limits
+    for key, spec in (("turntable", recipe.scan.turntable), ("tilt", recipe.scan.tilt_arm)):
+        if spec is None:
+            continue
+        where = "scan.turntable" if key == "turntable" else "scan.tilt_arm"
+        try:
+            params = registry.get("axis", spec.plugin).cls.Params.model_validate(spec.params)
+        except (PluginError, ValidationError):
+            continue  # reported by check_plugins
+        for name, unit in (("velocity", "deg/s"), ("acceleration", "deg/s²")):
+            limit = getattr(lim, f"{key}_{name}_deg_s" + ("2" if name == "acceleration" else ""))
+            value = getattr(params, f"{name}_deg_s" + ("2" if name == "acceleration" else ""),
+                            None)
+            if limit is not None and value is not None and float(value) > limit + 1e-9:
+                field = f"{name}_deg_s" + ("2" if name == "acceleration" else "")
+                errors.append((f"{where}.params.{field}",
+                               f"{float(value):g} {unit} is more than the rig allows "
+                               f"(scan.limits.{key}_{field}: {limit:g})"))
+    return errors
+
+
+def _trajectory_loc(loc: tuple) -> tuple:
+    """A pydantic location without the tag of the trajectory kind (``scan.trajectory.stops``)."""
+    out = list(loc)
+    for i in range(len(out) - 1):
+        if out[i] == "trajectory" and out[i + 1] in TRAJECTORY_KINDS:
+            del out[i + 1]
+            break
+    return tuple(out)
 
 
 def check_plugins(recipe: Recipe, registry) -> list[tuple[str, str]]:

@@ -35,6 +35,7 @@ from plantscan_core.userfiles import InputFileError, load_yaml, parse_json_line,
 
 SCAN_YAML = "scan.yaml"
 VIEWS_JSONL = "views.jsonl"
+PLANNED_VIEWS_JSONL = "planned_views.jsonl"
 IMAGES_DIR = "images"
 GROUND_TRUTH_DIR = "ground_truth"
 FORMAT = "plantscan-scan/1"
@@ -55,6 +56,31 @@ class ViewLine(CheckedModel):
     measured_angle_deg: AngleDeg | None = None
     file: str = Field(min_length=1, max_length=4096)
     captured_at: str = ""
+
+
+class PlannedStopLine(CheckedModel):
+    """The checks on one planned stop of ``planned_views.jsonl``."""
+
+    model_config = ConfigDict(extra="ignore")
+
+    pan_deg: AngleDeg
+    tilt_deg: float = Field(ge=-90.0, le=90.0)
+    angle_index: int = Field(ge=0, le=10_000_000)
+    gain_mm3: float = Field(0.0, ge=0.0)
+    reason: str = Field("", max_length=10_000)
+
+
+class PlannedRoundLine(CheckedModel):
+    """The checks on one line (one planned round) of ``planned_views.jsonl``."""
+
+    model_config = ConfigDict(extra="ignore")
+
+    round: int = Field(ge=1, le=100_000)
+    stops: list[PlannedStopLine] = Field(default_factory=list, max_length=100_000)
+    planner: str = Field("", max_length=200)
+    stop_reason: str | None = Field(None, max_length=10_000)
+    figures: dict[str, Any] = Field(default_factory=dict)
+    created: str = ""
 
 
 def _fsync_dir(path: Path) -> None:
@@ -158,35 +184,11 @@ class ScanFolder:
     def _read_views(self) -> list[ViewRecord]:
         """The manifest's views; a torn last line is left out (``torn_line`` says which)."""
         path = self.root / VIEWS_JSONL
-        self.torn_line: int | None = None
-        if not path.exists():
-            return []
-        try:
-            data = read_bytes(path)
-        except InputFileError as exc:
-            raise ScanFolderError(str(exc)) from None
-        lines = data.split(b"\n")
-        if lines[-1] != b"":  # last line without newline: a crash during the append
-            self.torn_line = len(lines)
+        lines, self.torn_line = _checked_lines(path, ViewLine, "view line")
         views: list[ViewRecord] = []
         first_line: dict[tuple[str, Any], int] = {}
-        for n, line in enumerate(lines[:-1], start=1):
-            if not line.strip():
-                continue
-            try:
-                d = parse_json_line(line, path, n)
-                if not isinstance(d, dict):
-                    raise ValueError("a view line is a JSON object")
-                ViewLine.model_validate(d)
-                view = ViewRecord.from_dict(d)
-            except InputFileError as exc:
-                raise ScanFolderError(str(exc)) from None
-            except ValidationError as exc:
-                problems = "; ".join(f"{error_path(e['loc'])}: {e['msg']}"
-                                     for e in exc.errors())
-                raise ScanFolderError(f"{path}:{n}: malformed view line ({problems})") from None
-            except (ValueError, KeyError, TypeError) as exc:
-                raise ScanFolderError(f"{path}:{n}: malformed view line ({exc})") from exc
+        for n, d in lines:
+            view = ViewRecord.from_dict(d)
             self._check_relative(view.file, f"{path}:{n}")
             # Two lines for one index, protocol stop or file would both write masks/<index>.png
             # or count one image twice: refused, naming both lines.
@@ -269,16 +271,35 @@ class ScanFolder:
         return view
 
     def _append_line(self, view: ViewRecord) -> None:
-        path = self.root / VIEWS_JSONL
-        data = path.read_bytes() if path.exists() else b""
-        if data and not data.endswith(b"\n"):
-            # Drop a torn last line left by a crash during an append.
-            with open(path, "r+b") as f:
-                f.truncate(data.rfind(b"\n") + 1)
-        with open(path, "ab") as f:
-            f.write((json.dumps(view.to_dict(), sort_keys=True) + "\n").encode())
-            f.flush()
-            os.fsync(f.fileno())
+        _append_json_line(self.root / VIEWS_JSONL, view.to_dict())
+
+    # ------------------------------------------------------------------ planned views
+    def planned_rounds(self):
+        """The rounds of planned plant stops (``planned_views.jsonl``) of an adaptive scan.
+
+        A list of ``trajectory.PlannedRound`` in the order they were planned; a
+        torn last line (a crash during the append) is left out.  Malformed lines
+        raise ``ScanFolderError`` naming file and line.
+        """
+        from plantscan_core.trajectory import PlannedRound
+
+        path = self.root / PLANNED_VIEWS_JSONL
+        out = []
+        for n, d in _checked_lines(path, PlannedRoundLine, "planned round")[0]:
+            rnd = PlannedRound.from_dict(d)
+            if rnd.round != len(out) + 1:
+                raise ScanFolderError(f"{path}:{n}: round {rnd.round} where round "
+                                      f"{len(out) + 1} was expected")
+            out.append(rnd)
+        return out
+
+    def append_planned_round(self, planned_round) -> None:
+        """Record a round of planned stops (a ``trajectory.PlannedRound``), fsynced.
+
+        Written before any of its stops is captured, so a resumed scan captures the
+        same stops instead of planning again.
+        """
+        _append_json_line(self.root / PLANNED_VIEWS_JSONL, planned_round.to_dict())
 
     def done_keys(self) -> set[tuple[str, str, int, int]]:
         """Keys (role, camera, tilt_index, angle_index) of the images already captured."""
@@ -289,6 +310,52 @@ class ScanFolder:
 
     def __repr__(self) -> str:
         return f"ScanFolder({str(self.root)!r}, {len(self._views)} views)"
+
+
+def _checked_lines(path: Path, model: type[CheckedModel], what: str
+                   ) -> tuple[list[tuple[int, dict[str, Any]]], int | None]:
+    """The JSON objects of a JSON-lines file, each checked by ``model``, with their line
+    numbers; and the number of a torn last line (no newline: a crash during its append,
+    left out), or None.  ``ScanFolderError`` names file and line of a malformed ``what``."""
+    if not path.exists():
+        return [], None
+    try:
+        data = read_bytes(path)
+    except InputFileError as exc:
+        raise ScanFolderError(str(exc)) from None
+    lines = data.split(b"\n")
+    torn = len(lines) if lines[-1] != b"" else None
+    out = []
+    for n, line in enumerate(lines[:-1], start=1):
+        if not line.strip():
+            continue
+        try:
+            d = parse_json_line(line, path, n)
+            if not isinstance(d, dict):
+                raise ValueError(f"a {what} is a JSON object")
+            model.model_validate(d)
+        except InputFileError as exc:
+            raise ScanFolderError(str(exc)) from None
+        except ValidationError as exc:
+            problems = "; ".join(f"{error_path(e['loc'])}: {e['msg']}" for e in exc.errors())
+            raise ScanFolderError(f"{path}:{n}: malformed {what} ({problems})") from None
+        except (ValueError, KeyError, TypeError) as exc:
+            raise ScanFolderError(f"{path}:{n}: malformed {what} ({exc})") from exc
+        out.append((n, d))
+    return out, torn
+
+
+def _append_json_line(path: Path, record: dict[str, Any]) -> None:
+    """Append one JSON line to ``path`` and fsync it (a torn last line is dropped first)."""
+    data = path.read_bytes() if path.exists() else b""
+    if data and not data.endswith(b"\n"):
+        # Drop a torn last line left by a crash during an append.
+        with open(path, "r+b") as f:
+            f.truncate(data.rfind(b"\n") + 1)
+    with open(path, "ab") as f:
+        f.write((json.dumps(record, sort_keys=True) + "\n").encode())
+        f.flush()
+        os.fsync(f.fileno())
 
 
 JPEG_SUFFIXES = (".jpg", ".jpeg", ".jpe", ".jfif")

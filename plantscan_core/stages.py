@@ -43,6 +43,7 @@ if TYPE_CHECKING:
     from plantscan_core.photos import Photos
     from plantscan_core.recipe import Recipe
     from plantscan_core.scanfolder import ScanFolder
+    from plantscan_core.trajectory import PlanRequest, ViewPlan
 
 
 class StageParams(CheckedModel):
@@ -367,6 +368,42 @@ class Reconstructor(Stage):
     @abc.abstractmethod
     def reconstruct(self, silhouettes: Silhouettes, calibration: Calibration) -> Volume:
         """Carve a volume from the silhouettes seen by the calibrated cameras."""
+
+
+class ViewPlanner(Stage):
+    """``plan(volume, silhouettes, calibration, request) -> ViewPlan``: where to look next.
+
+    Given the hull carved from the views taken so far, choose the stops (pan,
+    tilt) among ``request.candidates`` whose views are predicted to carve the
+    most of the hull's unsure (possibly phantom) volume, within the request's
+    budgets (``plantscan plan``, ``plantscan scan --adaptive``).
+    """
+
+    stage = "view_planner"
+
+    @abc.abstractmethod
+    def plan(self, volume: Volume, silhouettes: Silhouettes, calibration: Calibration,
+             request: PlanRequest) -> ViewPlan:
+        """Choose the next stops.
+
+        Parameters
+        ----------
+        volume : Volume
+            The hull of ``silhouettes`` (any resolution; the quick runs of an
+            adaptive scan carve a coarse one).
+        silhouettes : Silhouettes
+            The plant views taken so far, at the masks' size.
+        calibration : Calibration
+            Cameras at the masks' size; ``Calibration.camera_at_stop`` gives the
+            camera of any candidate (tilts never calibrated from the tilt axis).
+        request : trajectory.PlanRequest
+            Candidates, cameras, budgets and the capture-time model.
+
+        Returns
+        -------
+        trajectory.ViewPlan
+            The chosen stops, each with its predicted gain and a reason.
+        """
 
 
 class Mesher(Stage):

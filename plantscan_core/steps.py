@@ -55,7 +55,9 @@ from plantscan_core.stages import (
     Segmenter,
     Stage,
     StageContext,
+    ViewPlanner,
 )
+from plantscan_core.trajectory import ViewPlan
 
 if TYPE_CHECKING:
     from plantscan_core.photos import Photos
@@ -398,6 +400,36 @@ def _reconstruct(plugin: Reconstructor, run: StepRun) -> Volume:
     return volume
 
 
+# --------------------------------------------------------------------------- plan
+PLAN_JSON = "plan.json"
+
+
+def _plan_inputs(run: StepRun) -> Any:
+    """What the plan depends on besides the hull: the budgets, the rig and the planned rounds."""
+    recipe = run.context.recipe
+    scan = recipe.scan if recipe is not None else None
+    return None if scan is None else [
+        scan.adaptive.model_dump(mode="json") if scan.adaptive is not None else None,
+        scan.limits.model_dump(mode="json"), [c.name for c in scan.cameras],
+        [r.to_dict() for r in run.scan.planned_rounds()]]
+
+
+def _plan(plugin: ViewPlanner, run: StepRun) -> ViewPlan:
+    from plantscan_core.adaptive import plan_request
+
+    silhouettes = run.results["silhouettes"]
+    calibration = calibration_for_masks(run.results["calibration"], silhouettes,
+                                        run.context.reduce)
+    request = plan_request(run.context.recipe, run.scan)
+    view_plan = plugin.plan(run.results["volume"], silhouettes, calibration, request)
+    atomic_write_text(run.path(PLAN_JSON), json.dumps(view_plan.to_dict(), indent=1))
+    return view_plan
+
+
+def _load_plan(run: StepRun) -> ViewPlan:
+    return ViewPlan.from_dict(json.loads(run.path(PLAN_JSON).read_text()))
+
+
 # --------------------------------------------------------------------------- mesh, leaves
 def _mesh(plugin: Mesher, run: StepRun) -> Mesh:
     mesh = plugin.mesh(run.results["volume"])
@@ -442,6 +474,10 @@ CORE_STEPS: tuple[Step, ...] = (
     Step("reconstruct", Reconstructor, "volume", _reconstruct,
          lambda run: Volume.load(run.path("volume.npz")),
          needs=("calibration", "silhouettes"), files=_files("volume.npz")),
+    # where more views would carve the hull (plantscan plan, scan --adaptive)
+    Step("plan", ViewPlanner, "view_plan", _plan, _load_plan,
+         needs=("calibration", "silhouettes", "volume"), files=_files(PLAN_JSON),
+         scan_inputs=_plan_inputs),
     Step("mesh", Mesher, "mesh", _mesh, lambda run: Mesh.load(run.path("mesh.npz")),
          needs=("volume",), files=_files("mesh.npz")),
     Step("segment_mesh", MeshSegmenter, "labelled", _segment_mesh,

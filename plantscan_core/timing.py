@@ -174,7 +174,29 @@ def _camera_timing(spec, registry, unmodelled: list[str]) -> CameraTiming:
     return CameraTiming(float(c or 0.0), float(d or 0.0))
 
 
-def estimate_scan_time(recipe: Recipe, registry=None) -> ScanTimeEstimate:
+def rig_motion(recipe: Recipe, registry=None):
+    """The rig's ``trajectory.MotionModel``: axis timings and the slowest camera's times.
+
+    ``registry`` as in ``estimate_scan_time``; devices without timing parameters
+    count as instantaneous.
+    """
+    from plantscan_core.trajectory import MotionModel
+
+    registry = registry if registry is not None else _default_registry()
+    unmodelled: list[str] = []
+    cams = [_camera_timing(c, registry, unmodelled) for c in recipe.scan.cameras]
+    return MotionModel(_axis_timing(recipe.scan.turntable, "turntable", registry, unmodelled),
+                       _axis_timing(recipe.scan.tilt_arm, "tilt_arm", registry, unmodelled),
+                       max(c.capture_s for c in cams), max(c.download_s for c in cams))
+
+
+def _default_registry():
+    from plantscan_core.plugins import get_manager
+
+    return get_manager().registry
+
+
+def estimate_scan_time(recipe: Recipe, registry=None, planned=()) -> ScanTimeEstimate:
     """Estimate how long acquiring ``recipe``'s protocol takes (see the module docstring).
 
     Parameters
@@ -182,13 +204,13 @@ def estimate_scan_time(recipe: Recipe, registry=None) -> ScanTimeEstimate:
     recipe : Recipe
     registry : StageRegistry, optional
         Where the plugins' ``Params`` are looked up; default: every installed plugin.
+    planned : sequence of lists of trajectory.Stop
+        Rounds of planned plant stops to take after the protocol's (``acquire.plan``).
     """
     from plantscan_core.acquire import plan, stops
 
     if registry is None:
-        from plantscan_core.plugins import load_plugins
-
-        registry = load_plugins().registry
+        registry = _default_registry()
     unmodelled: list[str] = []
     turntable = _axis_timing(recipe.scan.turntable, "turntable", registry, unmodelled)
     tilt_arm = _axis_timing(recipe.scan.tilt_arm, "tilt_arm", registry, unmodelled)
@@ -200,7 +222,7 @@ def estimate_scan_time(recipe: Recipe, registry=None) -> ScanTimeEstimate:
     tilt = 0.0
     prev_download = 0.0  # slowest pending download of the previous stop
     prev_role = None
-    for group in stops(plan(recipe)):
+    for group in stops(plan(recipe, registry, planned)):
         v = group[0]
         row = by_role.setdefault(v.role, RoleTime(v.role))
         if v.role != prev_role and prev_role is not None:
