@@ -13,6 +13,7 @@ the top-left pixel at ``(0, 0)``.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import datetime
 import io
 import math
@@ -22,6 +23,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from plantscan_core.errors import DataError
 
 ROLES = ("calibration", "background", "plant")
 
@@ -505,7 +508,6 @@ class Calibration:
     def load(cls, path: Path) -> Calibration:
         """Read a calibration file, every number checked (``plantscan_core.calibfile``)."""
         from plantscan_core.calibfile import check_calibration_dict
-        from plantscan_core.errors import DataError
         from plantscan_core.userfiles import load_yaml
 
         if not Path(path).exists():
@@ -787,41 +789,172 @@ class LabelledMesh:
 
 
 # --------------------------------------------------------------------------- traits
-LEAF_TRAIT_COLUMNS = ("leaf_id", "length_mm", "width_mm", "area_mm2", "perimeter_mm",
-                      "thick_share", "confidence", "confidence_reasons", "quality_flag")
-TRAIT_NAMES = ("length", "width", "area", "perimeter")
+@dataclass(frozen=True)
+class TraitColumn:
+    """One column of the traits tables: what it is, in which unit, how reports show it.
+
+    The leaf columns are ``LeafTraits``'s fields (their metadata, ``LEAF_COLUMNS``),
+    the plant ones ``PLANT_TRAITS``.  ``traits.csv``'s header, ``TRAIT_NAMES``,
+    the report's columns and the results store's trait dictionary are derived
+    from them (docs/formats.md, "The trait table").
+
+    Attributes
+    ----------
+    name : str
+        Column or key, unit in the name (``length_mm``).
+    unit : str
+        ``mm``, ``mm2``, ``mm3``; ``1`` for a share, score or count; ``""`` for text.
+    description : str
+        What it is, for a scientist (the store's trait dictionary, MIAPPE).
+    trait : str
+        Short name of a measured trait (``length``): the ``TRAIT_NAMES`` that are
+        evaluated against the truth; ``""`` for quality figures and text.
+    label : str
+        Title in reports (default: ``trait``, else the name without its unit).
+    method : str
+        How it is measured (the store's trait dictionary).
+    display_unit, display_scale : str, float
+        Reports show ``value * display_scale`` in ``display_unit`` (default
+        ``unit``; a share 0-1 as %).
+    decimals : int
+        Decimals in reports (fixed per column, so a column lines up).
+    level : {"leaf", "plant"}
+    required : bool
+        A ``traits.csv`` without the column does not load; an optional one
+        missing (tables before it: older runs, the truth) gives its default.
+    """
+
+    name: str
+    unit: str
+    description: str
+    trait: str = ""
+    label: str = ""
+    method: str = ""
+    display_unit: str = ""
+    display_scale: float = 1.0
+    decimals: int = 1
+    level: str = "leaf"
+    required: bool = False
+
+    @property
+    def is_text(self) -> bool:
+        return self.unit == ""
+
+    @property
+    def title(self) -> str:
+        """``length``, ``thick area``, ``total leaf area``: the report's name of it."""
+        if self.label or self.trait:
+            return self.label or self.trait
+        suffix = f"_{self.unit}"
+        base = self.name[: -len(suffix)] if self.name.endswith(suffix) else self.name
+        return base.replace("_", " ")
+
+    @property
+    def header(self) -> str:
+        """``length (mm)``, ``area (mm²)``, ``confidence``: a report's column title."""
+        unit = self.shown_unit
+        return f"{self.title} ({unit})" if unit else self.title
+
+    @property
+    def shown_unit(self) -> str:
+        """The unit a report writes beside the value (``mm²``; none for a score or count)."""
+        unit = self.display_unit or _UNIT_TEXT.get(self.unit, self.unit)
+        return "" if unit == "1" else unit
+
+
+_UNIT_TEXT = {"mm2": "mm²", "mm3": "mm³"}
+
+
+def _column(unit: str, description: str, *, default: Any = dataclasses.MISSING,
+            **info: Any) -> Any:
+    """A ``LeafTraits`` field that is a column of ``traits.csv`` (see ``TraitColumn``)."""
+    return field(default=default,
+                 metadata={"column": {"unit": unit, "description": description, **info}})
+
+
+# How the flat-leaf traits are measured (docs/leaves.md).
+_FLAT = ("flat-leaf measurement of the reconstructed leaf surface (as if dissected onto a "
+         "flatbed scanner; docs/leaves.md)")
 
 
 @dataclass
 class LeafTraits:
     """Flat-leaf measurements of one leaf (as if dissected onto a flatbed).
 
-    ``thick_share`` is a quality figure, not a trait: the share (0-1) of the
-    leaf's area where its reconstructed surface is much thicker than the leaf
-    elsewhere (phantom volume of a visual hull, or an organ fused with it;
-    see docs/leaves.md).  NaN when the measurer does not say.  ``confidence``
-    (0-1) says how far the traits can be trusted, ``confidence_reasons`` the
-    reason codes behind a low one (``;``-separated), ``quality_flag`` ``ok`` or
-    ``check`` (confidence under 0.5); NaN / empty when the measurer does not say.
+    Every field but ``leaf_id`` is a column of ``traits.csv``, described by its
+    metadata (``LEAF_COLUMNS``): a new leaf trait is one field here and the
+    measurer's function that fills it.  ``thick_share``, ``confidence``,
+    ``confidence_reasons`` and ``quality_flag`` say how far to trust the
+    traits (docs/leaves.md, "Trust"); NaN / empty when the measurer does not say.
     """
 
     leaf_id: int
-    length_mm: float
-    width_mm: float
-    area_mm2: float
-    perimeter_mm: float
-    thick_share: float = math.nan
-    confidence: float = math.nan
-    confidence_reasons: str = ""
-    quality_flag: str = ""
+    length_mm: float = _column("mm", "leaf blade length, base to tip along the midrib",
+                               trait="length", method=_FLAT)
+    width_mm: float = _column("mm", "largest blade width across the midrib", trait="width",
+                              method=_FLAT)
+    area_mm2: float = _column("mm2", "one-sided blade area", trait="area", method=_FLAT,
+                              decimals=0)
+    perimeter_mm: float = _column("mm", "blade outline length", trait="perimeter",
+                                  method=_FLAT)
+    thick_share: float = _column(
+        "1", "share of the leaf's area where the hull is over 3x its median thickness "
+        "(phantom volume or a fused organ): a quality figure, not a trait",
+        default=math.nan, label="thick area", display_unit="%", display_scale=100.0)
+    confidence: float = _column(
+        "1", "how far to trust the leaf's measurements (0-1), from the measurer",
+        default=math.nan, decimals=2)
+    confidence_reasons: str = _column(
+        "", "reason codes behind a low confidence, ';'-separated (docs/leaves.md, Trust)",
+        default="")
+    quality_flag: str = _column("", "ok, or check (confidence under 0.5)", default="")
 
     def trait(self, name: str) -> float:
-        """Value of ``name`` in ``TRAIT_NAMES`` (length, width, area, perimeter)."""
-        column = {"length": "length_mm", "width": "width_mm", "area": "area_mm2",
-                  "perimeter": "perimeter_mm"}
-        if name not in column:
+        """Value of the trait ``name`` in ``TRAIT_NAMES`` (length, width, area, perimeter)."""
+        if name not in _TRAIT_COLUMN:
             raise ValueError(f"unknown trait {name!r}; valid: {', '.join(TRAIT_NAMES)}")
-        return float(getattr(self, column[name]))
+        return float(getattr(self, _TRAIT_COLUMN[name]))
+
+
+def leaf_columns(leaf_class: type) -> tuple[TraitColumn, ...]:
+    """The ``TraitColumn`` of every field of ``leaf_class`` made by ``_column``, in order
+    (one without a default is required)."""
+    return tuple(TraitColumn(f.name, **f.metadata["column"],
+                             required=f.default is dataclasses.MISSING)
+                 for f in dataclasses.fields(leaf_class) if "column" in f.metadata)
+
+
+LEAF_COLUMNS = leaf_columns(LeafTraits)
+"""The columns of ``traits.csv`` after ``leaf_id``, in order."""
+LEAF_TRAIT_COLUMNS = ("leaf_id",) + tuple(c.name for c in LEAF_COLUMNS)
+TRAIT_NAMES = tuple(c.trait for c in LEAF_COLUMNS if c.trait)
+_TRAIT_COLUMN = {c.trait: c.name for c in LEAF_COLUMNS if c.trait}
+
+
+def _plant(name: str, unit: str, description: str, **info: Any) -> TraitColumn:
+    return TraitColumn(name, unit, description, level="plant", **info)
+
+
+PLANT_TRAITS: tuple[TraitColumn, ...] = (
+    _plant("height_mm", "mm", "plant height: vertical extent of the reconstructed plant, pot "
+           "removed", method="highest minus lowest point of the plant surface"),
+    _plant("total_leaf_area_mm2", "mm2", "sum of the one-sided areas of the leaves found",
+           method=_FLAT, decimals=0),
+    _plant("leaf_count", "1", "number of leaves found", decimals=0),
+    _plant("convex_hull_volume_mm3", "mm3", "volume of the convex hull of the plant surface",
+           decimals=0),
+    _plant("projected_area_mm2", "mm2", "area of the plant seen from above (top view)",
+           decimals=0),
+    _plant("debris_area_mm2", "mm2", "one-sided area of the surface pieces labelled debris "
+           "(neither leaf nor stem)", decimals=0),
+    _plant("low_confidence_leaves", "1", "number of leaves whose quality flag is check",
+           decimals=0),
+    _plant("quality_flag", "", "ok, check or fail: whether to trust the plant's numbers "
+           "(docs/leaves.md, Trust)"),
+    _plant("quality_reasons", "", "why the plant is not ok (a list of messages)"),
+)
+"""The plant-level values a measurer reports (``Traits.plant`` keys, ``plant_traits.json``)."""
+PLANT_COLUMN = {c.name: c for c in PLANT_TRAITS}
 
 
 def leaf_value_text(value: float | str) -> str:
@@ -829,12 +962,23 @@ def leaf_value_text(value: float | str) -> str:
     return value if isinstance(value, str) else f"{value:.4f}"
 
 
+def _leaf_from_row(row: dict[str, str]) -> LeafTraits:
+    """A ``LeafTraits`` from a ``traits.csv`` row (an optional column missing: its default)."""
+    values: dict[str, Any] = {}
+    for c in LEAF_COLUMNS:
+        text = row[c.name] if c.required else row.get(c.name)
+        if text not in (None, ""):
+            values[c.name] = text if c.is_text else float(text)
+    return LeafTraits(int(row["leaf_id"]), **values)
+
+
 @dataclass
 class Traits:
     """The traits table of one plant: one row per leaf plus plant-level values.
 
-    ``plant`` keys (when measured): ``height_mm``, ``total_leaf_area_mm2``,
-    ``leaf_count``, ``convex_hull_volume_mm3``, ``projected_area_mm2``.
+    ``plant`` keys (when measured): those of ``PLANT_TRAITS`` (``height_mm``,
+    ``total_leaf_area_mm2``, ``leaf_count``, ..., ``quality_flag``), and what
+    else the measurer says.
     """
 
     leaves: list[LeafTraits] = field(default_factory=list)
@@ -845,8 +989,8 @@ class Traits:
         w = csv.writer(buf, lineterminator="\n")
         w.writerow(LEAF_TRAIT_COLUMNS)
         for leaf in self.leaves:
-            w.writerow([leaf.leaf_id] + [leaf_value_text(getattr(leaf, c))
-                                         for c in LEAF_TRAIT_COLUMNS[1:]])
+            w.writerow([leaf.leaf_id] + [leaf_value_text(getattr(leaf, c.name))
+                                         for c in LEAF_COLUMNS])
         return buf.getvalue()
 
     def to_dataframe(self, plant_columns: bool = False):
@@ -879,21 +1023,22 @@ class Traits:
             atomic_write_text(Path(plant_path), json.dumps(_plain(self.plant), indent=2))
 
     @classmethod
-    def from_csv(cls, text: str) -> Traits:
-        rows = list(csv.DictReader(io.StringIO(text)))
-        leaves = [
-            LeafTraits(int(r["leaf_id"]), float(r["length_mm"]), float(r["width_mm"]),
-                       float(r["area_mm2"]), float(r["perimeter_mm"]),
-                       # tables before these columns (older runs, the truth) still load
-                       float(r.get("thick_share") or "nan"), float(r.get("confidence") or "nan"),
-                       r.get("confidence_reasons") or "", r.get("quality_flag") or "")
-            for r in rows
-        ]
-        return cls(leaves)
+    def from_csv(cls, text: str, source: str = "traits table") -> Traits:
+        """The table of ``traits.csv``'s text; ``DataError`` naming ``source`` and the
+        missing columns when a required one is not there."""
+        reader = csv.DictReader(io.StringIO(text))
+        header = reader.fieldnames or []
+        missing = [n for n in ("leaf_id", *(c.name for c in LEAF_COLUMNS if c.required))
+                   if n not in header]
+        if missing:
+            raise DataError(f"{source}: no column {', '.join(missing)} (it has "
+                            f"{', '.join(header) or 'no header'}; needed: "
+                            f"{', '.join(LEAF_TRAIT_COLUMNS[:5])})")
+        return cls([_leaf_from_row(r) for r in reader])
 
     @classmethod
     def load(cls, path: Path, plant_path: Path | None = None) -> Traits:
-        t = cls.from_csv(Path(path).read_text())
+        t = cls.from_csv(Path(path).read_text(), str(path))
         if plant_path is not None and Path(plant_path).exists():
             import json
 

@@ -23,7 +23,16 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field
 
-from plantscan_core.data import TRAIT_NAMES, LabelledMesh, Mesh, Traits, mean_relative_error
+from plantscan_core.data import (
+    LEAF_COLUMNS,
+    PLANT_COLUMN,
+    TRAIT_NAMES,
+    LabelledMesh,
+    Mesh,
+    TraitColumn,
+    Traits,
+    mean_relative_error,
+)
 from plantscan_core.errors import PlantScanError
 from plantscan_core.scanfolder import atomic_write_text, now_iso
 from plantscan_core.stages import Exporter, RunResult, StageParams
@@ -34,7 +43,7 @@ from plantscan_report.tables import plant_id_of
 from plantscan_report.truth import match_leaves, read_truth_traits
 
 REPORT_NAME = "report.html"
-_TRAIT_UNITS = {"length": "mm", "width": "mm", "area": "mm²", "perimeter": "mm"}
+_TRAIT_UNITS = {c.trait: c.shown_unit for c in LEAF_COLUMNS if c.trait}
 
 _CSS = """
 body{font-family:system-ui,-apple-system,'Segoe UI',Roboto,sans-serif;margin:0;color:#222;
@@ -277,8 +286,27 @@ def _mesh_section(run: RunResult, figs: _Figures, max_faces: int) -> str:
             f'<p class="note">{_esc(note)}</p></section>')
 
 
-_LEAF_COLUMNS = (("length_mm", "length"), ("width_mm", "width"), ("area_mm2", "area"),
-                 ("perimeter_mm", "perimeter"))
+def _column_text(c: TraitColumn, value: Any) -> str:
+    """A value of a traits-table column as the report writes it: fixed decimals, unit apart."""
+    if c.is_text or isinstance(value, (str, list, dict)):
+        return str(value)
+    return trust.format_number(c.display_scale * value, c.decimals)
+
+
+def _leaf_columns(traits: Traits) -> list[TraitColumn]:
+    """The leaf table's number columns: the traits, then the quality figures the measurer set."""
+    def said(c: TraitColumn) -> bool:
+        return any(math.isfinite(getattr(leaf, c.name)) for leaf in traits.leaves)
+
+    return [c for c in LEAF_COLUMNS if not c.is_text and (c.trait or said(c))]
+
+
+def _plant_row(key: str, value: Any) -> list[str]:
+    c = PLANT_COLUMN.get(key)
+    if c is None:  # a value the core's table does not list: its unit from its name
+        return [_esc(trust.label_of(key)), _esc(trust.format_value(key, value))]
+    text = _column_text(c, value)
+    return [_esc(c.title), _esc(f"{text} {c.shown_unit}" if c.shown_unit else text)]
 
 
 def _traits_section(run: RunResult) -> str:
@@ -287,25 +315,19 @@ def _traits_section(run: RunResult) -> str:
         return ""
     colours = label_colours(run.labelled) if run.labelled is not None else {}
     notes = trust.leaf_notes(run)
-    confidence = [getattr(leaf, "confidence", math.nan) for leaf in traits.leaves]
-    has_confidence = any(isinstance(c, (int, float)) and math.isfinite(c) for c in confidence)
+    columns = _leaf_columns(traits)
     rows = []
-    for leaf, conf in zip(traits.leaves, confidence):
+    for leaf in traits.leaves:
         swatch = (f'<span class="swatch" style="background:{hex_colour(colours[leaf.leaf_id])}">'
                   "</span>" if leaf.leaf_id in colours else "")
         said = notes.get(leaf.leaf_id, [])
         mark = ' <span title="warned about: see the reasons">⚠</span>' if said else ""
         cells = [f"{swatch}{leaf.leaf_id}{mark}"]
-        cells += [_esc(trust.format_number(getattr(leaf, c), trust.unit_of(c).decimals))
-                  for c, _ in _LEAF_COLUMNS]
-        cells.append(_esc(trust.format_number(100 * leaf.thick_share, 1)))
-        if has_confidence:
-            cells.append(_esc(trust.format_number(conf, 2)))
+        cells += [_esc(_column_text(c, getattr(leaf, c.name))) for c in columns]
         reasons = "; ".join(dict.fromkeys(trust.short_reason(n) for n in said))
         cells.append(_esc(reasons))
         rows.append((cells, bool(said)))
-    header = ["leaf"] + [f"{label} ({trust.unit_of(c).text})" for c, label in _LEAF_COLUMNS]
-    header += ["thick area (%)"] + (["confidence"] if has_confidence else []) + ["warned about"]
+    header = ["leaf"] + [c.header for c in columns] + ["warned about"]
     if rows:
         head = "".join(f'<th class="{"l" if i == 0 or h == "warned about" else ""}">{_esc(h)}'
                        "</th>" for i, h in enumerate(header))
@@ -317,8 +339,7 @@ def _traits_section(run: RunResult) -> str:
         leaf_table = f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
     else:
         leaf_table = '<p class="note">No leaf was found.</p>'
-    plant_rows = [[_esc(trust.label_of(k)), _esc(trust.format_value(k, v))]
-                  for k, v in sorted(traits.plant.items())
+    plant_rows = [_plant_row(k, v) for k, v in sorted(traits.plant.items())
                   if k != "quality" and not isinstance(v, (dict, list))]
     plant_table = _table(["plant trait", "value"], plant_rows) if plant_rows else ""
     n_warned = sum(1 for _, w in rows if w)

@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Any
 from sqlalchemy import select
 
 from plantscan_store import schema as S
-from plantscan_store.traitdefs import definition
+from plantscan_store.traitdefs import LEAF_NUMBERS, definition
 
 if TYPE_CHECKING:
     from plantscan_store.store import Store
@@ -51,8 +51,6 @@ COLUMNS = {"study": STUDY_COLUMNS, "assay": ASSAY_COLUMNS,
            "trait_dictionary": TRAIT_DICTIONARY_COLUMNS}
 """The stated columns of each table file (factor columns ``Factor Value[NAME]`` follow the
 study's, trait columns the data matrix keys)."""
-
-LEAF_TRAITS = ("length_mm", "width_mm", "area_mm2", "perimeter_mm", "thick_share", "confidence")
 
 
 class IsaTabError(ValueError):
@@ -126,7 +124,7 @@ def export_isatab(store: Store, out: Path, **filters: Any) -> list[Path]:
         plant_traits = [c for c in sp.columns if c in defined and defined[c].level == "plant"]
         lv = leaves[(leaves["investigation_id"] == investigation)
                     & (leaves["study_id"] == study_id)]
-        leaf_traits = [c for c in LEAF_TRAITS if c in lv and lv[c].notna().any()]
+        leaf_traits = [c for c in LEAF_NUMBERS if c in lv and lv[c].notna().any()]
         variables = [*plant_traits, *(f"leaf_{c}" for c in leaf_traits)]
         rows = [[p.run_key, p.plant_id, "", p.scan_time.isoformat(timespec="seconds"),
                  *(p[c] for c in plant_traits), *([""] * len(leaf_traits))]

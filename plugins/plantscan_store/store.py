@@ -37,7 +37,7 @@ from plantscan_core.errors import PlantScanError
 from plantscan_core.metadata import PLANT_IDENTITY_FIELDS, ExperimentSpec
 from plantscan_store import schema as S
 from plantscan_store.records import RunRecord
-from plantscan_store.traitdefs import definition
+from plantscan_store.traitdefs import LEAF_NUMBERS, definition
 
 MIGRATIONS = Path(__file__).resolve().parent / "migrations"
 SQLITE_BUSY_TIMEOUT_MS = 120_000  # a writer waits up to 2 min for the file's write lock
@@ -348,8 +348,7 @@ class Store:
 
     def _define_traits(self, conn: Connection, records: list[RunRecord]) -> None:
         names = [(n, "plant") for r in records for n in r.plant_traits]
-        names += [(n, "leaf") for n in ("length_mm", "width_mm", "area_mm2", "perimeter_mm",
-                                        "thick_share", "confidence")]
+        names += [(n, "leaf") for n in LEAF_NUMBERS]
         new = list(dict.fromkeys((n, lvl) for n, lvl in names if n not in self._trait_names))
         if not new:
             return

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from plantscan_core.data import LEAF_COLUMNS, PLANT_TRAITS
+
 
 @dataclass(frozen=True)
 class TraitDefinition:
@@ -19,37 +21,20 @@ class TraitDefinition:
     method: str = ""
 
 
-_FLAT = ("flat-leaf measurement of the reconstructed leaf surface (as if dissected onto a "
-         "flatbed scanner; docs/leaves.md)")
-TRAITS: tuple[TraitDefinition, ...] = (
-    TraitDefinition("length_mm", "leaf", "mm", "leaf blade length, base to tip along the "
-                    "midrib", _FLAT),
-    TraitDefinition("width_mm", "leaf", "mm", "largest blade width across the midrib", _FLAT),
-    TraitDefinition("area_mm2", "leaf", "mm2", "one-sided blade area", _FLAT),
-    TraitDefinition("perimeter_mm", "leaf", "mm", "blade outline length", _FLAT),
-    TraitDefinition("thick_share", "leaf", "1", "share of the leaf's area where the hull is "
-                    "over 3x its median thickness (phantom volume or a fused organ): a quality "
-                    "figure, not a trait"),
-    TraitDefinition("confidence", "leaf", "1", "how far to trust the leaf's measurements "
-                    "(0-1), from the measurer"),
-    TraitDefinition("height_mm", "plant", "mm", "plant height: vertical extent of the "
-                    "reconstructed plant, pot removed",
-                    "highest minus lowest point of the plant surface"),
-    TraitDefinition("total_leaf_area_mm2", "plant", "mm2", "sum of the one-sided areas of the "
-                    "leaves found", _FLAT),
-    TraitDefinition("leaf_count", "plant", "1", "number of leaves found"),
-    TraitDefinition("convex_hull_volume_mm3", "plant", "mm3", "volume of the convex hull of "
-                    "the plant surface"),
-    TraitDefinition("projected_area_mm2", "plant", "mm2", "area of the plant seen from "
-                    "above (top view)"),
-)
-BY_NAME = {t.name: t for t in TRAITS}
+# One definition per column of the core's traits tables (plantscan_core.data): a trait added
+# there is defined here too.
+TRAITS: tuple[TraitDefinition, ...] = tuple(
+    TraitDefinition(c.name, c.level, c.unit, c.description, c.method)
+    for c in (*LEAF_COLUMNS, *PLANT_TRAITS))
+LEAF_NUMBERS = tuple(c.name for c in LEAF_COLUMNS if not c.is_text)
+"""The leaf columns that are numbers: one column each in the store's ``leaves`` table."""
+BY_NAME = {(t.name, t.level): t for t in TRAITS}  # quality_flag is both a leaf and a plant's
 
 
 def definition(name: str, level: str) -> TraitDefinition:
     """The definition of ``name``, or one made from its unit suffix."""
-    if name in BY_NAME:
-        return BY_NAME[name]
+    if (name, level) in BY_NAME:
+        return BY_NAME[name, level]
     unit = next((u for suffix, u in (("_mm3", "mm3"), ("_mm2", "mm2"), ("_mm", "mm"),
                                      ("_deg", "deg")) if name.endswith(suffix)), "1")
     return TraitDefinition(name, level, unit, "")

@@ -143,3 +143,63 @@ def test_silhouette_is_held_as_its_crop_and_gives_the_full_mask_back():
     assert not sil.mask[0, 0]
     empty = Silhouette(view, np.zeros((4, 5), bool))
     assert empty.shape == (4, 5) and not empty.mask.any() and empty.mask.shape == (4, 5)
+
+
+def test_the_traits_table_is_leaf_traits_fields():
+    # traits.csv's header, the trait names, units and report titles come from LeafTraits's
+    # fields: a new trait is one field (and the measurer's function that fills it).
+    import dataclasses
+
+    from plantscan_core.data import LEAF_COLUMNS, LEAF_TRAIT_COLUMNS, PLANT_COLUMN, TRAIT_NAMES
+
+    assert list(LEAF_TRAIT_COLUMNS) == [f.name for f in dataclasses.fields(LeafTraits)]
+    assert TRAIT_NAMES == ("length", "width", "area", "perimeter")
+    assert [c.header for c in LEAF_COLUMNS] == [
+        "length (mm)", "width (mm)", "area (mm²)", "perimeter (mm)", "thick area (%)",
+        "confidence", "confidence reasons", "quality flag"]
+    assert [c.unit for c in LEAF_COLUMNS] == ["mm", "mm", "mm2", "mm", "1", "1", "", ""]
+    assert [c.name for c in LEAF_COLUMNS if c.required] == list(LEAF_TRAIT_COLUMNS[1:5])
+    assert PLANT_COLUMN["total_leaf_area_mm2"].header == "total leaf area (mm²)"
+    assert PLANT_COLUMN["leaf_count"].header == "leaf count"
+
+
+def test_a_new_leaf_trait_is_one_field():
+    # One field with its metadata gives the column, its unit and its report title (a
+    # subclass stands in for the edit of LeafTraits).
+    import dataclasses
+    import math
+
+    from plantscan_core import data
+
+    @dataclasses.dataclass
+    class WithAngle(data.LeafTraits):
+        inclination_deg: float = data._column("deg", "blade angle to the horizontal",
+                                              default=math.nan, trait="inclination")
+
+    columns = data.leaf_columns(WithAngle)
+    assert columns[:-1] == data.LEAF_COLUMNS
+    assert columns[-1] == data.TraitColumn("inclination_deg", "deg",
+                                           "blade angle to the horizontal", trait="inclination")
+    assert columns[-1].header == "inclination (deg)"
+
+
+def test_a_traits_table_without_a_trait_names_its_file_and_column(tmp_path):
+    from plantscan_core.errors import DataError
+
+    bad = tmp_path / "traits.csv"
+    bad.write_text("leaf_id,length_mm,width_mm,area_mm2\n4,1,2,3\n")
+    with pytest.raises(DataError, match=r"traits.csv: no column perimeter_mm \(it has leaf_id"):
+        Traits.load(bad)
+
+
+def test_formats_md_lists_the_trait_table():
+    # docs/formats.md's table is what a scientist reads; it must not drift from the code.
+    from pathlib import Path
+
+    from plantscan_core.data import LEAF_COLUMNS, PLANT_TRAITS
+
+    text = (Path(__file__).resolve().parents[2] / "docs" / "formats.md").read_text()
+    section = text.split("### The trait table", 1)[1].split("\n### ", 1)[0]
+    rows = [[cell.strip().strip("`") for cell in line.strip("|").split("|")[:3]]
+            for line in section.splitlines() if line.startswith("| `")]
+    assert rows == [[c.name, c.level, c.unit or "text"] for c in (*LEAF_COLUMNS, *PLANT_TRAITS)]

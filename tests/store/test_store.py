@@ -36,6 +36,21 @@ def test_migrations_build_exactly_the_schema_module(store):
     assert store.revision() == "0001"
 
 
+def test_the_store_knows_every_column_of_the_core_traits_table():
+    # The trait dictionary is derived from the core's table; the leaves table is a schema
+    # (a migration), so a leaf trait added to the core without its column fails here, not
+    # in a lab's database.
+    from plantscan_store.schema import leaves
+    from plantscan_store.traitdefs import BY_NAME, LEAF_NUMBERS
+
+    from plantscan_core.data import LEAF_COLUMNS, PLANT_TRAITS
+
+    for c in (*LEAF_COLUMNS, *PLANT_TRAITS):
+        assert BY_NAME[c.name, c.level].unit == c.unit
+    assert set(LEAF_NUMBERS) <= set(leaves.c.keys())
+    assert {"confidence", "thick_share", "length_mm"} <= set(LEAF_NUMBERS)
+
+
 def test_a_run_reads_back_with_its_metadata_and_scan_time(store):
     record = make_record(plant=7, day=2, replicate=3)
     store.put(record)
