@@ -42,7 +42,7 @@ from plantscan_leaves.features import FEATURE_NAMES, SurfaceSamples, surface_sam
 
 EDGE_RINGS = 2  # the EDGE band: two samples (4 mesh units) on each side of an organ border
 DEBRIS_UNITS = 8.0  # hull this far from any true surface belongs to no organ
-ROWS_PER_PLANT = 25_000  # organ rows per plant: every rare-class sample, LEAF subsampled
+ROWS_PER_PLANT = 20_000  # organ rows per plant: every rare-class sample, LEAF subsampled
 ORGAN_ROUNDS, PHANTOM_ROUNDS, MERGE_ROUNDS = 150, 100, 200
 ORGAN_PARAMS = dict(objective="multiclass", num_class=4, learning_rate=0.15, num_leaves=31,
                     min_data_in_leaf=50, feature_fraction=0.8, bagging_fraction=0.8,
@@ -177,17 +177,35 @@ def sample_truth(s: SurfaceSamples, face_id: np.ndarray, face_d: np.ndarray,
     return cls, inst, np.bincount(s.face_sample, areas * far, s.n) / total
 
 
-def plant_samples(family: str, seed: int, cache: Path, recipe: str | None = None) -> dict:
-    """The labelled samples of one plant (cached as ``cache/samples/<family>-<seed>.npz``)."""
+def plant_hull(family: str, seed: int, cache: Path, recipe: str | None = None) -> dict:
+    """The hull mesh of one plant and the nearest truth of each face (cached as
+    ``cache/hulls/<family>-<seed>.npz``: the carving is the slow part, the features are
+    recomputed from it when they change)."""
     if seed >= 1000:
         raise ValueError(f"seed {seed}: validation seeds (>= 1000) are never trained on")
-    path = cache / "samples" / f"{family}-{seed}.npz"
+    path = cache / "hulls" / f"{family}-{seed}.npz"
     if path.exists():
         return dict(np.load(path))
     mesh, plant, debris = exact_hull(family, seed, recipe)
-    s = surface_samples(mesh)
     face_id, face_d = nearest_truth(mesh, plant, debris)
-    cls, inst, phantom = sample_truth(s, face_id, face_d, mesh.face_areas())
+    d = dict(vertices=mesh.vertices, faces=mesh.faces.astype(np.int32), face_id=face_id,
+             face_d=face_d.astype(np.float32))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(path, **d)
+    return d
+
+
+def plant_samples(family: str, seed: int, cache: Path, recipe: str | None = None) -> dict:
+    """The labelled samples of one plant (cached as ``cache/samples/<family>-<seed>.npz``)."""
+    from plantscan_core.data import Mesh
+
+    path = cache / "samples" / f"{family}-{seed}.npz"
+    if path.exists():
+        return dict(np.load(path))
+    h = plant_hull(family, seed, cache, recipe)
+    mesh = Mesh(h["vertices"], h["faces"])
+    s = surface_samples(mesh)
+    cls, inst, phantom = sample_truth(s, h["face_id"], h["face_d"], mesh.face_areas())
     d = dict(x=s.features, y=cls, inst=inst, phantom=phantom, area=s.area, centroid=s.centroid,
              pairs=s.pairs, unit=s.unit_mm, moments=s.moments, thickness=s.thickness_mm,
              face_sample=s.face_sample)
@@ -312,6 +330,8 @@ def main(argv: list[str] | None = None) -> int:
                     default=Path(__file__).resolve().parents[1] / "plugins" / "plantscan_leaves"
                     / "models")
     ap.add_argument("--hold-out", default=None, help="a family left out of training")
+    ap.add_argument("--hulls-only", action="store_true",
+                    help="carve and cache the hulls (the slow part), train nothing")
     args = ap.parse_args(argv)
     seeds = _seeds(args.seeds)
     if any(s >= 1000 for s in seeds):
@@ -319,11 +339,18 @@ def main(argv: list[str] | None = None) -> int:
     families = [f for f in args.families.split(",") if f and f != args.hold_out]
     t0 = time.time()
     plants = {}
-    for fam in families:
-        for seed in seeds:
+    for seed in seeds:  # seed by seed: a run cut short has every family
+        for fam in families:
+            if args.hulls_only:
+                h = plant_hull(fam, seed, args.cache)
+                print(f"{fam} {seed}: {len(h['faces'])} faces ({time.time() - t0:.0f} s)",
+                      flush=True)
+                continue
             plants[f"{fam}-{seed}"] = plant_samples(fam, seed, args.cache)
             print(f"{fam} {seed}: {len(plants[f'{fam}-{seed}']['y'])} samples "
                   f"({time.time() - t0:.0f} s)", flush=True)
+    if args.hulls_only:
+        return 0
     boosters = train(plants, log=lambda m: print(m, flush=True))
     save(boosters, args.out)
     print(f"models written to {args.out} ({time.time() - t0:.0f} s)")

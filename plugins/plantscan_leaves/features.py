@@ -97,13 +97,6 @@ class SurfaceSamples:
         return len(self.area)
 
 
-def mesh_unit(mesh: Mesh, topo: geo.MeshTopology) -> float:
-    """The median edge length of ``mesh``, mm (about a voxel for a marching-cubes mesh)."""
-    v = mesh.vertices
-    e = topo.edges
-    return float(np.median(geo.row_norm(v[e[:, 0]] - v[e[:, 1]])))
-
-
 def _cells(points: np.ndarray, lo: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray,
                                                                          np.ndarray]:
     """Cell keys of ``points`` on a grid of ``cell`` mm from ``lo``: (keys, index of each point's
@@ -211,7 +204,7 @@ def inward_thickness(mesh: Mesh, faces: np.ndarray) -> np.ndarray:
 def surface_samples(mesh: Mesh, topo: geo.MeshTopology | None = None) -> SurfaceSamples:
     """The samples of ``mesh`` (a closed plant surface, any unit) and their features."""
     topo = topo or geo.topology(mesh.faces)
-    u = mesh_unit(mesh, topo)
+    u = geo.mesh_unit(mesh.vertices, mesh.faces)
     v, f = mesh.vertices, mesh.faces
     normals, areas = geo.face_normals_areas(v, f)
     centroids = geo.face_centroids(v, f)

@@ -352,3 +352,15 @@ def components(n: int, pairs: np.ndarray, keep: np.ndarray) -> np.ndarray:
     lab = lab.astype(np.int64)
     lab[~keep] = -1
     return lab
+
+
+def mesh_unit(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """The median edge length of a mesh, mm: the unit the leaf stages count sizes in (about
+    a voxel for a marching-cubes mesh; on a closed mesh every edge is two faces' side, so
+    the median over the faces' sides is the median over the edges)."""
+    if not len(faces):
+        return 1.0
+    v = vertices
+    sides = np.concatenate([row_norm(v[faces[:, a]] - v[faces[:, b]])
+                            for a, b in ((0, 1), (1, 2), (2, 0))])
+    return float(np.median(sides))

@@ -6,7 +6,7 @@ those of its **mid-surface**, measured without building it:
 
 * **sheet axis** ``N``: the leaf's local normal direction, the principal
   axis of the area-weighted normal tensor ``sum n n^T`` over cells of
-  ``sheet_scale_mm`` (sign-free, so both sides of the slab agree; cells are
+  ``sheet_scale_units`` (sign-free, so both sides of the slab agree; cells are
   then oriented consistently by a walk over neighbouring cells).  The two
   *sides* of the slab are where ``n . N > 0`` and ``< 0``; the *rim crest*
   (the leaf outline) is where ``n . N = 0``.
@@ -16,7 +16,7 @@ those of its **mid-surface**, measured without building it:
   flat slab of any thickness and edge profile, and exact to first order in
   ``thickness / bend radius`` for a bent one.
 * **perimeter** = length of the ``n . N = 0`` iso-line (marching triangles on
-  a lightly smoothed surface, chained and smoothed by ``outline_smoothing_mm``);
+  a lightly smoothed surface, chained and smoothed by ``outline_smoothing_units``);
   where the leaf was cut from the stem or petiole the line is open, and is
   closed by the straight chord between its ends.
 * **length**: base (where the leaf meets the stem, or one end of the leaf's
@@ -66,6 +66,8 @@ log = logging.getLogger(__name__)
 
 # the crest line of n . N is the outline when one piece holds this share of it (a clean rim)
 CLEAN_OUTLINE_SHARE = 0.95
+# the top-view shadow is rasterised at a quarter of a mesh unit (0.25 mm at 1 mm voxels)
+PROJECTION_PIXEL_UNITS = 0.25
 # a leaf whose open border is at most this share of its outline was only cut at its base
 CUT_BORDER_SHARE = 0.25
 # hull more than this many times the leaf's median thickness is not a leaf slab: phantom volume
@@ -86,24 +88,29 @@ MIN_PERIMETER_PER_LENGTH = 1.8
 
 
 class LeafGeometryParams(StageParams):
-    """Parameters of ``leaf-geometry`` (defaults: broad leaves, 0.3–1 mm voxels)."""
+    """Parameters of ``leaf-geometry``: lengths in mesh units (``u``, the plant mesh's median
+    edge, about a voxel: ``geometry.mesh_unit``), so the same plant in centimetres, or
+    scaled with its voxel size, is measured the same (docs/leaves.md, "Scale-free
+    parameters", for how the defaults were chosen on development and validation hulls)."""
 
-    sheet_scale_mm: float = Field(
-        6.0, gt=0,
-        description="size of the cells over which the leaf plane is estimated, mm: well above "
-                    "the slab thickness, well below the leaf's bend radius",
+    sheet_scale_units: float = Field(
+        3.0, gt=0,
+        description="size of the cells over which the leaf plane is estimated, mesh units: "
+                    "well above the slab thickness, well below the leaf's bend radius",
     )
-    smoothing_mm: float = Field(0.8, ge=0, description="surface smoothing before measuring, mm")
-    path_smoothing_mm: float = Field(
-        3.0, ge=0, description="smoothing of midrib/width paths (removes mesh zig-zag), mm")
-    outline_smoothing_mm: float | None = Field(
-        None, ge=0,
-        description="smoothing of the rim crest line (perimeter), mm; None: 8 mean edge "
-                    "lengths within 1.5-5 mm (a voxel hull's sharp rim zig-zags at a few "
-                    "voxels); keep it below the outline's smallest radius of curvature")
+    smoothing_units: float = Field(
+        0.8, ge=0, description="surface smoothing before measuring, mesh units")
+    path_smoothing_units: float = Field(
+        3.0, ge=0, description="smoothing of midrib/width paths (removes mesh zig-zag), mesh "
+                               "units")
+    outline_smoothing_units: float = Field(
+        2.5, ge=0,
+        description="smoothing of the rim crest line (perimeter), mesh units: above the "
+                    "voxel zig-zag of a hull's sharp rim, below the outline's smallest "
+                    "radius of curvature")
     width_stations: int = Field(3, ge=1, description="widest stations whose width is traced")
-    graph_spacing_mm: float = Field(
-        1.0, gt=0, description="spacing of the points geodesic paths run through, mm")
+    graph_spacing_units: float = Field(
+        1.0, gt=0, description="spacing of the points geodesic paths run through, mesh units")
     graph_points_per_size: float = Field(
         200.0, gt=0,
         description="the spacing of path points is at least the leaf's bounding-box diagonal "
@@ -118,6 +125,31 @@ class LeafGeometryParams(StageParams):
         0, ge=0, description="plant views this recipe's plants need (the family's protocol): "
                              "fewer flag the plant 'check', fewer than half 'fail' "
                              "(docs/leaves.md, Trust); 0: no check")
+
+    def scales(self, unit_mm: float) -> LeafScales:
+        """These parameters with their lengths in mm for a mesh unit of ``unit_mm``."""
+        u = float(unit_mm)
+        return LeafScales(
+            self.sheet_scale_units * u, self.smoothing_units * u, self.path_smoothing_units * u,
+            self.outline_smoothing_units * u,
+            self.graph_spacing_units * u, u, self.width_stations, self.graph_points_per_size,
+            self.rim_correction, self.min_leaf_faces)
+
+
+@dataclass(frozen=True)
+class LeafScales:
+    """``LeafGeometryParams`` resolved for one mesh: lengths in mm (``unit_mm`` = 1 unit)."""
+
+    sheet_scale_mm: float
+    smoothing_mm: float
+    path_smoothing_mm: float
+    outline_smoothing_mm: float
+    graph_spacing_mm: float
+    unit_mm: float
+    width_stations: int
+    graph_points_per_size: float
+    rim_correction: bool | str
+    min_leaf_faces: int
 
 
 @dataclass
@@ -264,7 +296,8 @@ class _Sides:
 
 
 def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
-                 base_hint: np.ndarray | None = None) -> LeafMeasurement | None:
+                 base_hint: np.ndarray | None = None, unit_mm: float | None = None
+                 ) -> LeafMeasurement | None:
     """Flat-leaf traits of one leaf surface (a closed or nearly closed slab).
 
     Parameters
@@ -274,10 +307,14 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
     base_hint : (3,) mm, optional
         Where the leaf attaches (e.g. the nearest stem point): of the two ends
         of the leaf's geodesic diameter, the one nearer to it is the base.
+    unit_mm : float, optional
+        The mesh unit the parameters are counted in (the whole plant mesh's median
+        edge, ``geometry.mesh_unit``); default: this leaf's own.
     """
-    p = params
-    if len(mesh.faces) < p.min_leaf_faces:
+    if len(mesh.faces) < params.min_leaf_faces:
         return None
+    p = params.scales(unit_mm if unit_mm is not None else geo.mesh_unit(mesh.vertices,
+                                                                        mesh.faces))
     slab = _closed_slab(mesh, p)
     sheet = _cell_sheet_axes(*_leaf_faces_geometry(slab), p.sheet_scale_mm)
     vert_axis = _axes_at(slab.v, *sheet, p.sheet_scale_mm)
@@ -313,7 +350,7 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
                             "tip_extension_mm": tip_extension_mm})
 
 
-def _closed_slab(mesh: Mesh, p: LeafGeometryParams) -> _Slab:
+def _closed_slab(mesh: Mesh, p: LeafScales) -> _Slab:
     """The label's largest connected piece, lightly smoothed, every hole capped.
 
     A leaf label may also hold stray crumbs (left by the segmentation): the largest
@@ -358,12 +395,11 @@ def _face_sides(slab: _Slab, vert_axis: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 
 def _outline(slab: _Slab, vert_axis: np.ndarray, face_side: np.ndarray, fa: np.ndarray,
-             p: LeafGeometryParams) -> tuple[float, str, list[np.ndarray]]:
+             p: LeafScales) -> tuple[float, str, list[np.ndarray]]:
     """The rim crest's length, which line it is, and its pieces (``_outline_length``): the
     crest on the leaf as it is (an outline open at the stem cut is closed by its chord),
     the two sides' border on the capped slab."""
-    sigma = (p.outline_smoothing_mm if p.outline_smoothing_mm is not None
-             else float(np.clip(8.0 * slab.edge_mm, 1.5, 5.0)))
+    sigma = p.outline_smoothing_mm
     vertex_side = np.einsum("ij,ij->i", geo.vertex_normals(slab.v, slab.f[slab.leaf]),
                             vert_axis)
     return _outline_length(slab, vertex_side, face_side, fa, sigma)
@@ -372,7 +408,7 @@ def _outline(slab: _Slab, vert_axis: np.ndarray, face_side: np.ndarray, fa: np.n
 SIDE_CREST = 0.35  # a vertex with a face this close to edge-on (|n . N|) is on both sides
 
 
-def _side_graphs(slab: _Slab, face_side: np.ndarray, p: LeafGeometryParams) -> _Sides:
+def _side_graphs(slab: _Slab, face_side: np.ndarray, p: LeafScales) -> _Sides:
     """Geodesic graphs on a resampled copy of each side of the slab.
 
     A shortest path along mesh edges of a marching-cubes grid is a staircase (up to
@@ -462,7 +498,7 @@ WIDTH_PATH_SLACK = 1.25  # a rim-to-rim path longer than this x the lateral exte
 
 
 def _width(sides: _Sides, mid_pts: np.ndarray, dist_b: np.ndarray, outline_lines: list,
-           sheet: tuple, edge_mm: float, rim_excess: float, p: LeafGeometryParams) -> float:
+           sheet: tuple, edge_mm: float, rim_excess: float, p: LeafScales) -> float:
     """The widest station's rim-to-rim width (``_station_extents``, then the two-side path).
 
     At the ``width_stations`` stations of largest lateral extent the same two-side path
@@ -492,7 +528,7 @@ def _width(sides: _Sides, mid_pts: np.ndarray, dist_b: np.ndarray, outline_lines
 
 
 def _station_extents(sides: _Sides, mid_pts: np.ndarray, dist_b: np.ndarray,
-                     outline_lines: list, sheet: tuple, edge_mm: float, p: LeafGeometryParams):
+                     outline_lines: list, sheet: tuple, edge_mm: float, p: LeafScales):
     """Lateral extent of the leaf at stations along the smoothed midrib.
 
     Crest points (of the base's piece) are binned in stations along the midrib and
@@ -564,7 +600,7 @@ def thick_shares(mesh: Mesh, face_labels: np.ndarray, leaf_labels: list[int]
     scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)),
                         o3d.core.Tensor(f.astype(np.uint32)))
     rng = np.random.default_rng(0)  # the same figure from the same mesh
-    eps = 1e-3  # mm: off the face, well inside any slab
+    eps = 1e-3 * geo.mesh_unit(v, f)  # off the face, well inside any slab
     for label in leaf_labels:
         ids = np.flatnonzero(face_labels == label)
         if not len(ids):
@@ -930,12 +966,13 @@ def _enclosed_volume(v: np.ndarray, f: np.ndarray) -> float:
     return float(abs(np.einsum("ij,ij->i", p[:, 0], np.cross(p[:, 1], p[:, 2])).sum()) / 6.0)
 
 
-def plant_traits(mesh: Mesh, leaves: list[LeafTraits], pixel_mm: float = 0.25) -> dict[str, float]:
+def plant_traits(mesh: Mesh, leaves: list[LeafTraits], pixel_mm: float | None = None
+                 ) -> dict[str, float]:
     """Plant-level traits of the whole mesh (stem and leaves).
 
     ``height_mm`` (vertical extent), ``total_leaf_area_mm2``, ``leaf_count``,
     ``convex_hull_volume_mm3`` and ``projected_area_mm2`` (area of the top
-    view shadow, rasterised at ``pixel_mm``).
+    view shadow, rasterised at ``pixel_mm``; default a quarter of the mesh unit).
     """
     out: dict[str, float] = {
         "height_mm": 0.0,
@@ -948,6 +985,7 @@ def plant_traits(mesh: Mesh, leaves: list[LeafTraits], pixel_mm: float = 0.25) -
         return out
     v = mesh.vertices
     out["height_mm"] = float(v[:, 2].max() - v[:, 2].min())
+    pixel_mm = pixel_mm or PROJECTION_PIXEL_UNITS * geo.mesh_unit(v, mesh.faces)
     try:
         from scipy.spatial import ConvexHull
 
@@ -1019,6 +1057,8 @@ def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = No
 
         tree = cKDTree(mesh.vertices[stem_vertices])
 
+    unit = geo.mesh_unit(mesh.vertices, mesh.faces)  # one unit for every leaf of the plant
+
     def one(leaf_id: int, sub: Mesh) -> tuple[LeafMeasurement | None, StageWarning | None]:
         if len(sub.faces) < p.min_leaf_faces:  # also a leaf label no face carries
             return None, StageWarning("leaf-too-small", f"leaf {leaf_id}: {len(sub.faces)} "
@@ -1029,7 +1069,7 @@ def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = No
             d, _ = tree.query(probe)
             hint = probe[int(np.argmin(d))]
         try:
-            m = measure_leaf(sub, leaf_id, p, hint)
+            m = measure_leaf(sub, leaf_id, p, hint, unit)
         except Exception as exc:  # one odd leaf must not lose the others
             msg = f"leaf {leaf_id}: not measured ({type(exc).__name__}: {exc})"
             log.warning(msg)
