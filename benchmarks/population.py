@@ -63,6 +63,10 @@ PROTOCOLS: dict[str, dict[str, Any]] = {
 }
 TRAITS = ("length", "width", "area", "perimeter")
 PLANT_TRAITS = ("height_mm", "leaf_count", "total_leaf_area_mm2")
+# issue #22 judges the rosette, branched and seedling families over the truth leaves at
+# least this long: the counts are given over them too (a 5 mm rosette leaf just appearing
+# is below what a lab measures)
+COUNTED_LEAF_MM = 15.0
 
 
 @dataclass(frozen=True)
@@ -240,8 +244,10 @@ def evaluate_plant(run_dir: Path, truth_dir: Path) -> dict[str, Any]:
 
 
 def plant_row(key: PlantKey, evaluation: dict[str, Any], truth_dir: Path,
-              timing: dict[str, Any] | None, error: str | None = None) -> dict[str, Any]:
-    """One flat CSV row: counts, ε per trait over the plant's pairs, plant-level errors."""
+              timing: dict[str, Any] | None, error: str | None = None,
+              run_dir: Path | None = None) -> dict[str, Any]:
+    """One flat CSV row: counts, ε per trait over the plant's pairs, plant-level errors
+    (and the run's plant quality flag when ``run_dir`` is given)."""
     truth = json.loads((truth_dir / "plant_traits.json").read_text())
     organs = json.loads((truth_dir / "organs.json").read_text()) \
         if (truth_dir / "organs.json").exists() else {}
@@ -258,15 +264,24 @@ def plant_row(key: PlantKey, evaluation: dict[str, Any], truth_dir: Path,
         "crossings_truth": plant_info.get("crossings"), "error": error or "",
         "kinds": ",".join(sorted({lf["kind"] for lf in organs.get("leaves", [])})),
     }
+    lengths = _truth_lengths(truth_dir)
+    row["truth_leaves_15mm"] = sum(1 for x in lengths.values() if x >= COUNTED_LEAF_MM)
     t = evaluation.get("traits")
     if t is None:
         row.update(found=0, measured=0, missed=truth.get("leaf_count"), merged=0, split=0,
-                   split_pieces=0, extra=0, debris_area_mm2=0.0, debris_share=0.0)
+                   split_pieces=0, extra=0, debris_area_mm2=0.0, debris_share=0.0,
+                   found_15mm=0, measured_15mm=0)
         return row
     inst = t["instances"]
     row.update({k: inst[k] for k in ("found", "measured", "missed", "merged", "split",
                                       "split_pieces", "extra", "recall", "precision",
                                       "debris_area_mm2", "debris_share")})
+    row.update(_counts_over_long_leaves(t, lengths))
+    measured_plant = run_dir / "plant_traits.json" if run_dir is not None else None
+    if measured_plant is not None and measured_plant.exists():
+        m = json.loads(measured_plant.read_text())
+        row["quality_flag"] = m.get("quality_flag") or ""
+        row["quality_reasons"] = "; ".join(m.get("quality_reasons") or [])
     for name in TRAITS:
         row[f"eps_{name}"] = t["mean_relative_error"].get(name)
     for name in PLANT_TRAITS:
@@ -285,6 +300,32 @@ def plant_row(key: PlantKey, evaluation: dict[str, Any], truth_dir: Path,
         row["process_wall_s"] = round(timing["wall_s"], 2)
         row["process_cpu_s"] = round(timing["cpu_s"], 2)
     return row
+
+
+def _truth_lengths(truth_dir: Path) -> dict[int, float]:
+    from plantscan_core.data import Traits
+
+    path = truth_dir / "traits.csv"
+    return {lf.leaf_id: lf.length_mm for lf in Traits.load(path).leaves} if path.exists() \
+        else {}
+
+
+def _counts_over_long_leaves(traits: dict[str, Any], lengths: dict[int, float]
+                             ) -> dict[str, int]:
+    """Found and measured leaves counting only truth leaves >= ``COUNTED_LEAF_MM`` long.
+
+    A measured leaf paired with a shorter truth leaf, or a split piece of one (and
+    paired with no long leaf), is left out of the measured count; extra pieces stay in.
+    """
+    short = {tid for tid, x in lengths.items() if x < COUNTED_LEAF_MM}
+    pairs = [(p["truth_id"], p["measured_id"]) for p in traits.get("pairs", [])]
+    paired_long = {m for tid, m in pairs if tid not in short}
+    of_short = {m for tid, m in pairs if tid in short}
+    for tid, labels in (traits["instances"].get("split_ids") or {}).items():
+        if int(tid) in short:
+            of_short.update(labels)
+    return {"found_15mm": len(paired_long),
+            "measured_15mm": traits["instances"]["measured"] - len(of_short - paired_long)}
 
 
 def leaf_rows(key: PlantKey, evaluation: dict[str, Any]) -> list[dict[str, Any]]:
@@ -351,7 +392,7 @@ def run_population(families: Sequence[str], seeds: Sequence[int], protocol: str 
                 evaluation = json.loads(done.read_text())
                 info = json.loads((run_dir / "run.json").read_text())
                 timing = {"wall_s": info["timings_s"]["total"], "cpu_s": info["cpu_s"]["total"]}
-                row = plant_row(key, evaluation, truth_dir, timing)
+                row = plant_row(key, evaluation, truth_dir, timing, run_dir=run_dir)
                 plants.append(row)
                 leaves += leaf_rows(key, evaluation)
                 continue
@@ -363,7 +404,7 @@ def run_population(families: Sequence[str], seeds: Sequence[int], protocol: str 
             except Exception as exc:  # a failed plant is a result, not the end of the run
                 error = f"{type(exc).__name__}: {str(exc).splitlines()[0][:200]}"
                 log(traceback.format_exc())
-            row = plant_row(key, evaluation, truth_dir, timing, error)
+            row = plant_row(key, evaluation, truth_dir, timing, error, run_dir)
             plants.append(row)
             leaves += leaf_rows(key, evaluation)
             log(f"{family} {key.label()}: scan {t_scan:.0f} s, "
@@ -405,6 +446,13 @@ def family_summary(plants: list[dict], leaves: list[dict]) -> dict[str, Any]:
                                          for p in plants))),
         "leaves_matched": len(leaves),
     }
+    truth15 = sum(p.get("truth_leaves_15mm") or 0 for p in plants)
+    found15 = sum(p.get("found_15mm") or 0 for p in plants)
+    measured15 = sum(p.get("measured_15mm") or 0 for p in plants)
+    s.update(truth_15mm=truth15, recall_15mm=found15 / truth15 if truth15 else math.nan,
+             precision_15mm=found15 / measured15 if measured15 else math.nan,
+             flags={f: sum(p.get("quality_flag") == f for p in plants)
+                    for f in ("ok", "check", "fail")})
     for name in TRAITS:
         errs = [lf[f"{name}_rel_error"] for lf in leaves]
         s[f"eps_{name}"] = _stats(errs)
@@ -436,13 +484,18 @@ def tabulate(plants: list[dict], leaves: list[dict]) -> str:
     sums = {f: family_summary([p for p in plants if p["family"] == f],
                               [lf for lf in leaves if lf["family"] == f]) for f in fams}
     out = ["| family | plants (failed) | truth leaves | measured | found (recall %) "
-           "| precision % | missed | merged | split (pieces) | extra | debris % of leaf area |",
-           "|---|---|---|---|---|---|---|---|---|---|---|"]
+           "| precision % | missed | merged | split (pieces) | extra | debris % of leaf area "
+           f"| leaves ≥ {COUNTED_LEAF_MM:g} mm: truth, recall %, precision % "
+           "| plants ok / check / fail |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for f, s in sums.items():
+        flags = s["flags"]
         out.append(f"| {f} | {s['plants']} ({s['failed']}) | {s['truth']} | {s['measured']} "
                    f"| {s['found']} ({_pct(s['recall'])}) | {_pct(s['precision'])} "
                    f"| {s['missed']} | {s['merged']} | {s['split']} ({s['split_pieces']}) "
-                   f"| {s['extra']} | {_pct(s['debris_share'])} |")
+                   f"| {s['extra']} | {_pct(s['debris_share'])} "
+                   f"| {s['truth_15mm']}, {_pct(s['recall_15mm'])}, {_pct(s['precision_15mm'])} "
+                   f"| {flags['ok']} / {flags['check']} / {flags['fail']} |")
     out += ["", "ε = |measured − truth| / truth over the matched leaves of all plants, %: "
             "mean / median / 90th percentile (the share of matched leaves off by more than "
             "10 % in brackets).", "",
