@@ -41,6 +41,7 @@ import json
 import math
 import os
 import shutil
+import subprocess
 import sys
 import time
 import traceback
@@ -356,7 +357,8 @@ def parse_seeds(text: str) -> list[int]:
     return seeds
 
 
-def run_population(families: Sequence[str], seeds: Sequence[int], protocol: str = "paper-72",
+def run_population(families: Sequence[str], seeds: Sequence[int] | dict[str, Sequence[int]],
+                   protocol: str = "paper-72",
                    size: tuple[int, int] = DEFAULT_SIZE, *, resolution: int | None = None,
                    recipe_dir: Path | None = None, runs: Path, cache: Path = DEFAULT_CACHE,
                    calibrate_each: bool = False, overrides: Sequence[str] = (),
@@ -366,7 +368,8 @@ def run_population(families: Sequence[str], seeds: Sequence[int], protocol: str 
     A plant whose processing fails is a row with ``error`` set and every truth
     leaf missed (it counts against recall); the run goes on.  ``reuse_runs``
     takes a plant's finished run folder as it is (its evaluation.json and
-    run.json timings) instead of processing it again: to re-tabulate.
+    run.json timings) instead of processing it again: to re-tabulate.  ``seeds``
+    may be a dict family -> seeds (fewer plants for a family whose renders cost more).
     """
     plants, leaves = [], []
     extra = list(overrides)
@@ -379,7 +382,7 @@ def run_population(families: Sequence[str], seeds: Sequence[int], protocol: str 
             t0 = time.perf_counter()
             calibration = session_calibration(family, protocol, size, recipe_dir, cache)
             log(f"{family}: session calibration {calibration} ({time.perf_counter() - t0:.0f} s)")
-        for seed in seeds:
+        for seed in (seeds.get(family, ()) if isinstance(seeds, dict) else seeds):
             key = PlantKey(family, int(seed), protocol, tuple(size))
             t0 = time.perf_counter()
             scan = scan_plant(key, recipe_dir, cache, with_board=calibrate_each)
@@ -544,6 +547,8 @@ def main(argv: list[str] | None = None) -> int:
                     help=f"comma-separated (default all: {','.join(FAMILIES)})")
     ap.add_argument("--seeds", help="e.g. 1000-1009 or 1000,1004 (default: the first --n "
                     "validation seeds from 1000)")
+    ap.add_argument("--family-seeds", action="append", default=[], metavar="FAMILY=SEEDS",
+                    help="seeds of one family instead of --seeds, e.g. branched=1000-1002")
     ap.add_argument("--n", type=int, default=10, help="plants per family (default 10)")
     ap.add_argument("--protocol", default="paper-72", choices=sorted(PROTOCOLS))
     ap.add_argument("--size", default="1296x864", help="image size WxH (default 1296x864)")
@@ -568,9 +573,16 @@ def main(argv: list[str] | None = None) -> int:
         range(VALIDATION_SEED0, VALIDATION_SEED0 + args.n))
     w, h = (int(x) for x in args.size.lower().split("x"))
     runs = args.runs or args.cache / "runs" / f"{args.protocol}-{w}x{h}"
-    dev = [s for s in seeds if s < VALIDATION_SEED0]
+    per_family = {f: list(seeds) for f in families}
+    for item in args.family_seeds:
+        fam, _, text = item.partition("=")
+        if fam.strip() not in per_family:
+            ap.error(f"--family-seeds {item}: {fam.strip()!r} is not one of --families "
+                     f"({', '.join(families)})")
+        per_family[fam.strip()] = parse_seeds(text)
+    dev = [s for v in per_family.values() for s in v if s < VALIDATION_SEED0]
     t0 = time.perf_counter()
-    plants, leaves = run_population(families, seeds, args.protocol, (w, h),
+    plants, leaves = run_population(families, per_family, args.protocol, (w, h),
                                     resolution=args.resolution, recipe_dir=args.recipe_dir,
                                     runs=runs, cache=args.cache,
                                     calibrate_each=args.calibrate_each,
@@ -583,9 +595,11 @@ def main(argv: list[str] | None = None) -> int:
     kind = ("DEVELOPMENT seeds (tuning, not a validation figure)" if dev else
             "validation seeds")
     head = (f"## {args.title or 'Population'}: {', '.join(families)}; seeds "
-            f"{seeds[0]}–{seeds[-1]} ({len(seeds)} per family, {kind}); {args.protocol}, "
+            f"{_seed_text(per_family)} ({kind}); {args.protocol}, "
             f"{w}×{h}, hull {args.resolution or 'of the recipe'}; "
             f"{'calibration per plant' if args.calibrate_each else 'one calibration per rig'}"
+            f"; recipes {_rel(args.recipe_dir) if args.recipe_dir else 'recipes/'} "
+            f"(segment_mesh: {_segmenters(families, args.recipe_dir)}); commit {_commit()}"
             f" ({time.strftime('%Y-%m-%d %H:%M')}, load {os.getloadavg()[0]:.1f}, "
             f"{(time.perf_counter() - t0) / 60:.0f} min)")
     section = f"{head}\n\n{table}\n\nOne line per plant: `{_rel(csv_path)}`.\n"
@@ -594,6 +608,38 @@ def main(argv: list[str] | None = None) -> int:
     args.out.write_text(section if not args.out.exists() else _merge(args.out.read_text(),
                                                                       section))
     return 0
+
+
+def _seed_text(per_family: dict[str, list[int]]) -> str:
+    def one(v: list[int]) -> str:
+        return f"{v[0]}–{v[-1]} ({len(v)} per family)" if v else "none"
+    texts = {f: one(v) for f, v in per_family.items()}
+    if len(set(texts.values())) == 1:
+        return next(iter(texts.values()))
+    return ", ".join(f"{f} {t}" for f, t in texts.items()).replace(" per family", "")
+
+
+def _segmenters(families: Sequence[str], recipe_dir: Path | None) -> str:
+    """Which mesh segmenter each family's recipe ships (the table measures it)."""
+    import yaml
+    names = {}
+    for f in families:
+        try:
+            raw = yaml.safe_load(recipe_path(f, recipe_dir).read_text())
+            names[f] = (raw.get("segment_mesh") or {}).get("plugin", "?")
+        except (OSError, yaml.YAMLError, AttributeError):
+            names[f] = "?"
+    if len(set(names.values())) == 1:
+        return next(iter(names.values()))
+    return ", ".join(f"{f} {n}" for f, n in names.items())
+
+
+def _commit() -> str:
+    try:
+        return subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"],
+                              capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
 
 
 def _rel(path: Path) -> str:
