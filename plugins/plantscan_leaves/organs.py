@@ -25,6 +25,7 @@ import gzip
 from dataclasses import dataclass
 from functools import lru_cache
 from importlib import resources
+from pathlib import Path
 
 import numpy as np
 from pydantic import Field
@@ -66,23 +67,25 @@ def _booster(text: str):
     return lgb.Booster(model_str=text)
 
 
-@lru_cache(maxsize=1)
-def shipped_model() -> OrganModel:
-    """The organ model shipped in ``plantscan_leaves/models`` (loaded once per process)."""
+@lru_cache(maxsize=4)
+def load_model(folder: str | None = None) -> OrganModel:
+    """The organ model in ``folder`` (the three files of ``MODEL_FILES``, as
+    ``scripts/train_organ_model.py --out`` writes them); None: the one shipped in
+    ``plantscan_leaves/models``.  Loaded once per process and folder."""
     from plantscan_core.errors import DataError
 
-    folder = resources.files("plantscan_leaves") / "models"
+    root = resources.files("plantscan_leaves") / "models" if folder is None else Path(folder)
     boosters = {}
     for key, name in MODEL_FILES.items():
-        path = folder / name
+        path = root / name
         try:
             boosters[key] = _booster(gzip.decompress(path.read_bytes()).decode())
         except (OSError, FileNotFoundError) as exc:
-            raise DataError(f"{path}: organ model missing from the package ({exc}); "
+            raise DataError(f"{path}: organ model missing ({exc}); "
                             "scripts/train_organ_model.py writes it") from exc
     names = tuple(boosters["organ"].feature_name())
     if names != tuple(FEATURE_NAMES):
-        raise DataError(f"{folder / MODEL_FILES['organ']}: trained on other features than "
+        raise DataError(f"{root / MODEL_FILES['organ']}: trained on other features than "
                         "plantscan_leaves.features computes; retrain it "
                         "(scripts/train_organ_model.py)")
     return OrganModel(boosters["organ"], boosters["phantom"], boosters["merge"])
@@ -312,63 +315,75 @@ def pair_features(frags: Fragments, keys: list[tuple[int, int]], moments: np.nda
 
 def agglomerate(frags: Fragments, merge_probability, threshold: float = 0.5,
                 record=None, merged=None) -> np.ndarray:
-    """(G,) leaf of every fragment after greedy merging of the most likely pair first.
+    """(G,) leaf of every fragment after greedy merging, most likely pairs first.
 
-    ``merge_probability(features) -> (n,)``; after each merge the links of the merged
-    fragment are combined (border counts and sums add, the sharpest crease and the
-    smallest gap are kept) and scored again.  ``record(keys, features, root)``, when
-    given, sees every scored batch (training: the features a merge step really meets);
-    ``merged(f, g, probability)`` every merge made.
+    Merging goes in rounds: the pairs not scored yet (all at first, then those of the
+    fragments merged in the last round) are scored in one call of
+    ``merge_probability(features) -> (n,)``; then every pair at or above ``threshold``
+    that is the most likely pair of both its fragments is merged.  A pair's features
+    depend only on its two fragments and their link, so a round makes the merges that
+    merging the single most likely pair at a time would make first, in one model call
+    per round rather than one per merge (dicot development hull 9: 12 calls for 99
+    merges, 4.8 -> 0.6 s).  The two orders can still part where a merge changes which
+    pair comes next (same leaves on 4 of 5 development hulls, 53 vs 55 fragments left
+    on the fifth).  The links of a merged fragment are combined (border counts and sums
+    add, the sharpest crease and the smallest gap are kept).  ``record(keys, features,
+    root)``, when given, sees every scored batch (training: the features a merge step
+    really meets); ``merged(f, g, probability)`` every merge made.
     """
     moments = frags.moments.copy()
     prob = frags.prob * frags.moments[:, :1]  # area-weighted sums, so merged ones add
     log_thick = frags.log_thick * frags.moments[:, 0]
     stem_border = frags.stem_border.astype(float).copy()
     links = {k: list(v) for k, v in frags.links.items()}
+    nbrs: dict[int, set[int]] = {}
+    for f, g in links:
+        nbrs.setdefault(f, set()).add(g)
+        nbrs.setdefault(g, set()).add(f)
     root = np.arange(frags.n)
-
-    def score(keys):
-        if not keys:
-            return {}
-        area = np.maximum(moments[:, :1], 1e-12)
-        x = pair_features(_View(frags, links), keys, moments, prob / area,
-                          log_thick / area[:, 0], stem_border)
-        if record is not None:
-            record(keys, x, root)
-        return dict(zip(keys, merge_probability(x)))
-
-    p = score(list(links))
-    while p:
-        best = max(p, key=p.get)
-        if p[best] < threshold:
-            break
-        f, g = best
-        if merged is not None:
-            merged(f, g, float(p[best]))
-        root[root == g] = f
-        for arr in (moments, prob):
-            arr[f] += arr[g]
-            arr[g] = 0.0
-        log_thick[f] += log_thick[g]
-        stem_border[f] += stem_border[g]
-        p.pop(best)
-        links.pop(best)
-        touched = set()
-        for key in [k for k in links if g in k]:
-            other = key[0] if key[1] == g else key[1]
-            old = links.pop(key)
-            p.pop(key, None)
-            new = (min(f, other), max(f, other))
-            if new in links:
-                cur = links[new]
-                links[new] = [cur[0] + old[0], cur[1] + old[1], min(cur[2], old[2]),
-                              min(cur[3], old[3])]
-            else:
-                links[new] = old
-            touched.add(new)
-        touched |= {k for k in links if f in k}
-        p.update(score(sorted(touched)))
-    return root
+    p: dict[tuple[int, int], float] = {}
+    while True:
+        fresh = sorted(k for k in links if k not in p)
+        if fresh:
+            area = np.maximum(moments[:, :1], 1e-12)
+            x = pair_features(_View(frags, links), fresh, moments, prob / area,
+                              log_thick / area[:, 0], stem_border)
+            if record is not None:
+                record(fresh, x, root)
+            p.update(zip(fresh, (float(q) for q in merge_probability(x))))
+        busy: set[int] = set()
+        batch = []
+        for key in sorted(p, key=lambda k: (-p[k], k)):
+            if p[key] < threshold:
+                break
+            if key[0] not in busy and key[1] not in busy:
+                batch.append(key)
+            busy.update(key)  # a pair is merged only if it is both fragments' best
+        if not batch:
+            return root
+        for f, g in batch:
+            if merged is not None:
+                merged(f, g, p[(f, g)])
+            for a in (f, g):  # every pair of the two is scored again next round
+                for other in nbrs.get(a, ()):
+                    p.pop((min(a, other), max(a, other)), None)
+            root[root == g] = f
+            for arr in (moments, prob):
+                arr[f] += arr[g]
+                arr[g] = 0.0
+            log_thick[f] += log_thick[g]
+            stem_border[f] += stem_border[g]
+            links.pop((f, g))
+            nbrs[f].discard(g)
+            for other in nbrs.pop(g, set()) - {f}:
+                old = links.pop((min(g, other), max(g, other)))
+                nbrs[other].discard(g)
+                new = (min(f, other), max(f, other))
+                cur = links.get(new)
+                links[new] = old if cur is None else [cur[0] + old[0], cur[1] + old[1],
+                                                      min(cur[2], old[2]), min(cur[3], old[3])]
+                nbrs[f].add(other)
+                nbrs[other].add(f)
 
 
 @dataclass
@@ -434,6 +449,10 @@ class LearnedOrgansParams(StageParams):
     merge_threshold: float = Field(
         0.5, gt=0, lt=1, description="two fragments are merged into one leaf while the merge "
                                      "model gives them at least this probability")
+    model_dir: str | None = Field(
+        None, description="a folder holding another organ model (the files "
+                          "scripts/train_organ_model.py --out writes: a lab's own training); "
+                          "None: the model shipped in the package")
 
 
 def segment_organs(mesh: Mesh, params: LearnedOrgansParams | None = None,
@@ -452,7 +471,7 @@ def segment_organs(mesh: Mesh, params: LearnedOrgansParams | None = None,
     if mesh.is_empty:
         report.warn("empty-mesh", "mesh is empty: no leaf to segment")
         return LabelledMesh(mesh, np.zeros(0, np.int32), {}), report
-    model = model or shipped_model()
+    model = model or load_model(p.model_dir)
     topo = geo.topology(mesh.faces)
     if topo.non_manifold_edges:
         report.warn("non-manifold", f"mesh has {topo.non_manifold_edges} non-manifold edges "

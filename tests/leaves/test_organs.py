@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from plantscan_leaves import organs as org
 from plantscan_leaves import phantoms as ph
 from plantscan_leaves.features import surface_samples
 from plantscan_leaves.organs import segment_organs
@@ -73,3 +74,71 @@ def test_a_leaf_broken_in_two_is_one_leaf(mock_plant):
     halves = [np.bincount(labels[(truth == 1) & (side == s)]).argmax() for s in (-1.0, 1.0)]
     assert halves[0] == halves[1] and halves[0] in labelled.leaf_labels
     assert info.counts["leaves"] == len(plant.leaves)
+
+
+def _one_pair_at_a_time(frags: org.Fragments, merge_probability, threshold: float = 0.5):
+    """Reference for ``agglomerate``: merge the single most likely pair, score again, repeat."""
+    moments = frags.moments.copy()
+    prob = frags.prob * frags.moments[:, :1]
+    log_thick = frags.log_thick * frags.moments[:, 0]
+    stem_border = frags.stem_border.astype(float).copy()
+    links = {k: list(v) for k, v in frags.links.items()}
+    root = np.arange(frags.n)
+
+    def score(keys):
+        area = np.maximum(moments[:, :1], 1e-12)
+        x = org.pair_features(org._View(frags, links), keys, moments, prob / area,
+                              log_thick / area[:, 0], stem_border)
+        return dict(zip(keys, merge_probability(x))) if keys else {}
+
+    p = score(sorted(links))
+    while p and max(p.values()) >= threshold:
+        f, g = max(p, key=lambda k: (p[k], (-k[0], -k[1])))
+        root[root == g] = f
+        for arr in (moments, prob):
+            arr[f] += arr[g]
+            arr[g] = 0.0
+        log_thick[f] += log_thick[g]
+        stem_border[f] += stem_border[g]
+        p.pop((f, g))
+        links.pop((f, g))
+        for key in [k for k in links if g in k]:
+            other = key[0] if key[1] == g else key[1]
+            old = links.pop(key)
+            p.pop(key, None)
+            new = (min(f, other), max(f, other))
+            cur = links.get(new)
+            links[new] = old if cur is None else [cur[0] + old[0], cur[1] + old[1],
+                                                  min(cur[2], old[2]), min(cur[3], old[3])]
+        p.update(score(sorted(k for k in links if f in k)))
+    return root
+
+
+def test_merging_in_rounds_joins_what_one_pair_at_a_time_joins(mock_plant):
+    _, mesh, _ = mock_plant
+    model = org.load_model()
+    s = surface_samples(mesh)
+    frags = org.leaf_fragments(s, np.asarray(model.organ.predict(s.features)),
+                               org.InstanceParams())
+    calls = []
+
+    def merge_probability(x):
+        calls.append(len(x))
+        return model.merge.predict(x)
+
+    rounds = org.agglomerate(frags, merge_probability)
+    n_rounds = len(calls)
+    reference = _one_pair_at_a_time(frags, merge_probability)
+    merges = frags.n - len(np.unique(reference))
+    assert merges >= 2  # the mock plant's leaves come in pieces: something to merge
+    # the same partition of the fragments (labels may differ: compare who is with whom)
+    assert np.array_equal(rounds[:, None] == rounds[None, :],
+                          reference[:, None] == reference[None, :])
+    assert n_rounds <= merges  # a model call per round, not per merge
+
+
+def test_another_model_folder_without_the_model_names_the_file(tmp_path):
+    from plantscan_core.errors import DataError
+
+    with pytest.raises(DataError, match=str(tmp_path)):
+        org.load_model(str(tmp_path))
