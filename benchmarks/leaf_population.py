@@ -102,11 +102,65 @@ def trust_figures(leaves: list[dict], plants: list[dict]) -> dict[str, float]:
     }
 
 
+CONFUSION_ROWS = (
+    ("accurate", "matched, every trait within 5 %"),
+    ("fair", "matched, worst trait 5-10 % off"),
+    ("off", "matched, some trait more than 10 % off"),
+    ("merged", "holds two or more truth leaves"),
+    ("split", "an unmatched piece of a truth leaf"),
+    ("extra", "no truth leaf (phantom volume, stem, debris)"),
+)
+
+
+def leaf_kinds(evaluation: dict[str, Any]) -> dict[int, str]:
+    """Measured leaf id -> its row of ``CONFUSION_ROWS`` (a merged leaf is "merged" even
+    when it is paired: its traits are two leaves')."""
+    t = evaluation.get("traits") or {}
+    inst = t.get("instances") or {}
+    kinds: dict[int, str] = {}
+    for r in t.get("per_leaf", []):
+        errs = [abs(r[f"{n}_measured"] - r[f"{n}_truth"]) / r[f"{n}_truth"]
+                for n in pop.TRAITS if r.get(f"{n}_truth")]
+        w = max(errs) if errs else np.inf
+        kinds[int(r["measured_id"])] = ("accurate" if w <= CLOSE_TRUST else
+                                        "fair" if w <= OFF_TRUST else "off")
+    for ids in (inst.get("split_ids") or {}).values():
+        for m in ids:
+            kinds.setdefault(int(m), "split")
+    for piece in inst.get("extra_pieces") or []:
+        kinds.setdefault(int(piece["measured_id"]), "extra")
+    for m in inst.get("merged_ids") or []:
+        kinds[int(m)] = "merged"
+    return kinds
+
+
+def confusion_table(counts: dict[tuple[str, bool], int]) -> str:
+    """Markdown: every measured leaf by what it really is and whether it was flagged."""
+    lines = ["| measured leaf | low confidence | not flagged | share flagged |",
+             "|---|---|---|---|"]
+    for key, text in CONFUSION_ROWS:
+        low, quiet = counts.get((key, True), 0), counts.get((key, False), 0)
+        share = f"{100 * low / (low + quiet):.0f} %" if low + quiet else "–"
+        lines.append(f"| {key} ({text}) | {low} | {quiet} | {share} |")
+    bad = [k for k, _ in CONFUSION_ROWS if k not in ("accurate", "fair")]
+    b_low = sum(counts.get((k, True), 0) for k in bad)
+    b_all = b_low + sum(counts.get((k, False), 0) for k in bad)
+    low_all = sum(v for (k, f), v in counts.items() if f)
+    acc_low = counts.get(("accurate", True), 0)
+    lines += ["", f"Bad leaves (off, merged, split, extra) flagged: {b_low} of {b_all}"
+              + (f" ({100 * b_low / b_all:.0f} %)" if b_all else "")
+              + f"; low-confidence leaves that are accurate: {acc_low} of {low_all}"
+              + (f" ({100 * acc_low / low_all:.0f} %)" if low_all else "") + "."]
+    return "\n".join(lines)
+
+
 def evaluate_variant(name: str, recipe_dir: Path, segmenter: str | None, runs: Path,
                      families: list[str], seeds: list[int] | None, work: Path
                      ) -> tuple[list[dict], list[dict], dict]:
-    """Every finished run of ``families`` through the variant's leaf stages, evaluated."""
+    """Every finished run of ``families`` through the variant's leaf stages, evaluated;
+    the trust figures carry ``confusion`` ({(kind, low confidence): leaves})."""
     plants, leaves = [], []
+    confusion: dict[tuple[str, bool], int] = {}
     for family in families:
         sections = leaf_recipe(recipe_dir, family, segmenter)
         for run_dir in sorted((runs / family).glob("seed-*")):
@@ -131,6 +185,9 @@ def evaluate_variant(name: str, recipe_dir: Path, segmenter: str | None, runs: P
             row["quality_reasons"] = "; ".join(measured.get("quality_reasons") or [])
             lrows = pop.leaf_rows(key, evaluation)
             flags = _leaf_flags(out)
+            for m, kind in leaf_kinds(evaluation).items():
+                key = (kind, flags.get(m) == "check")
+                confusion[key] = confusion.get(key, 0) + 1
             for lr in lrows:
                 lr["quality_flag"] = flags.get(lr["measured_id"], "")
             errs = [max(abs(lr[f"{n}_rel_error"]) for n in pop.TRAITS) for lr in lrows]
@@ -141,7 +198,7 @@ def evaluate_variant(name: str, recipe_dir: Path, segmenter: str | None, runs: P
                   f"extra {row.get('extra')} merged {row.get('merged')} split {row.get('split')}"
                   f" flag {row['quality_flag']} seg {timing['segment_wall_s']:.1f}s "
                   f"meas {timing['measure_wall_s']:.1f}s", flush=True)
-    return plants, leaves, trust_figures(leaves, plants)
+    return plants, leaves, {**trust_figures(leaves, plants), "confusion": confusion}
 
 
 def _leaf_flags(run_dir: Path) -> dict[int, str]:
@@ -184,6 +241,9 @@ def main(argv: list[str] | None = None) -> int:
                      f"{trust['flags']['check']} / {trust['flags']['fail']}, "
                      f"{100 * trust['ok_with_leaf_off_15']:.0f} % of the ok plants with a leaf "
                      "off by more than 15 %.", "",
+                     "Every measured leaf by what it is (against the truth) and whether the "
+                     "trust flag marked it low-confidence:", "",
+                     confusion_table(trust["confusion"]), "",
                      f"Leaf stages (segment_mesh + measure), wall s per plant: median "
                      f"{np.median(seg):.1f}, max {seg.max():.1f}.", ""]
     args.out.parent.mkdir(parents=True, exist_ok=True)
