@@ -691,6 +691,23 @@ class Mesh:
         """Total surface area, mm²."""
         return float(self.face_areas().sum())
 
+    def label_centroids(self, face_labels: np.ndarray) -> dict[int, np.ndarray]:
+        """Area-weighted centroid ((3,) mm) of the faces of each label >= 0.
+
+        ``face_labels`` : (F,) int array, one label per face (< 0: none).  Where a
+        leaf lies, for matching it between scans or with the truth's leaves.
+        """
+        labels = np.asarray(face_labels).reshape(-1)
+        keep = labels >= 0
+        if not keep.any():
+            return {}
+        area = self.face_areas()[keep]
+        centre = self.vertices[self.faces[keep]].mean(axis=1)
+        ids, index = np.unique(labels[keep], return_inverse=True)
+        weight = np.maximum(np.bincount(index, area), 1e-12)
+        sums = np.stack([np.bincount(index, area * centre[:, k]) for k in range(3)], axis=1)
+        return {int(i): sums[j] / weight[j] for j, i in enumerate(ids)}
+
     def to_open3d(self):
         import open3d as o3d
 

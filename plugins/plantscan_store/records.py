@@ -19,8 +19,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from plantscan_core.errors import DataError
 from plantscan_core.metadata import (
     ExperimentSpec,
@@ -193,22 +191,11 @@ def read_leaves(traits_csv: Path) -> list[LeafRecord]:
 
 def leaf_centroids(labelled_npz: Path) -> dict[int, tuple[float, float, float]]:
     """Area-weighted centroid (mm, turntable frame) of every leaf label of a labelled mesh."""
-    with np.load(labelled_npz) as z:
-        v, f, labels = z["vertices"], z["faces"], z["face_labels"]
-    if len(f) == 0:
-        return {}
-    tri = v[f]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    centre = tri.mean(axis=1)
-    out = {}
-    for label in np.unique(labels):
-        if label < 0:
-            continue
-        sel = labels == label
-        w = area[sel]
-        c = (centre[sel] * w[:, None]).sum(0) / max(w.sum(), 1e-12)
-        out[int(label)] = (float(c[0]), float(c[1]), float(c[2]))
-    return out
+    from plantscan_core.data import LabelledMesh
+
+    labelled = LabelledMesh.load(labelled_npz)
+    return {label: (float(c[0]), float(c[1]), float(c[2]))
+            for label, c in labelled.mesh.label_centroids(labelled.face_labels).items()}
 
 
 def _warnings(stages: dict[str, Any]) -> list[WarningRecord]:
