@@ -174,9 +174,7 @@ class SimScene(Scene):
             raise RecipeError([("scan.scene.params.age", f"the preset {p.preset!r} does not "
                                 "grow; age applies to the families dicot, rosette, branched, "
                                 "grass, seedling")], "virtual scanner")
-        self.plant = build_plant(p.preset, p.seed, self.soil_z, p.leaf_thickness_mm,
-                                 p.mesh_path, p.mesh_labels_path, p.mesh_scale, age=p.age,
-                                 ground=self.ground())
+        self.plant = scene_plant(p)
         self.jpeg_quality = recipe.scan.jpeg_quality
         self.camera_order = [c.name for c in recipe.scan.cameras]
         if p.check_rig:
@@ -201,14 +199,11 @@ class SimScene(Scene):
 
     @property
     def soil_z(self) -> float:
-        return self.params.pot_z_top_mm - self.params.soil_depth_mm
+        return soil_height(self.params)
 
     def ground(self) -> Ground:
         """Soil and pot rim the plant's blades must clear (mm, turntable frame)."""
-        p = self.params
-        frac = (self.soil_z - p.pot_z_bottom_mm) / (p.pot_z_top_mm - p.pot_z_bottom_mm)
-        r_in_soil = p.pot_r_bottom_mm + frac * (p.pot_r_top_mm - p.pot_r_bottom_mm) - 3.0
-        return Ground(self.soil_z, p.pot_z_top_mm, r_in_soil, p.pot_r_top_mm, p.pot_z_bottom_mm)
+        return scene_ground(self.params)
 
     def _camera_params(self, recipe) -> dict[str, SimCameraParams]:
         errors, cams = [], {}
@@ -592,6 +587,25 @@ class SimScene(Scene):
             ok, png = cv2.imencode(".png", np.where(coverage >= 0.5, 255, 0).astype(np.uint8))
             atomic_write_bytes(base.with_name(base.name + ".mask.png"), png.tobytes())
         atomic_write_text(base.with_name(base.name + ".json"), json.dumps(truth))
+
+
+def soil_height(p: SimSceneParams) -> float:
+    """Height of the soil surface (mm, turntable frame) of the scene's pot."""
+    return p.pot_z_top_mm - p.soil_depth_mm
+
+
+def scene_ground(p: SimSceneParams) -> Ground:
+    """Soil and pot rim the plant's blades must clear (mm, turntable frame)."""
+    soil = soil_height(p)
+    frac = (soil - p.pot_z_bottom_mm) / (p.pot_z_top_mm - p.pot_z_bottom_mm)
+    r_in_soil = p.pot_r_bottom_mm + frac * (p.pot_r_top_mm - p.pot_r_bottom_mm) - 3.0
+    return Ground(soil, p.pot_z_top_mm, r_in_soil, p.pot_r_top_mm, p.pot_z_bottom_mm)
+
+
+def scene_plant(p: SimSceneParams) -> Plant:
+    """The plant a scene with parameters ``p`` holds: its truth, without a rig or a render."""
+    return build_plant(p.preset, p.seed, soil_height(p), p.leaf_thickness_mm, p.mesh_path,
+                       p.mesh_labels_path, p.mesh_scale, age=p.age, ground=scene_ground(p))
 
 
 def _staging_base(scan: ScanFolder, rel_image: str) -> Path:
