@@ -5,16 +5,21 @@ Plant-level series need nothing but the plant id and the scan time
 measurer numbers them anew each time), so ``match_leaves`` links them:
 
 1. Each leaf is placed by its centroid in cylinder coordinates about the
-   turntable axis: azimuth (deg) and height (mm).  The plant stands on the axis
-   and its leaves keep their azimuth as they grow; their centroids move out
-   and up, slowly, between daily scans.
+   turntable axis: azimuth (deg), height and distance from the axis (mm).
+   The plant stands on the axis and its leaves keep their azimuth as they
+   grow; their centroids move out and up, slowly, between daily scans.  The
+   leaflets of one compound leaf share an azimuth and rise together: only
+   their distance from the axis tells them apart.
 2. A pot is rarely put back at the same angle: the whole plant's rotation
    since the first scan is found first, the angle (1 deg steps) whose best
-   assignment (step 3) costs least.
+   assignment (step 3, on azimuth and height only: every leaf moves out as it
+   grows, which would favour turning each leaf onto its older neighbour)
+   costs least.
 3. Leaves of the new scan are assigned to the tracks of the earlier scans
    (each track's last position) by the Hungarian method on the cost
-   ``|Δazimuth| / AZIMUTH_SCALE_DEG + |Δheight| / HEIGHT_SCALE_MM``; a pair
-   costing more than ``MAX_COST`` is no match.
+   ``|Δazimuth| / AZIMUTH_SCALE_DEG + |Δheight| / HEIGHT_SCALE_MM
+   + |Δradius| / RADIUS_SCALE_MM``; a pair costing more than ``MAX_COST`` is
+   no match.
 4. A leaf left over starts a new track.  Tracks are numbered by *rank of
    appearance*: the leaves of the first scan from the lowest up (older
    leaves sit lower), then each new leaf in the order it appeared.
@@ -33,26 +38,30 @@ import numpy as np
 if TYPE_CHECKING:
     import pandas as pd
 
+# Daily moves of the virtual families' truth leaf centroids (dicot, branched, rosette,
+# grass, seedling; 99th percentiles): azimuth 2.5-10 deg, height 3-24 mm, radius 2-18 mm.
 AZIMUTH_SCALE_DEG = 15.0  # a leaf's azimuth moves a few degrees a day as it grows and bends
 HEIGHT_SCALE_MM = 15.0  # its centroid rises with the internode below it
-MAX_COST = 3.0  # 45 deg of azimuth, or 45 mm of height, or a mix: another leaf
+RADIUS_SCALE_MM = 15.0  # and moves out as the blade (or the rachis under it) lengthens
+MAX_COST = 3.0  # 45 deg of azimuth, or 45 mm of height or radius, or a mix: another leaf
 PLANT_KEYS = ("study_id", "plant_id")
 
 
-def _cylinder(df: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
-    az = np.degrees(np.arctan2(df["centroid_y_mm"].to_numpy(float),
-                               df["centroid_x_mm"].to_numpy(float)))
-    return az, df["centroid_z_mm"].to_numpy(float)
+def _cylinder(df: pd.DataFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(azimuth deg, height mm, radius mm) of the leaves' centroids about the turntable axis."""
+    x, y = df["centroid_x_mm"].to_numpy(float), df["centroid_y_mm"].to_numpy(float)
+    return np.degrees(np.arctan2(y, x)), df["centroid_z_mm"].to_numpy(float), np.hypot(x, y)
 
 
 def _wrap(deg: np.ndarray) -> np.ndarray:
     return (np.asarray(deg) + 180.0) % 360.0 - 180.0
 
 
-def _cost(az: np.ndarray, z: np.ndarray, track_az: np.ndarray,
-          track_z: np.ndarray) -> np.ndarray:
+def _cost(az: np.ndarray, z: np.ndarray, rho: np.ndarray, track_az: np.ndarray,
+          track_z: np.ndarray, track_rho: np.ndarray) -> np.ndarray:
     return (np.abs(_wrap(az[:, None] - track_az[None, :])) / AZIMUTH_SCALE_DEG
-            + np.abs(z[:, None] - track_z[None, :]) / HEIGHT_SCALE_MM)
+            + np.abs(z[:, None] - track_z[None, :]) / HEIGHT_SCALE_MM
+            + np.abs(rho[:, None] - track_rho[None, :]) / RADIUS_SCALE_MM)
 
 
 def plant_rotation(az: np.ndarray, z: np.ndarray, track_az: np.ndarray,
@@ -68,9 +77,13 @@ def plant_rotation(az: np.ndarray, z: np.ndarray, track_az: np.ndarray,
 
     if len(az) == 0 or len(track_az) == 0:
         return 0.0
+    # not the radius: every leaf moves out as it grows, so a turn by the divergence angle
+    # (each leaf onto its older neighbour, now as far out as that one was) would look cheap
+    flat, flat_tracks = np.zeros(len(az)), np.zeros(len(track_az))
 
     def total(rotation: float) -> float:
-        c = np.minimum(_cost(_wrap(az - rotation), z, track_az, track_z), MAX_COST)
+        c = np.minimum(_cost(_wrap(az - rotation), z, flat, track_az, track_z, flat_tracks),
+                       MAX_COST)
         r, k = linear_sum_assignment(c)
         return float(c[r, k].sum())
 
@@ -97,18 +110,19 @@ def match_leaves(leaves: pd.DataFrame) -> pd.DataFrame:
     for _, plant in out.groupby(list(PLANT_KEYS), sort=False):
         tracks_az: list[float] = []
         tracks_z: list[float] = []
+        tracks_rho: list[float] = []
         for _, scan in plant.groupby("scan_time", sort=True):
             scan = scan[scan["centroid_z_mm"].notna()]
             if scan.empty:
                 continue
-            az, z = _cylinder(scan)
+            az, z, rho = _cylinder(scan)
             assigned = np.full(len(scan), -1)
             if tracks_az:
-                prev_az, prev_z = np.asarray(tracks_az), np.asarray(tracks_z)
-                rotation = plant_rotation(az, z, prev_az, prev_z)
+                prev = np.asarray(tracks_az), np.asarray(tracks_z), np.asarray(tracks_rho)
+                rotation = plant_rotation(az, z, prev[0], prev[1])
                 out.loc[scan.index, "rotation_deg"] = rotation
                 az_back = _wrap(az - rotation)
-                cost = _cost(az_back, z, prev_az, prev_z)
+                cost = _cost(az_back, z, rho, *prev)
                 # gated: a pair beyond MAX_COST costs the same however far, so a leaf that
                 # is gone and one that is new are not paired off to lower the total
                 rows, cols = linear_sum_assignment(np.minimum(cost, MAX_COST))
@@ -116,12 +130,14 @@ def match_leaves(leaves: pd.DataFrame) -> pd.DataFrame:
                     if cost[r, c] <= MAX_COST:
                         assigned[r] = c
                         tracks_az[c], tracks_z[c] = float(az_back[r]), float(z[r])
+                        tracks_rho[c] = float(rho[r])
                 # later positions in the frame of the first scan
                 az = az_back
             # new leaves: ranked from the lowest up
             for r in sorted(np.flatnonzero(assigned < 0), key=lambda i: (z[i], az[i])):
                 tracks_az.append(float(az[r]))
                 tracks_z.append(float(z[r]))
+                tracks_rho.append(float(rho[r]))
                 assigned[r] = len(tracks_az) - 1
             out.loc[scan.index, "track"] = assigned + 1
     return out
