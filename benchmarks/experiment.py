@@ -1,28 +1,34 @@
 """A virtual growth experiment: 2 genotypes x 2 treatments x 3 replicates x 5 days, one store.
 
-    python benchmarks/experiment.py [--out DIR] [--days 5] [--workers 2] [--resolution 64]
+    python benchmarks/experiment.py [--out DIR] [--genotypes G1=dicot,G2=branched]
+        [--days 5] [--replicates 3] [--image-size 640x427] [--views 24] [--resolution 256]
 
-* Genotypes are two plant families of the virtual scanner (``--genotypes
-  G1=dicot,G2=branched``); a replicate is a seed (validation seeds >= 1000,
-  nothing was tuned on them); the treatment scales the plant's age (drought
-  develops at ``DROUGHT_PACE`` of the control's pace).
+* The design is ``plantscan_sim.experiment.growth_design``: genotypes are plant
+  families of the virtual scanner, a replicate is a validation seed (>= 1000,
+  nothing was tuned on them), the treatment sets the pace of development
+  (drought: ``DROUGHT_PACE`` of the control's).
 * Each plant is scanned on ``--days`` consecutive days by the virtual scanner
-  (small images, the scanner's clock set to the experiment's day), all scans are
-  batch-processed (``plantscan batch`` with a sample sheet) into one SQLite
+  (small images, the scanner's clock set to the experiment's day; renders are
+  kept in ``--out`` and reused), all scans of a genotype batch-processed
+  (``plantscan batch`` with the sample sheet; the family's shipped recipe with
+  exact cameras and masks and the hull at ``--resolution``) into one SQLite
   store, and the experiment report and the ISA-Tab export are written from it.
-* Figures: per plant and day, the measured total leaf area against the virtual
-  truth (relative error: median, 90th percentile; counts of plants whose
-  growth curve rises where the truth's does), the leaf-matching accuracy on the
-  truth's leaves (same leaf, same track, over the days), the ISA-Tab check.
+* Figures, against the virtual truth (``ground_truth/`` of every scan): total
+  leaf area per plant and day (relative error: median, 90th percentile, per
+  group, per quality flag, per plant), instance counts (``plantscan
+  evaluate``'s matching), how many curves rise where the truth's do, and the
+  leaf matching between successive days, on the truth's own leaf positions and
+  on the measured leaves (each paired with its truth leaf: a link is kept when
+  the truth leaf's measured leaves on two successive days share a track).
 
-Writes ``docs/benchmarks/experiment.md``.  Heavy: 60 renders and 60 runs
-(``nice -n 10``; about 30-60 min on 2 busy cores).
+Writes ``docs/benchmarks/experiment.md`` (a ``## Notes`` section already in
+the page is kept).  Heavy: 60 renders and 60 runs (``nice -n 10``; about 1.5 h
+on 2 busy cores at the defaults).
 """
 
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import os
 import sys
@@ -32,226 +38,268 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-DROUGHT_PACE = 0.7  # a drought plant at day d has the control's development at 0.7 d
-TREATMENTS = {"control": 1.0, "drought": DROUGHT_PACE}
-STATIC = ("plastic-dicot", "wheat", "sorghum")  # fixed presets: they do not grow
-START = dt.datetime(2026, 5, 4, 9, 0)  # first scan day, 09:00 UTC
-SOWN = dt.date(2026, 4, 20)
+DEFAULT_OUT = Path(os.environ.get("PLANTSCAN_EXPERIMENT_CACHE", "/work/cache/experiment"))
+NOTES = "\n## Notes"
 
 
-def plan(genotypes: dict[str, str], days: int, first_age: float, replicates: int):
-    """One entry per scan: plant id, genotype, family, treatment, replicate, seed, day, age."""
-    out = []
-    for gi, (genotype, family) in enumerate(genotypes.items()):
-        for treatment, pace in TREATMENTS.items():
-            for rep in range(1, replicates + 1):
-                seed = 1000 + 100 * gi + rep  # validation seeds
-                plant = f"{genotype}-{treatment}-r{rep}"
-                for day in range(days):
-                    out.append({"plant_id": plant, "genotype": genotype, "family": family,
-                                "treatment": treatment, "replicate": rep, "seed": seed,
-                                "day": day, "age": None if family in STATIC
-                                else round((first_age + day) * pace, 3)})
-    return out
-
-
-def scan_all(entries, out: Path, image_size, views: int) -> list[Path]:
+def scan_all(design, out: Path, image_size: tuple[int, int], views: int) -> list[Path]:
+    """The scan folder of every planned scan, rendered when not already in ``out``."""
     from plantscan_sim import make_scan
 
     scans = []
-    for e in entries:
-        folder = out / "scans" / f"day{e['day'] + 1}" / e["plant_id"]
+    for s in design:
+        folder = out / "scans" / f"day{s.day + 1}" / s.plant_id
         scans.append(folder)
         if (folder / "views.jsonl").exists() and (folder / "ground_truth").is_dir():
             continue
-        clock = (START + dt.timedelta(days=e["day"], minutes=5 * len(scans))).isoformat() + "Z"
-        make_scan(folder, preset=e["family"], seed=e["seed"], image_size=image_size,
+        make_scan(folder, preset=s.family, seed=s.seed, image_size=image_size,
                   images_per_revolution=views, roles=("background", "plant"), supersampling=1,
-                  scene={"clock_start": clock, **({} if e["age"] is None else {"age": e["age"]})},
-                  overrides=[f"plant.id={e['plant_id']}"])
+                  scene={"clock_start": s.scan_time.isoformat() + "Z",
+                         **({} if s.age is None else {"age": s.age})},
+                  overrides=[f"plant.id={s.plant_id}"])
     return scans
 
 
-def write_sheet(entries, path: Path) -> None:
-    rows = {e["plant_id"]: e for e in entries}
-    lines = ["plant_id,genotype,treatment,replicate,sowing_date,species,study_id,"
-             "investigation_id,factor.watering"]
-    for pid, e in sorted(rows.items()):
-        water = "30%" if e["treatment"] == "drought" else "100%"
-        lines.append(f"{pid},{e['genotype']},{e['treatment']},{e['replicate']},{SOWN},"
-                     f"virtual {e['family']},virtual-growth,VIRT-1,{water}")
-    path.write_text("\n".join(lines) + "\n")
-
-
-def write_recipe(path: Path, family: str, resolution: int) -> None:
-    """The family's shipped recipe (its rig) with cheap processing and the SQLite store."""
+def write_recipe(path: Path, family: str, resolution: int, store: Path) -> None:
+    """The family's shipped recipe (its rig, its mesh, leaf and measure settings) with exact
+    cameras and masks, the hull at ``resolution`` and the SQLite ``store``."""
     import yaml
     from plantscan_sim import scan_recipe
 
     raw = scan_recipe(family, seed=1000)
+    raw["reconstruct"].setdefault("params", {})["resolution"] = resolution
     raw.update({
         "calibrate": {"plugin": "truth"}, "segment": {"plugin": "truth-masks"},
-        "reconstruct": {"plugin": "octree-hull", "params": {"resolution": resolution}},
-        "mesh": {"plugin": "marching-cubes"}, "segment_mesh": {"plugin": "curvature-regions"},
-        "measure": {"plugin": "leaf-geometry"},
         "export": [{"plugin": "csv", "params": {"parquet": False}}],
-        "store": {"plugin": "sqlite", "params": {"path": "results.sqlite"}}})
+        "store": {"plugin": "sqlite", "params": {"path": str(store.resolve())}}})
     raw["name"] = f"virtual-growth-{family}"
     path.write_text(yaml.safe_dump(raw, sort_keys=False))
 
 
-def truth_table(entries, scans):
-    """Per scan: plant id, x_day (days after sowing), the truth's plant traits."""
+def truth_table(design, scans):
+    """Per scan: plant id, scan path, x_day (days after sowing), the truth's plant traits."""
     import pandas as pd
     import yaml
+    from plantscan_sim.experiment import SOWN
 
     rows = []
-    for e, scan in zip(entries, scans):
+    for s, scan in zip(design, scans):
         t = json.loads((scan / "ground_truth" / "plant_traits.json").read_text())
         created = pd.Timestamp(yaml.safe_load((scan / "scan.yaml").read_text())["created"])
         x = (created.tz_convert(None) - pd.Timestamp(SOWN)).total_seconds() / 86400
-        rows.append({"plant_id": e["plant_id"], "scan_path": str(scan.resolve()), "x_day": x,
-                     **t})
+        rows.append({"plant_id": s.plant_id, "scan_path": str(scan.resolve()), "x_day": x,
+                     "day": s.day, **t})
     return pd.DataFrame(rows)
 
 
-def truth_leaf_tracks(entries, scans) -> dict[str, float]:
-    """Leaf matching on the truth: each truth leaf's centroid per scan, matched by position.
+def link_figures(tracked, truth_column: str = "truth") -> dict[str, int]:
+    """Day-to-day links of one truth leaf (successive scans holding it), links kept in one
+    track, and tracks holding two truth leaves, over every plant of ``tracked``."""
+    links = kept = 0
+    for _, leaf in tracked.sort_values("scan_time").groupby(["plant_id", truth_column]):
+        days = leaf["day"].to_numpy()
+        t = leaf["track"].to_numpy()
+        successive = days[1:] == days[:-1] + 1
+        links += int(successive.sum())
+        kept += int((successive & (t[1:] == t[:-1])).sum())
+    joins = int((tracked.groupby(["plant_id", "track"])[truth_column].nunique() > 1).sum())
+    return {"links": links, "kept": kept, "joins": joins}
 
-    A truth leaf's identity across ages is its plan index; the matcher sees only
-    positions.  Link accuracy = share of (leaf, day -> day + 1) pairs kept in one
-    track; false joins = tracks holding two truth leaves.
-    """
+
+def truth_leaf_tracks(design, scans) -> dict[str, int]:
+    """The matcher on the truth's own leaves: each truth leaf's centroid per scan (a truth
+    leaf keeps its id across ages; the matcher sees only positions)."""
     import pandas as pd
     from plantscan_store.timeseries import match_leaves
 
+    from plantscan_core.data import Mesh
+
     rows = []
-    for e, scan in zip(entries, scans):
+    for s, scan in zip(design, scans):
         with np.load(scan / "ground_truth" / "plant.npz") as z:
-            v, f, lab = z["vertices"], z["faces"], z["face_leaf_id"]
-        ident = json.loads((scan / "ground_truth" / "leaves.json").read_text()) \
-            if (scan / "ground_truth" / "leaves.json").exists() else None
-        tri = v[f]
-        area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]),
-                                    axis=1)
-        for leaf in np.unique(lab[lab >= 0]):
-            sel = lab == leaf
-            c = (tri[sel].mean(1) * area[sel, None]).sum(0) / area[sel].sum()
-            key = ident[int(leaf)]["appear_day"] if ident else int(leaf)
-            rows.append({"study_id": "v", "plant_id": e["plant_id"],
-                         "scan_time": pd.Timestamp(START) + pd.Timedelta(days=e["day"]),
-                         "leaf_id": int(leaf), "area_mm2": float(area[sel].sum() / 2),
+            mesh, labels = Mesh(z["vertices"], z["faces"]), z["face_leaf_id"]
+        for leaf, c in mesh.label_centroids(labels).items():
+            rows.append({"study_id": "v", "plant_id": s.plant_id, "day": s.day,
+                         "scan_time": pd.Timestamp(s.scan_time), "leaf_id": leaf,
                          "centroid_x_mm": c[0], "centroid_y_mm": c[1], "centroid_z_mm": c[2],
-                         "truth": f"{e['plant_id']}:{key}"})
-    df = match_leaves(pd.DataFrame(rows)).sort_values(["plant_id", "truth", "scan_time"])
-    links = kept = 0
-    for _, g in df.groupby("truth"):
-        t = list(g["track"])
-        links += len(t) - 1
-        kept += sum(a == b for a, b in zip(t[:-1], t[1:]))
-    joins = int((df.groupby(["plant_id", "track"])["truth"].nunique() > 1).sum())
-    return {"links": links, "kept": kept, "accuracy": kept / links if links else float("nan"),
-            "tracks_with_two_leaves": joins, "leaf_observations": len(df)}
+                         "truth": leaf})
+    return link_figures(match_leaves(pd.DataFrame(rows)))
+
+
+def evaluate_runs(plants):
+    """``plantscan evaluate``'s leaf matching of every stored run: instance counts per run
+    and ``{(run_dir, measured leaf id): truth leaf id}``."""
+    from plantscan_leaves.evaluate import evaluate_traits
+
+    counts, pairs = [], {}
+    for run_dir, scan_path in zip(plants["run_dir"], plants["scan_path"]):
+        ev = evaluate_traits(Path(run_dir), Path(scan_path) / "ground_truth")
+        t = (ev or {}).get("traits") or {}
+        counts.append({"run_dir": run_dir, **{k: t.get(f"leaves_{k}", 0) for k in (
+            "truth", "found", "merged", "missed", "split", "extra")}})
+        for p in t.get("pairs", []):
+            pairs[(run_dir, int(p["measured_id"]))] = int(p["truth_id"])
+    return counts, pairs
+
+
+def _pct(x: float) -> str:
+    return "n/a" if x != x else f"{100 * x:.1f}"
 
 
 def main() -> int:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--out", default="/work/cache/store25/experiment")
+    ap.add_argument("--out", default=str(DEFAULT_OUT))
     ap.add_argument("--genotypes", default="G1=dicot,G2=branched")
     ap.add_argument("--days", type=int, default=5)
     ap.add_argument("--replicates", type=int, default=3)
     ap.add_argument("--first-age", type=float, default=14.0)
-    ap.add_argument("--image-size", default="320x214")
-    ap.add_argument("--views", type=int, default=12)
-    ap.add_argument("--resolution", type=int, default=96)
+    ap.add_argument("--image-size", default="640x427")
+    ap.add_argument("--views", type=int, default=24, help="turntable stops per camera")
+    ap.add_argument("--resolution", type=int, default=256)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--doc", default=str(ROOT / "docs" / "benchmarks" / "experiment.md"),
                     help="where the figures go (a trial run: somewhere else)")
     args = ap.parse_args()
     import pandas as pd
+    from plantscan_sim.experiment import DROUGHT_PACE, STUDY_ID, growth_design, sample_sheet
     from plantscan_store import Store
     from plantscan_store.isatab import export_isatab, validate_isatab
     from plantscan_store.report import write_experiment_report
+    from plantscan_store.timeseries import leaf_series
 
     from plantscan_core.batch import run_batch
 
     genotypes = dict(g.split("=") for g in args.genotypes.split(","))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    entries = plan(genotypes, args.days, args.first_age, args.replicates)
+    design = growth_design(genotypes, args.days, args.replicates, args.first_age)
     w, h = (int(x) for x in args.image_size.split("x"))
     t0 = time.perf_counter()
-    scans = scan_all(entries, out, (w, h), args.views)
+    scans = scan_all(design, out, (w, h), args.views)
     t_scan = time.perf_counter() - t0
     sheet = out / "samples.csv"
-    write_sheet(entries, sheet)
+    sheet.write_text(sample_sheet(design))
     runs = out / "runs"
+    runs.mkdir(exist_ok=True)
     (runs / "results.sqlite").unlink(missing_ok=True)
     t0 = time.perf_counter()
     failed = 0
     # one recipe per species, as a lab runs them: one batch per genotype, one store
     for genotype, family in genotypes.items():
         recipe = out / f"recipe-{family}.yaml"
-        write_recipe(recipe, family, args.resolution)
-        mine = [s for e, s in zip(entries, scans) if e["genotype"] == genotype]
-        summary = run_batch(mine, recipe, runs, workers=args.workers, progress=False,
-                            sample_sheet=sheet)
+        write_recipe(recipe, family, args.resolution, runs / "results.sqlite")
+        mine = [s for p, s in zip(design, scans) if p.genotype == genotype]
+        summary = run_batch(mine, recipe, runs / genotype, workers=args.workers,
+                            progress=False, sample_sheet=sheet)
         failed += summary.failed
-        print(summary)
     t_batch = time.perf_counter() - t0
-    truth = truth_table(entries, scans)
+    truth = truth_table(design, scans)
     with Store(runs / "results.sqlite") as store:
         counts = store.counts()
-        plants = store.plant_traits(study="virtual-growth")
+        plants = store.plant_traits(study=STUDY_ID)
+        leaves = store.leaf_traits(study=STUDY_ID)
         report = write_experiment_report(store, out / "experiment.html",
-                                         truth=truth, study="virtual-growth")
-        isa = export_isatab(store, out / "isa", study="virtual-growth")
+                                         truth=truth, study=STUDY_ID)
+        isa = export_isatab(store, out / "isa", study=STUDY_ID)
         validate_isatab(out / "isa")
-    m = plants.merge(truth[["scan_path", "x_day", "total_leaf_area_mm2"]], on="scan_path",
-                     suffixes=("", "_truth"))
-    rel = (m["total_leaf_area_mm2"] - m["total_leaf_area_mm2_truth"]) / m[
+    m = plants.merge(truth[["scan_path", "x_day", "day", "total_leaf_area_mm2", "leaf_count"]],
+                     on="scan_path", suffixes=("", "_truth"))
+    m["rel"] = (m["total_leaf_area_mm2"] - m["total_leaf_area_mm2_truth"]) / m[
         "total_leaf_area_mm2_truth"]
-    per_group = m.assign(rel=rel.abs()).groupby(["genotype", "treatment"])["rel"].agg(
-        ["median", lambda s: s.quantile(0.9), "count"])
+    m["abs_rel"] = m["rel"].abs()
+    m["flag"] = m["plant_quality_flag"].fillna("none")
     rises = 0
     for _, g in m.sort_values("x_day").groupby("plant_id"):
         meas = np.sign(np.diff(g["total_leaf_area_mm2"]))
         tru = np.sign(np.diff(g["total_leaf_area_mm2_truth"]))
         rises += int((meas == tru).all())
-    matching = truth_leaf_tracks(entries, scans)
+    run_counts, pairs = evaluate_runs(plants)
+    inst = pd.DataFrame(run_counts).sum(numeric_only=True)
+    on_truth = truth_leaf_tracks(design, scans)
+    day_of = dict(zip(truth["scan_path"], truth["day"]))
+    tracked = leaf_series(leaves)
+    tracked["day"] = tracked["scan_path"].map(day_of)
+    tracked["truth"] = [pairs.get((r, int(i))) for r, i in zip(tracked.run_dir,
+                                                               tracked.leaf_id)]
+    measured = link_figures(tracked[tracked["truth"].notna()])
     load = os.getloadavg()[0]
-    group_rows = "\n".join(f"| {g} | {t} | {100 * r['median']:.1f} | {100 * r.iloc[1]:.1f} | "
-                           f"{int(r['count'])} |" for (g, t), r in per_group.iterrows())
+
+    def stats(s) -> str:
+        return f"{_pct(s.median())} | {_pct(s.quantile(0.9))} | {len(s)}"
+
+    group_rows = "\n".join(f"| {g} | {t} | {stats(x['abs_rel'])} | {_pct(x['rel'].mean())} |"
+                           for (g, t), x in m.groupby(["genotype", "treatment"]))
+    flag_rows = "\n".join(f"| {f} | {stats(x['abs_rel'])} |" for f, x in m.groupby("flag"))
+    plant_rows = []
+    for pid, g in m.sort_values("x_day").groupby("plant_id"):
+        flags = ", ".join(f"{k} {v}" for k, v in sorted(g["flag"].value_counts().items()))
+        a, b = g.iloc[0], g.iloc[-1]
+        plant_rows.append(
+            f"| {pid} | {a.total_leaf_area_mm2_truth:.0f} -> {b.total_leaf_area_mm2_truth:.0f} | "
+            f"{a.total_leaf_area_mm2:.0f} -> {b.total_leaf_area_mm2:.0f} | "
+            f"{int(a.leaf_count_truth)} -> {int(b.leaf_count_truth)} | "
+            f"{int(a.leaf_count)} -> {int(b.leaf_count)} | {_pct(g['abs_rel'].median())} | "
+            f"{_pct(g['abs_rel'].max())} | {flags} |")
+    names = ", ".join(f"{k} = virtual {v}" for k, v in genotypes.items())
     page = f"""# Virtual growth experiment (`benchmarks/experiment.py`)
 
-{len(genotypes)} genotypes ({', '.join(f'{k} = virtual {v}' for k, v in genotypes.items())})
-x 2 treatments (drought develops at {DROUGHT_PACE} of the control's pace) x
-{args.replicates} replicates (validation seeds >= 1000) x {args.days} daily scans (ages
-{args.first_age:g} to {args.first_age + args.days - 1:g} days for the control); virtual
-scanner {w} x {h} px, {args.views} angles x 2 cameras, exact calibration and masks, octree
-hull at {args.resolution}^3, each family's shipped rig, one batch per genotype
-({args.workers} workers) with a sample sheet, into one SQLite store.  Scans {t_scan:.0f} s,
-batch {t_batch:.0f} s (load average {load:.1f}).
+**Validation seeds** (>= 1000), {len(genotypes)} genotypes ({names}) x 2 treatments
+(drought develops at {DROUGHT_PACE} of the control's pace) x {args.replicates} replicates
+x {args.days} daily scans (control plants {args.first_age:g} to
+{args.first_age + args.days - 1:g} days old, drought plants
+{DROUGHT_PACE * args.first_age:g} to {DROUGHT_PACE * (args.first_age + args.days - 1):g});
+virtual scanner {w} x {h} px, {args.views} stops x 2 cameras, **exact cameras and masks**
+(`truth`, `truth-masks`: the figures hold the hull's and the leaf stages' error, not the
+calibration's or the segmentation's), octree hull at {args.resolution}^3, otherwise each
+family's shipped recipe; one batch per genotype ({args.workers} workers) with the sample
+sheet, into one SQLite store. Renders {t_scan:.0f} s, batch {t_batch:.0f} s (load average
+{load:.1f}; the renders are reused when the script runs again).
 
-- runs stored: {counts['runs']} of {len(scans)} scans ({failed} failed), plants
+- runs stored: {counts['runs']} of {len(scans)} scans ({failed} failed); plants
   {counts['plants']}, leaves {counts['leaves']}
-- total leaf area per plant and day against the virtual truth: median relative error
-  **{100 * rel.abs().median():.1f} %**, 90th percentile **{100 * rel.abs().quantile(0.9):.1f} %**,
-  mean signed error {100 * rel.mean():+.1f} % ({len(rel)} plant-days)
-- growth curves that rise and fall where the truth's do: {rises} of {m.plant_id.nunique()} plants
-- leaf matching on the truth's leaves (positions only): {matching['kept']} of
-  {matching['links']} day-to-day links kept (**{100 * matching['accuracy']:.1f} %**),
-  {matching['tracks_with_two_leaves']} tracks holding two leaves
+- **total leaf area per plant and day against the truth**: median |relative error|
+  **{_pct(m['abs_rel'].median())} %**, 90th percentile **{_pct(m['abs_rel'].quantile(0.9))} %**,
+  mean signed error {100 * m['rel'].mean():+.1f} % ({len(m)} plant-days)
+- instance counts over all runs (`plantscan evaluate`): {int(inst['truth'])} truth leaves,
+  {int(inst['found'])} found, {int(inst['merged'])} merged, {int(inst['missed'])} missed,
+  {int(inst['split'])} split, {int(inst['extra'])} extra measured pieces
+- growth curves that rise and fall where the truth's do: {rises} of {m.plant_id.nunique()}
+  plants
+- leaf matching between successive days, on the truth's leaf positions (turned with the
+  plant; the virtual pot is not turned between scans): {on_truth['kept']} of
+  {on_truth['links']} links kept (**{_pct(on_truth['kept'] / max(on_truth['links'], 1))} %**),
+  {on_truth['joins']} tracks holding two leaves
+- leaf matching on the **measured** leaves (a measured leaf is its truth leaf's when
+  `plantscan evaluate` pairs them; links of a truth leaf found on both days):
+  {measured['kept']} of {measured['links']} links kept
+  (**{_pct(measured['kept'] / max(measured['links'], 1))} %**), {measured['joins']} tracks
+  holding two truth leaves
 - ISA-Tab: {len(isa)} files, checked against their stated columns: OK
 - report: `{report.name}` (measured curves, the truth dotted)
 
-| genotype | treatment | median error % | p90 error % | plant-days |
-|---|---|---|---|---|
+| genotype | treatment | median error % | p90 error % | plant-days | mean signed % |
+|---|---|---|---|---|---|
 {group_rows}
+
+By the plant's quality flag (the measurer's, docs/leaves.md "Trust"):
+
+| flag | median error % | p90 error % | plant-days |
+|---|---|---|---|
+{flag_rows}
+
+Per plant, first -> last day (total leaf area mm², leaf count; error = |relative error|
+of the total leaf area over its {args.days} days):
+
+| plant | truth area | measured | truth leaves | measured | median error % | max % | flags |
+|---|---|---|---|---|---|---|---|
+{chr(10).join(plant_rows)}
 """
-    Path(args.doc).write_text(page)
+    doc = Path(args.doc)
+    if doc.exists() and NOTES in doc.read_text():
+        page += doc.read_text()[doc.read_text().index(NOTES):]
+    doc.write_text(page)
+    m.to_csv(out / "plant_days.csv", index=False)
     print(page)
-    pd.set_option("display.width", 200)
     return 0
 
 
