@@ -43,6 +43,7 @@ import os
 import signal
 import sys
 import threading
+from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -52,6 +53,7 @@ from plantscan_core.data import ViewRecord
 from plantscan_core.errors import HardwareError, PlantScanError, ScanFolderError
 from plantscan_core.lock import FolderLock
 from plantscan_core.plugins import PluginManager
+from plantscan_core.progress import Display, StepProgress, display_for, run_logging
 from plantscan_core.recipe import Recipe
 from plantscan_core.scanfolder import IMAGES_DIR, ScanFolder, now_iso
 from plantscan_core.stages import CameraBackend, CaptureRequest, MotionAxis, StageContext
@@ -301,7 +303,7 @@ def acquire(
     resume: bool = False,
     stop_after: int | None = None,
     on_role_start: Callable[[str], None] | None = None,
-    progress: bool = False,
+    progress: bool | Display = False,
 ) -> ScanFolder:
     """Run the recipe's scan protocol and write the scan folder ``out``.
 
@@ -318,7 +320,10 @@ def acquire(
     on_role_start : called with the role name before its first image, once every
         earlier image is committed (real rigs: ask the user to mount the target
         or remove the plant).
-    progress : show a progress bar.
+    progress : a ``Display`` (``plantscan_core.progress``; the CLI's shows every role's
+        images with the time left, from the timing model before the first image), True
+        for one chosen by stderr, False for warnings only.  The scan's log goes to
+        ``out/run.log``.
 
     Raises
     ------
@@ -338,7 +343,8 @@ def acquire(
 
 def _acquire(recipe: Recipe, out: Path, manager: PluginManager, lock: FolderLock,
              raw_recipe: dict | None, resume: bool, stop_after: int | None,
-             on_role_start: Callable[[str], None] | None, progress: bool) -> ScanFolder:
+             on_role_start: Callable[[str], None] | None,
+             progress: bool | Display) -> ScanFolder:
     """``acquire``, with ``lock`` taken before the folder is opened or created."""
     raw_recipe = raw_recipe if raw_recipe is not None else recipe.model_dump(mode="json")
     scan = None
@@ -389,10 +395,12 @@ def _acquire(recipe: Recipe, out: Path, manager: PluginManager, lock: FolderLock
     todo = [v for v in plan(recipe, manager.registry, planned) if v.key not in done]
     if stop_after is not None:
         todo = todo[: max(0, stop_after)]
-    with _Signals() as signals:
+    display = display_for(progress)
+    with _Signals() as signals, run_logging(scan.root, display):
         run = _Run(recipe, scan, _Rig(cameras, turntable, tilt_arm), on_role_start, signals,
                    clock)
-        run.execute(todo, progress)
+        run.display, run.estimates = display, _role_estimates(recipe, manager, todo)
+        run.execute(todo)
     return scan
 
 
@@ -401,6 +409,21 @@ def _take(lock: FolderLock) -> None:
     lock.acquire()
     if lock.stale_message():
         print(f"plantscan: warning: {lock.stale_message()}", file=sys.stderr)
+
+
+def _role_estimates(recipe: Recipe, manager: PluginManager,
+                    todo: list[PlannedView]) -> dict[str, float]:
+    """Seconds each role of ``todo`` should take (the timing model, ``plantscan scan
+    --dry-run``), scaled to the images still to take; a role the model cannot time is absent."""
+    from plantscan_core.timing import estimate_scan_time
+
+    try:
+        est = estimate_scan_time(recipe, manager.registry)
+    except Exception:  # noqa: BLE001 - an estimate must never stop a scan
+        return {}
+    left = Counter(v.role for v in todo)
+    return {r.role: r.total_s * left[r.role] / r.images for r in est.roles
+            if r.images and r.total_s > 0 and left[r.role]}
 
 
 class _Run:
@@ -420,31 +443,39 @@ class _Run:
         self.tilt: float | None = None
         self.angle: float | None = None
         self.measured: float | None = None
-        self.bar = None
+        self.display = display_for(False)
+        self.estimates: dict[str, float] = {}
+        self.step: StepProgress | None = None  # the role being captured: its images counted
 
-    def execute(self, todo: list[PlannedView], progress: bool) -> None:
+    def execute(self, todo: list[PlannedView]) -> None:
         rig = self.rig
         interrupted = False
+        per_role = Counter(v.role for v in todo)
+        steps = contextlib.ExitStack()
         try:
             rig.open()
             if todo:
                 self._axis_call("turntable", rig.turntable.home)
                 if rig.tilt_arm is not None:
                     self._axis_call("tilt_arm", rig.tilt_arm.home)
-            self.bar = _progress(progress, len(todo))
             role = None
             for group in stops(todo):
                 if group[0].role != role:
                     self.commit()  # the user is asked to change the set-up: nothing in flight
+                    steps.close()
                     role = group[0].role
                     if self.on_role_start is not None:
                         self.on_role_start(role)
+                    self.step = steps.enter_context(self.display.step(
+                        f"scan {role}", per_role[role], "images", self.estimates.get(role)))
                     self.angle = None
                 self.move(group[0])
                 self.commit()  # downloads of the previous stop ran during the move
                 self.expose(group)
             self.commit()
+            steps.close()
         except BaseException as exc:
+            steps.__exit__(type(exc), exc, exc.__traceback__)  # the role's line: "failed"
             interrupted = isinstance(exc, KeyboardInterrupt)
             if interrupted:
                 rig.stop_axes()
@@ -454,8 +485,8 @@ class _Run:
                 interrupted = True
             raise
         finally:
-            if self.bar is not None:
-                self.bar[0].stop()
+            steps.close()
+            self.step = None
             rig.close(wait=not interrupted)
             for p in self.pending:
                 p.tmp.unlink(missing_ok=True)
@@ -553,8 +584,8 @@ class _Run:
                         + f"; {self._kept()}",
                         device="scan folder", captured=len(self.scan.views),
                     ) from exc
-                if self.bar is not None:
-                    self.bar[0].advance(self.bar[1])
+                if self.step is not None:
+                    self.step.advance()
             except BaseException:
                 # Still to be committed or cleaned up (this one too, unless it was listed
                 # before a deferred Ctrl-C surfaced).
@@ -666,12 +697,3 @@ def _protocol_of(raw: dict) -> dict:
     return scan
 
 
-def _progress(enabled: bool, total: int):
-    if not enabled or total == 0:
-        return None
-    from rich.progress import Progress
-
-    p = Progress(transient=True)
-    task = p.add_task("capturing", total=total)
-    p.start()
-    return (p, task)

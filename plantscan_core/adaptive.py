@@ -29,7 +29,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from plantscan_core.errors import PlantScanError
 from plantscan_core.recipe import AdaptiveSpec, Recipe, StageSpec
@@ -41,6 +41,9 @@ from plantscan_core.trajectory import (
     ViewPlan,
     order_stops,
 )
+
+if TYPE_CHECKING:
+    from plantscan_core.progress import Display
 
 PLANNING_DIR = "planning"
 """The quick runs of an adaptive scan: a run folder inside the scan folder."""
@@ -159,7 +162,8 @@ class RoundResult:
 
 
 def plan_next(scan_dir: Path, recipe: Recipe, manager, *, run_dir: Path | None = None,
-              calibration_path: Path | None = None, progress: bool = False) -> RoundResult:
+              calibration_path: Path | None = None,
+              progress: bool | Display = False) -> RoundResult:
     """Process ``scan_dir`` quickly and plan its next stops (nothing is recorded)."""
     from plantscan_core.pipeline import process
 
@@ -201,7 +205,7 @@ def _stop_reason(recipe: Recipe, scan: ScanFolder, request: PlanRequest | None,
 
 
 def scan_adaptive(recipe: Recipe, out: Path, manager, *, raw_recipe: dict | None = None,
-                  resume: bool = False, progress: bool = False,
+                  resume: bool = False, progress: bool | Display = False,
                   on_role_start: Callable[[str], None] | None = None,
                   calibration_path: Path | None = None,
                   log: Callable[[str], None] | None = None) -> ScanFolder:

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import csv
 import io
+import logging
 import os
 import sys
 import time
@@ -36,6 +37,7 @@ from typing import Any
 
 from plantscan_core.data import LEAF_TRAIT_COLUMNS, leaf_value_text
 from plantscan_core.errors import PlantScanError
+from plantscan_core.progress import Display, display_for
 from plantscan_core.scanfolder import atomic_write_text
 
 SUMMARY_CSV = "batch_summary.csv"
@@ -68,6 +70,7 @@ class PlantOutcome:
     run_dir: str = ""
     worker: str = ""
     scan_time: str = ""
+    warnings: int = 0  # of every stage's report (in the plant's run.log and report)
     leaves: list[dict[str, Any]] = field(default_factory=list, repr=False)
     metadata: dict[str, Any] = field(default_factory=dict, repr=False)
 
@@ -187,10 +190,13 @@ def process_plant(scan_dir: str, recipe_path: str, overrides: Sequence[str], run
         outcome.plant_id = md.plant.id
         outcome.metadata = md.to_dict()
         outcome.scan_time = str(scan_info.get("created", ""))
+        # the worker says nothing itself: the plant's run.log has its log, the batch's
+        # display one line per plant
         result = process(Path(scan_dir), recipe, Path(run_dir), manager, raw_recipe=raw,
                          overrides=list(overrides), workers=threads,
                          calibration_path=Path(calibration_path) if calibration_path else None,
-                         metadata=md)
+                         metadata=md, progress=Display("off"))
+        outcome.warnings = len(result.warnings())
         if result.traits is not None:
             outcome.leaf_count = len(result.traits.leaves)
             plant = result.traits.plant
@@ -296,7 +302,7 @@ def run_batch(
     overrides: Sequence[str] = (),
     scheduler: str | None = None,
     workers: int = 2,
-    progress: bool = True,
+    progress: bool | Display = True,
     connect_timeout_s: float = 30.0,
     task: Callable[..., PlantOutcome] = process_plant,
     calibration: Path | None = None,
@@ -319,8 +325,9 @@ def run_batch(
         processes (one thread each) for this batch.
     workers : int
         Local worker processes (ignored with ``scheduler``).
-    progress : bool
-        Show a progress bar and one line per finished plant on stderr.
+    progress : Display or bool
+        Where the batch shows its progress (the plants done, the time left from the
+        rate so far) and one line per finished plant; True: one chosen by stderr.
     connect_timeout_s : float
         How long to wait for ``scheduler`` to answer.
     task : callable
@@ -391,8 +398,8 @@ def run_batch(
                           **extra, **per_plant[i]): i
             for i, (scan, rd) in enumerate(zip(scans, run_dirs, strict=True))
         }
-        bar = _Progress(len(futures), where) if progress else None
-        try:
+        display = display_for(progress)
+        with display.step(f"plants on {where}", len(futures), "plants") as step:
             for fut in as_completed(futures):
                 i = futures[fut]
                 try:
@@ -401,15 +408,21 @@ def run_batch(
                     outcome = PlantOutcome(scan=str(scans[i]), run_dir=str(run_dirs[i]),
                                            error=f"task failed on the cluster: {_describe(exc)}")
                 outcomes[i] = outcome
-                if bar is not None:
-                    bar.done(outcome)
-        finally:
-            if bar is not None:
-                bar.close()
+                display.message(_plant_line(outcome),
+                                logging.INFO if outcome.ok else logging.WARNING)
+                step.advance()
     finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+        # Workers still busy with a cancelled plant are killed by the nanny on close, which
+        # says so in a warning per worker: nothing a user can act on at the end of a batch.
+        nanny = logging.getLogger("distributed.nanny")
+        level = nanny.level
+        nanny.setLevel(logging.ERROR)
+        try:
+            client.close()
+            if cluster is not None:
+                cluster.close()
+        finally:
+            nanny.setLevel(level)
     plants = [outcomes[i] for i in range(len(scans))]
     summary = BatchSummary(plants, out_dir, out_dir / SUMMARY_CSV, out_dir / TRAITS_CSV,
                            round(time.perf_counter() - t0, 3), where)
@@ -449,28 +462,11 @@ def sheet_metadata(sheet_path: Path, scans: list[Path], recipe) -> list:
     return out
 
 
-class _Progress:
-    """A rich progress bar on stderr plus one line per finished plant."""
-
-    def __init__(self, total: int, where: str) -> None:
-        from rich.console import Console
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
-
-        self.progress = Progress("[progress.description]{task.description}", BarColumn(),
-                                 MofNCompleteColumn(), TimeElapsedColumn(),
-                                 console=Console(file=sys.stderr), transient=True)
-        self.task = self.progress.add_task(f"plants on {where}", total=total)
-        self.progress.start()
-
-    def done(self, p: PlantOutcome) -> None:
-        from rich.markup import escape
-
-        status = "[green]ok[/]" if p.ok else "[red]FAILED[/]"
-        detail = f"{p.leaf_count} leaves" if p.ok and p.leaf_count is not None else p.error[:120]
-        self.progress.console.print(
-            f"{status} {escape(Path(p.scan).name)} ({p.seconds:.1f} s) {escape(detail)}",
-            markup=True, highlight=False)
-        self.progress.advance(self.task)
-
-    def close(self) -> None:
-        self.progress.stop()
+def _plant_line(p: PlantOutcome) -> str:
+    """One line per finished plant: status, scan, seconds, leaves and warnings or the error."""
+    if p.ok:
+        detail = f"{p.leaf_count} leaves" if p.leaf_count is not None else "done"
+        if p.warnings:
+            detail += f", {p.warnings} warning{'s' if p.warnings > 1 else ''} (its run.log)"
+        return f"ok {Path(p.scan).name} ({p.seconds:.1f} s) {detail}"
+    return f"FAILED {Path(p.scan).name} ({p.seconds:.1f} s) {p.error[:160]}"

@@ -44,6 +44,21 @@ def _add_recipe_args(p: argparse.ArgumentParser, required: bool = True) -> None:
                    "--set scan.image_size=[600,400]")
 
 
+def _add_output_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("-v", "--verbose", action="count", default=0,
+                   help="say more: every warning, also of cached stages, and INFO messages")
+    p.add_argument("-q", "--quiet", action="store_true",
+                   help="no progress display; warnings and errors only")
+
+
+def _display(args):
+    """The command's progress display: rich in a terminal, plain lines otherwise (-q: none)."""
+    from plantscan_core.progress import Display
+
+    return Display("quiet" if getattr(args, "quiet", False) else "auto",
+                   verbose=getattr(args, "verbose", 0))
+
+
 def _load(args, manager: PluginManager):
     path = resolve_recipe_path(args.recipe)
     raw = apply_overrides(read_recipe_file(path), list(args.overrides))
@@ -180,12 +195,12 @@ def cmd_scan(args) -> int:
 
         scan = scan_adaptive(recipe, Path(args.out), manager, raw_recipe=raw,
                              resume=args.resume, on_role_start=on_role_start,
-                             progress=sys.stderr.isatty(),
+                             progress=_display(args),
                              calibration_path=Path(args.calibration) if args.calibration
                              else None)
     else:
         scan = acquire(recipe, Path(args.out), manager, raw_recipe=raw, resume=args.resume,
-                       on_role_start=on_role_start, progress=sys.stderr.isatty())
+                       on_role_start=on_role_start, progress=_display(args))
     print(f"{scan.root}: {len(scan.views)} images")
     return 0
 
@@ -199,7 +214,7 @@ def cmd_plan(args) -> int:
     scan = ScanFolder.open(Path(args.scan))
     rr = plan_next(scan.root, recipe, manager, run_dir=Path(args.out) if args.out else None,
                    calibration_path=Path(args.calibration) if args.calibration else None,
-                   progress=sys.stderr.isatty())
+                   progress=_display(args))
     print(describe_plan(rr.view_plan, len(recipe.scan.cameras)))
     print(f"{rr.run_dir / 'plan.json'}: the plan (quick processing {rr.processing_s:.1f} s, "
           f"planner {rr.planner_s:.1f} s)")
@@ -235,7 +250,10 @@ def cmd_calibrate(args) -> int:
 
     calibrator = manager.build("calibrator", recipe.calibrate.plugin, recipe.calibrate.params,
                                StageContext(recipe=recipe, scan=scan))
-    calibration = calibrator.calibrate(scan)
+    display = _display(args)
+    with display.step("calibrate"):
+        calibration = calibrator.calibrate(scan)
+    display.close()
     out = Path(args.output) if args.output else scan.root / "calibration.yaml"
     calibration.save(out)
     print(f"{out}: calibration of {', '.join(calibration.camera_names)}")
@@ -262,7 +280,7 @@ def cmd_process(args) -> int:
     check_recipe(recipe, manager.registry, _captured_size(Path(args.scan)))
     out = Path(args.out) if args.out else Path(args.scan).with_name(Path(args.scan).name + "-run")
     result = process(Path(args.scan), recipe, out, manager, raw_recipe=raw,
-                     overrides=args.overrides, progress=sys.stderr.isatty(),
+                     overrides=args.overrides, progress=_display(args),
                      calibration_path=Path(args.calibration) if args.calibration else None,
                      metadata=metadata)
     if args.profile:
@@ -354,7 +372,8 @@ def evaluate(run_dir: Path, truth_dir: Path) -> dict[str, Any]:
 def cmd_demo(args) -> int:
     from plantscan_core.demo import run_demo
 
-    return run_demo(Path(args.out), list(args.overrides), recipe_name=args.recipe)
+    return run_demo(Path(args.out), list(args.overrides), recipe_name=args.recipe,
+                    display=_display(args))
 
 
 def cmd_warm_up(args) -> int:
@@ -377,7 +396,7 @@ def cmd_batch(args) -> int:
         raise PlantScanError(f"batch: not available ({exc})") from exc
     summary = run_batch([Path(s) for s in args.scans], resolve_recipe_path(args.recipe),
                         Path(args.out), overrides=args.overrides, scheduler=args.scheduler,
-                        workers=args.workers, progress=sys.stderr.isatty(),
+                        workers=args.workers, progress=_display(args),
                         calibration=Path(args.calibration) if args.calibration else None,
                         sample_sheet=Path(args.sample_sheet) if args.sample_sheet else None)
     print(summary)
@@ -450,6 +469,7 @@ def build_parser(manager: PluginManager | None = None) -> argparse.ArgumentParse
                    "instead of the recipe's calibrator (a session calibration)")
     _add_sample_sheet_arg(p)
     _add_force(p)
+    _add_output_args(p)
     p.set_defaults(func=cmd_scan)
 
     p = sub.add_parser("plan", help="where more views would carve a scan's hull: the next "
@@ -461,12 +481,14 @@ def build_parser(manager: PluginManager | None = None) -> argparse.ArgumentParse
     p.add_argument("--record", action="store_true",
                    help="record the stops as the scan's next round (planned_views.jsonl): "
                    "scan --resume then captures them")
+    _add_output_args(p)
     p.set_defaults(func=cmd_plan)
 
     p = sub.add_parser("calibrate", help="calibrate the rig from a scan's calibration views")
     p.add_argument("scan", help="scan folder")
     _add_recipe_args(p, required=False)
     p.add_argument("-o", "--output", help="calibration YAML (default SCAN/calibration.yaml)")
+    _add_output_args(p)
     p.set_defaults(func=cmd_calibrate)
 
     p = sub.add_parser("process", help="images -> calibration, masks, hull, mesh, leaves, traits")
@@ -477,6 +499,7 @@ def build_parser(manager: PluginManager | None = None) -> argparse.ArgumentParse
     p.add_argument("--profile", action="store_true", help="print seconds per stage")
     _add_sample_sheet_arg(p)
     _add_force(p)
+    _add_output_args(p)
     p.set_defaults(func=cmd_process)
 
     p = sub.add_parser("evaluate", help="compare a run with the virtual scanner's truth (JSON)")
@@ -488,6 +511,7 @@ def build_parser(manager: PluginManager | None = None) -> argparse.ArgumentParse
     p.add_argument("--out", default="plantscan-demo", help="output folder")
     p.add_argument("--recipe", default="plastic-dicot", help="shipped recipe name or file")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="PATH=VALUE")
+    _add_output_args(p)
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("warm-up", help="compile the plugins' kernels now, so that the first "
@@ -504,6 +528,7 @@ def build_parser(manager: PluginManager | None = None) -> argparse.ArgumentParse
     p.add_argument("--calibration", help="use this calibration YAML for every plant instead of "
                    "calibrating each scan (one calibration per session)")
     _add_sample_sheet_arg(p)
+    _add_output_args(p)
     p.set_defaults(func=cmd_batch)
 
     (manager or get_manager()).add_commands(sub)

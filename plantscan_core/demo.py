@@ -17,7 +17,8 @@ from plantscan_core.recipe import (
 from plantscan_core.steps import CORE_TABLE
 
 
-def run_demo(out: Path, overrides: list[str], recipe_name: str = "plastic-dicot") -> int:
+def run_demo(out: Path, overrides: list[str], recipe_name: str = "plastic-dicot",
+             display=None) -> int:
     """Scan (virtual), process and evaluate; print where the report is and the trait errors.
 
     Processing stops before the first stage whose plugin is not installed,
@@ -55,10 +56,14 @@ def run_demo(out: Path, overrides: list[str], recipe_name: str = "plastic-dicot"
     scan_dir, run_dir = out / "scan", out / "run"
     resume = (scan_dir / "scan.yaml").exists()
     print(f"demo: virtual scan -> {scan_dir}{' (resuming)' if resume else ''}")
-    scan = acquire(recipe, scan_dir, manager, raw_recipe=raw, resume=resume, progress=True)
+    if display is None:
+        from plantscan_core.progress import Display
+
+        display = Display("auto")
+    scan = acquire(recipe, scan_dir, manager, raw_recipe=raw, resume=resume, progress=display)
     print(f"demo: {len(scan.views)} images; processing -> {run_dir}")
     result = process(scan_dir, recipe, run_dir, manager, raw_recipe=raw, overrides=overrides,
-                     progress=True)
+                     progress=display)
     from plantscan_core.cli import profile_table
 
     print(profile_table(result.info))

@@ -11,9 +11,11 @@ of 18 MP images — and the scan's ``views.jsonl`` by content.  Each step's
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
+import logging
 import os
 import resource
 import sys
@@ -30,6 +32,7 @@ from plantscan_core.lock import one_writer
 from plantscan_core.metadata import Metadata, resolve_metadata, scan_summary
 from plantscan_core.photos import Photos
 from plantscan_core.plugins import PluginManager
+from plantscan_core.progress import Display, RunLog, StepProgress, display_for, run_logging
 from plantscan_core.recipe import Recipe, StageSpec, stage_spec
 from plantscan_core.runfolder import CACHE_DIR
 from plantscan_core.scanfolder import ScanFolder, atomic_write_text, now_iso
@@ -76,13 +79,15 @@ class Run:
     """One processing run (internal): the steps' execution, caching and run.json."""
 
     def __init__(self, scan: ScanFolder, recipe: Recipe, run_dir: Path, manager: PluginManager,
-                 raw_recipe: dict | None, overrides: list[str], progress: bool,
+                 raw_recipe: dict | None, overrides: list[str], progress: bool | Display,
                  workers: int | None, metadata: Metadata | None = None) -> None:
         self.scan = scan
         self.recipe = recipe
         self.run_dir = Path(run_dir)
         self.manager = manager
-        self.progress = progress
+        self.display = display_for(progress)
+        self.log: RunLog | None = None  # set by process() for the run's duration
+        self._step: StepProgress | None = None  # the step running (its items counted by _map)
         self.workers = workers or min(4, os.cpu_count() or 1)
         self.context = StageContext(recipe=recipe, scan=scan, run_dir=self.run_dir)
         self.result = RunResult(run_dir=self.run_dir, recipe=recipe, scan=scan)
@@ -182,28 +187,37 @@ class Run:
         self.info["stages"][section] = record
         entry = self._cached(section, key, step.files(step_run)) if step.cached else None
         self.manager.before_stage(step.stage, plugin, context)
+        title = f"{step.section} {spec.plugin}" if step.many else section  # export ply
         t0, c0 = time.perf_counter(), time.process_time()
-        try:
-            if entry is not None:
-                value = step.load(step_run)
-                plugin.report = StageReport.from_dict(entry.get("report"))
-            else:
-                self._cache_path(section).unlink(missing_ok=True)
-                value = step.run(plugin, step_run)
-                if step.cached:
-                    self._store(section, key, plugin.report)
-        except BaseException as exc:
-            # The handler never raises: a full disk or a broken observer must not replace the
-            # stage's own error (which names what went wrong) with its own.
+        with self.display.step(title) as self._step:
             try:
-                self.manager.on_stage_error(step.stage, plugin, context, exc)
-                self._write_info()
-            except Exception as handler_exc:  # noqa: BLE001
-                print(f"plantscan: warning: could not record the failure of {section} in "
-                      f"{self.run_dir / 'run.json'} ({handler_exc})", file=sys.stderr)
-            if isinstance(exc, (KeyboardInterrupt, SystemExit)):
-                raise
-            raise StageError(section, spec.plugin, str(exc) or type(exc).__name__) from exc
+                with self._log_stage():
+                    if entry is not None:
+                        value = step.load(step_run)
+                        plugin.report = StageReport.from_dict(entry.get("report"))
+                    else:
+                        self._cache_path(section).unlink(missing_ok=True)
+                        value = step.run(plugin, step_run)
+                        if step.cached:
+                            self._store(section, key, plugin.report)
+            except BaseException as exc:
+                # The handler never raises: a full disk or a broken observer must not replace
+                # the stage's own error (which names what went wrong) with its own.
+                try:
+                    self.manager.on_stage_error(step.stage, plugin, context, exc)
+                    self._write_info()
+                except Exception as handler_exc:  # noqa: BLE001
+                    print(f"plantscan: warning: could not record the failure of {section} in "
+                          f"{self.run_dir / 'run.json'} ({handler_exc})", file=sys.stderr)
+                if isinstance(exc, (KeyboardInterrupt, SystemExit)):
+                    raise
+                raise StageError(section, spec.plugin, str(exc) or type(exc).__name__) from exc
+            if self.log is not None:
+                self._step.note = self.log.summarise(section, title, plugin.report.warnings,
+                                                     cached=entry is not None)
+            elif entry is not None:
+                self._step.note = "cached"
+        self._step = None
         seconds = time.perf_counter() - t0
         record["cached"] = entry is not None
         record["info"] = plugin.report.to_dict()
@@ -233,26 +247,22 @@ class Run:
         self.result.results[step.result] = values
         self.info[step.result] = values
 
-    def _map(self, fn: Callable[[int], Any], n: int, label: str) -> list[Any]:
-        """Run ``fn(i)`` for i < n on a thread pool (OpenCV releases the GIL), in order."""
-        results: list[Any] = [None] * n
-        bar = None
-        if self.progress:
-            from rich.progress import Progress
+    def _log_stage(self):
+        return self.log.stage() if self.log is not None else contextlib.nullcontext()
 
-            bar = Progress(transient=True)
-            task = bar.add_task(label, total=n)
-            bar.start()
-        try:
-            with ThreadPoolExecutor(max_workers=self.workers) as pool:
-                futures = {pool.submit(fn, i): i for i in range(n)}
-                for fut in futures:
-                    results[futures[fut]] = fut.result()
-                    if bar is not None:
-                        bar.advance(task)
-        finally:
-            if bar is not None:
-                bar.stop()
+    def _map(self, fn: Callable[[int], Any], n: int, unit: str) -> list[Any]:
+        """Run ``fn(i)`` for i < n on a thread pool (OpenCV releases the GIL), in order; the
+        running step's progress counts them."""
+        results: list[Any] = [None] * n
+        step = self._step
+        if step is not None:
+            step.count(n, unit)
+        with ThreadPoolExecutor(max_workers=self.workers) as pool:
+            futures = {pool.submit(fn, i): i for i in range(n)}
+            for fut in futures:
+                results[futures[fut]] = fut.result()
+                if step is not None:
+                    step.advance()
         return results
 
     def _write_info(self) -> None:
@@ -278,11 +288,15 @@ def process(
     raw_recipe: dict | None = None,
     overrides: list[str] | tuple[str, ...] = (),
     calibration_path: Path | None = None,
-    progress: bool = False,
+    progress: bool | Display = False,
     workers: int | None = None,
     metadata: Metadata | None = None,
 ) -> RunResult:
     """Run the recipe's processing stages over ``scan_dir`` into ``run_dir``.
+
+    ``progress``: a ``Display`` (the CLI's: rich in a terminal, plain lines
+    otherwise), True for one chosen by stderr, False for warnings only.  The
+    run's log goes to ``run_dir/run.log`` (``plantscan_core.progress``).
 
     The steps of the stage table run in order (``manager.registry.steps``:
     calibrate, segment, reconstruct, mesh, segment_mesh, measure, export, and
@@ -314,16 +328,24 @@ def process(
     named = [s for s in steps if stage_spec(recipe, s.section) or s.section in given]
     run.prepare_photos(keep=any(s.photos == "segment" for s in named))
     t0, c0 = time.perf_counter(), time.process_time()
-    for step in steps:
-        spec = stage_spec(recipe, step.section)
-        if step.many:
-            run.run_many(step, list(spec or []))
-        elif step not in named or any(n not in run.keys for n in step.needs):
-            run.info.setdefault("skipped", []).append(step.section)
-        elif step.section in given:
-            run.use_file(step, given[step.section])
-        else:
-            run.run_step(step, step.section, spec, run.inputs_key(step))
+    with run_logging(run_dir, run.display) as run.log:
+        logging.getLogger("plantscan.run").info(
+            "process %s -> %s (recipe %s%s)", scan.root, run_dir, recipe.name,
+            f", --set {' '.join(overrides)}" if overrides else "")
+        for step in steps:
+            spec = stage_spec(recipe, step.section)
+            if step.many:
+                run.run_many(step, list(spec or []))
+            elif step not in named or any(n not in run.keys for n in step.needs):
+                run.info.setdefault("skipped", []).append(step.section)
+            elif step.section in given:
+                run.use_file(step, given[step.section])
+            else:
+                run.run_step(step, step.section, spec, run.inputs_key(step))
+        logging.getLogger("plantscan.run").info(
+            "done in %.1f s%s", time.perf_counter() - t0,
+            f"; not run: {', '.join(run.info['skipped'])}" if run.info.get("skipped") else "")
+    run.log = None
     run.context.photos.release()
     if run.result.traits is not None:
         run.info["traits"] = {"leaf_count": len(run.result.traits.leaves),

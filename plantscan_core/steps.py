@@ -93,8 +93,9 @@ class StepRun:
         The context every stage of the run is built with (``reduce``, ``photos``).
     result : RunResult
         What the run produced so far; ``result.results`` by result name.
-    map : callable ``(fn, n, label) -> list``
-        ``[fn(i) for i in range(n)]`` on the run's thread pool, with a progress bar.
+    map : callable ``(fn, n, unit) -> list``
+        ``[fn(i) for i in range(n)]`` on the run's thread pool; the step's progress
+        counts the ``n`` items (``unit``: what they are, e.g. ``"views"``).
     photos_at : callable ``(reduce) -> Photos``
         The plant photos at a reduction (the context's are shared with segmentation).
     """
@@ -344,7 +345,7 @@ def _segment(plugin: Segmenter, run: StepRun) -> Silhouettes:
         return silhouette
 
     run.path(MASKS_DIR).mkdir(parents=True, exist_ok=True)
-    made = run.map(one, len(photos.views), "segmenting")
+    made = run.map(one, len(photos.views), "views")
     silhouettes = Silhouettes([s for s in made if s is not None])
     plugin.report.count("views", len(silhouettes))
     if len(made) > len(silhouettes):

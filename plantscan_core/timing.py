@@ -20,8 +20,11 @@ Timing parameters come from each plugin's ``Params``, by name:
 * axes: ``velocity_deg_s``, ``acceleration_deg_s2``, ``settle_s`` and optionally
   ``approach_deg`` (backward moves overshoot and come back: anti-backlash).
 
-A plugin without them (e.g. the virtual scanner) counts as instantaneous and
-is listed in ``unmodelled``.  Operator time between roles is not modelled.
+A camera whose time is not a parameter may say it with a classmethod
+``capture_time_s(params, image_size, role) -> float`` (the virtual scanner's
+camera: its render time, from the image size).  A plugin with neither counts
+as instantaneous and is listed in ``unmodelled``.  Operator time between roles
+is not modelled.
 """
 
 from __future__ import annotations
@@ -72,6 +75,10 @@ class AxisTiming:
 class CameraTiming:
     capture_s: float = 0.0
     download_s: float = 0.0
+    by_role: tuple[tuple[str, float], ...] = ()  # capture time of a role, when it differs
+
+    def capture_for(self, role: str) -> float:
+        return dict(self.by_role).get(role, self.capture_s)
 
 
 @dataclass
@@ -164,11 +171,17 @@ def _axis_timing(spec: StageSpec | None, what: str, registry, unmodelled: list[s
                       float(getattr(p, "approach_deg", 0.0) or 0.0))
 
 
-def _camera_timing(spec, registry, unmodelled: list[str]) -> CameraTiming:
+def _camera_timing(spec, registry, unmodelled: list[str],
+                   image_size: tuple[int, int] = (0, 0)) -> CameraTiming:
     p = _params(spec, "camera", registry)
     c = getattr(p, "capture_s", None)
     d = getattr(p, "download_s", None)
     if c is None and d is None:
+        model = getattr(registry.get("camera", spec.plugin).cls, "capture_time_s", None) \
+            if p is not None else None
+        if model is not None:
+            return CameraTiming(model(p, image_size, "plant"), 0.0, tuple(
+                (role, model(p, image_size, role)) for role in ("calibration", "background")))
         unmodelled.append(f"camera {spec.name} ({spec.plugin})")
         return CameraTiming()
     return CameraTiming(float(c or 0.0), float(d or 0.0))
@@ -214,7 +227,8 @@ def estimate_scan_time(recipe: Recipe, registry=None, planned=()) -> ScanTimeEst
     unmodelled: list[str] = []
     turntable = _axis_timing(recipe.scan.turntable, "turntable", registry, unmodelled)
     tilt_arm = _axis_timing(recipe.scan.tilt_arm, "tilt_arm", registry, unmodelled)
-    cams = {c.name: _camera_timing(c, registry, unmodelled) for c in recipe.scan.cameras}
+    cams = {c.name: _camera_timing(c, registry, unmodelled, tuple(recipe.scan.image_size))
+            for c in recipe.scan.cameras}
 
     est = ScanTimeEstimate(unmodelled=unmodelled)
     by_role: dict[str, RoleTime] = {}
@@ -237,7 +251,7 @@ def estimate_scan_time(recipe: Recipe, registry=None, planned=()) -> ScanTimeEst
         if v.angle_deg != angle:
             move += turntable.move_s(v.angle_deg - angle)
             angle = v.angle_deg
-        capture = max(cams[g.camera].capture_s for g in group)
+        capture = max(cams[g.camera].capture_for(v.role) for g in group)
         wait = max(0.0, prev_download - move)
         row.stops += 1
         row.images += len(group)
@@ -245,8 +259,8 @@ def estimate_scan_time(recipe: Recipe, registry=None, planned=()) -> ScanTimeEst
         row.capture_s += capture
         row.download_wait_s += wait
         row.total_s += move + wait + capture
-        row.sequential_s += move + sum(cams[g.camera].capture_s + cams[g.camera].download_s
-                                       for g in group)
+        row.sequential_s += move + sum(cams[g.camera].capture_for(v.role)
+                                       + cams[g.camera].download_s for g in group)
         prev_download = max(cams[g.camera].download_s for g in group)
     if prev_role is not None:
         by_role[prev_role].download_wait_s += prev_download

@@ -31,12 +31,26 @@ from plantscan_sim.rig import SimCameraParams
 from plantscan_sim.scene import SimScene, finalize_truth, scene_of
 
 
+# Render time of one image on one core (fast renderer, 2026-12 on the shared 2-core machine,
+# CPU seconds per image at 640x427 and 1296x864, scene set-up included): plant and background
+# views ~0.20 s + 0.62 s/MP (3x3 anti-aliasing at edges), board views ~0.37 s + 1.09 s/MP (6x6).
+_RENDER_S = {"plant": (0.20, 0.62), "background": (0.20, 0.62), "calibration": (0.37, 1.09)}
+
+
 class SimCamera(CameraBackend):
     """A virtual camera on the rig's arm: renders the scene for each request."""
 
     name = "sim"
     Params = SimCameraParams
     camera_name: str | None = None
+
+    @classmethod
+    def capture_time_s(cls, params: SimCameraParams, image_size: tuple[int, int],
+                       role: str) -> float:
+        """Seconds to render one ``role`` image of ``image_size`` px (the timing model of
+        ``plantscan scan --dry-run``); the cameras of a stop render in parallel threads."""
+        base, per_mp = _RENDER_S.get(role, _RENDER_S["plant"])
+        return base + per_mp * image_size[0] * image_size[1] / 1e6
 
     def trigger(self, request: CaptureRequest):
         """Render now (the rig is still); return the callable that writes the file."""

@@ -1,0 +1,158 @@
+"""Progress on every step: a live display in a terminal, plain lines without one, run.log.
+
+The end-to-end tests run ``plantscan process`` on a small virtual scan, once
+with stderr a pipe (a log file, CI, a batch worker) and once under a
+pseudo-terminal, and check what a user reads: every stage of the run says it
+started and finished, the leaf warnings come as one summary line, and run.log
+holds them in full.  How often a running step speaks is asserted on the
+display itself with a stepped clock, not on wall time (the machine's load
+decides that); the silences measured in the runs are printed.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import re
+import select
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from plantscan_core import progress
+from plantscan_core.progress import Display
+
+STAGES = ["calibrate", "segment", "reconstruct", "mesh", "segment_mesh", "measure",
+          "export csv", "export html-report"]
+# Small and quick: exact cameras (calibrator `truth`: the stage still runs), a 64^3 hull.
+SETS = ["calibrate.plugin=truth", "calibrate.params={}", "reconstruct.params.resolution=64",
+        "export=[{plugin: csv}, {plugin: html-report, params: {thumbnails: 2}}]"]
+ANSI = re.compile(r"\x1b\[[0-9;?]*[ -/]*[@-~]|\x1b[()][0-9A-Za-z]|\r")
+
+
+# --------------------------------------------------------------------------- the display
+def test_plain_display_speaks_while_a_step_runs(monkeypatch):
+    out = io.StringIO()
+    d = Display("plain", stream=out)
+    now = [1000.0]
+    monkeypatch.setattr(progress.time, "monotonic", lambda: now[0])
+    with d.step("segment", estimate_s=20.0) as step:
+        step.count(72, "views")
+        for i in range(72):
+            now[0] += 0.5  # 36 s in all: the heartbeat must speak every HEARTBEAT_S
+            step.advance()
+            d.beat()
+    d.close()
+    lines = out.getvalue().splitlines()
+    assert lines[0] == "segment: started, estimated 20 s"
+    assert lines[-1] == "segment: done in 36 s"
+    beats = [ln for ln in lines if re.match(r"segment: \d+/72 views", ln)]
+    assert len(beats) == 4  # at 8, 16, 24, 32 s: never more than HEARTBEAT_S silent
+    assert beats[0] == "segment: 16/72 views, 8 s, ~28 s left"
+
+
+def test_quiet_display_says_warnings_only():
+    out = io.StringIO()
+    d = Display("quiet", stream=out)
+    with d.step("segment", 3) as step:
+        step.advance(3)
+    d.message("an info line")
+    d.message("a warning", 30)
+    assert out.getvalue() == "a warning\n"
+
+
+# --------------------------------------------------------------------------- end to end
+@pytest.fixture(scope="module")
+def small_scan(tmp_path_factory) -> Path:
+    sim = pytest.importorskip("plantscan_sim.api")
+    root = tmp_path_factory.mktemp("progress") / "scan"
+    sim.make_scan(root, "plastic-dicot", image_size=(320, 213), images_per_revolution=8,
+                  roles=("background", "plant"))
+    return root
+
+
+def _command(scan: Path, run: Path, *extra: str) -> list[str]:
+    cmd = [sys.executable, "-m", "plantscan_core.cli", "process", str(scan), "--out", str(run),
+           *extra]
+    for s in SETS:
+        cmd += ["--set", s]
+    return cmd
+
+
+def _read_timed(fd: int, proc: subprocess.Popen) -> tuple[str, float]:
+    """Everything written to ``fd`` until the process ends, and the longest silence (s)."""
+    chunks, last, longest = [], time.monotonic(), 0.0
+    while True:
+        ready, _, _ = select.select([fd], [], [], 0.2)
+        if ready:
+            try:
+                data = os.read(fd, 65536)
+            except OSError:  # the pty's other side closed
+                data = b""
+            if not data:
+                if proc.poll() is not None:
+                    break
+                continue
+            now = time.monotonic()
+            longest = max(longest, now - last)
+            last = now
+            chunks.append(data)
+        elif proc.poll() is not None:
+            break
+    return b"".join(chunks).decode("utf-8", "replace"), longest
+
+
+@pytest.mark.slow
+def test_without_a_terminal_every_stage_has_its_lines(small_scan, tmp_path):
+    env = {**os.environ, "COLUMNS": "120"}
+    proc = subprocess.Popen(_command(small_scan, tmp_path / "run"), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, env=env)
+    err, longest = _read_timed(proc.stderr.fileno(), proc)
+    out = proc.stdout.read().decode()
+    assert proc.wait() == 0, err[-3000:]
+    print(f"no terminal: longest silence on stderr {longest:.1f} s")
+    lines = err.splitlines()
+    for stage in STAGES:
+        assert f"{stage}: started" in lines, (stage, err)
+        assert any(re.fullmatch(rf"{stage}: done in \d+ s(; .*)?", ln) for ln in lines), stage
+    assert not any("\x1b[" in ln for ln in lines)  # plain text, no terminal codes
+    # leaf warnings: one summary line, not one line each; run.log has each in full
+    log = (tmp_path / "run" / "run.log").read_text()
+    summary = [ln for ln in lines if re.match(r"measure: \d+ warnings? \(lea", ln)]
+    warned = len(re.findall(r"WARNING .*leaf \d+:", log))
+    if warned:
+        assert len(summary) == 1 and not any(re.match(r"leaf \d+:", ln) for ln in lines)
+    assert "plantscan.run: process" in log and "done in" in log
+    assert "leaves measured" in out
+    # a second run from the cache: every stage says "cached", the warnings are not repeated
+    again = subprocess.run(_command(small_scan, tmp_path / "run"), capture_output=True,
+                           text=True, env=env)
+    assert again.returncode == 0
+    for stage in STAGES[:6]:
+        assert re.search(rf"^{stage}: done in \d+ s; cached", again.stderr, re.M), stage
+    assert not re.search(r"warnings? \(lea", again.stderr)
+
+
+@pytest.mark.slow
+def test_in_a_terminal_every_stage_is_shown_live(small_scan, tmp_path):
+    import pty
+
+    master, slave = pty.openpty()
+    env = {**os.environ, "TERM": "xterm-256color", "COLUMNS": "120", "LINES": "40"}
+    proc = subprocess.Popen(_command(small_scan, tmp_path / "run"), stdin=slave, stdout=slave,
+                            stderr=slave, env=env, close_fds=True)
+    os.close(slave)
+    try:
+        screen, longest = _read_timed(master, proc)
+    finally:
+        os.close(master)
+    assert proc.wait() == 0, screen[-3000:]
+    print(f"terminal: longest time without a screen update {longest:.1f} s")
+    text = ANSI.sub("", screen)
+    for stage in STAGES:
+        assert re.search(rf"✓ {re.escape(stage)} \d+ s", text), (stage, text[-2000:])
+    assert "\x1b[" in screen  # a live display (cursor movement, colours), not plain lines
+    assert "segment: started" not in text  # the plain lines are for files and pipes
