@@ -30,7 +30,6 @@ from plantscan_core.stages import (
 from plantscan_sim.rig import SimCameraParams
 from plantscan_sim.scene import SimScene, finalize_truth, scene_of
 
-
 # Render time of one image on one core (fast renderer, 2026-12 on the shared 2-core machine,
 # CPU seconds per image at 640x427 and 1296x864, scene set-up included): plant and background
 # views ~0.20 s + 0.62 s/MP (3x3 anti-aliasing at edges), board views ~0.37 s + 1.09 s/MP (6x6).

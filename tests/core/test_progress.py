@@ -41,7 +41,7 @@ def test_plain_display_speaks_while_a_step_runs(monkeypatch):
     monkeypatch.setattr(progress.time, "monotonic", lambda: now[0])
     with d.step("segment", estimate_s=20.0) as step:
         step.count(72, "views")
-        for i in range(72):
+        for _ in range(72):
             now[0] += 0.5  # 36 s in all: the heartbeat must speak every HEARTBEAT_S
             step.advance()
             d.beat()
