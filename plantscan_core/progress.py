@@ -42,7 +42,9 @@ LOG = logging.getLogger("plantscan")
 
 
 def _clock(seconds: float) -> str:
-    seconds = max(0, int(round(seconds)))
+    if seconds < 0.5:
+        return "<1 s"
+    seconds = int(round(seconds))
     return f"{seconds // 60}:{seconds % 60:02d}" if seconds >= 60 else f"{seconds} s"
 
 
