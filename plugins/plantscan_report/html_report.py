@@ -309,28 +309,30 @@ def _plant_row(key: str, value: Any) -> list[str]:
     return [_esc(c.title), _esc(f"{text} {c.shown_unit}" if c.shown_unit else text)]
 
 
+_IN_VERDICT = ("quality_flag", "quality_reasons")  # shown in the verdict, not as traits
+
+
 def _traits_section(run: RunResult) -> str:
     traits: Traits | None = run.traits
     if traits is None:
         return ""
     colours = label_colours(run.labelled) if run.labelled is not None else {}
-    notes = trust.leaf_notes(run)
+    doubts = trust.leaf_doubts(run)
     columns = _leaf_columns(traits)
     rows = []
     for leaf in traits.leaves:
         swatch = (f'<span class="swatch" style="background:{hex_colour(colours[leaf.leaf_id])}">'
                   "</span>" if leaf.leaf_id in colours else "")
-        said = notes.get(leaf.leaf_id, [])
-        mark = ' <span title="warned about: see the reasons">⚠</span>' if said else ""
+        reasons, doubtful = doubts[leaf.leaf_id].reasons, doubts[leaf.leaf_id].doubtful
+        mark = ' <span title="read with care: see the reasons">⚠</span>' if doubtful else ""
         cells = [f"{swatch}{leaf.leaf_id}{mark}"]
         cells += [_esc(_column_text(c, getattr(leaf, c.name))) for c in columns]
-        reasons = "; ".join(dict.fromkeys(trust.short_reason(n) for n in said))
-        cells.append(_esc(reasons))
-        rows.append((cells, bool(said)))
-    header = ["leaf"] + [c.header for c in columns] + ["warned about"]
+        cells.append(_esc("; ".join(reasons)))
+        rows.append((cells, doubtful))
+    header = ["leaf"] + [c.header for c in columns] + ["read with care"]
     if rows:
-        head = "".join(f'<th class="{"l" if i == 0 or h == "warned about" else ""}">{_esc(h)}'
-                       "</th>" for i, h in enumerate(header))
+        head = "".join(f'<th class="{"l" if i == 0 or i == len(header) - 1 else ""}">'
+                       f"{_esc(h)}</th>" for i, h in enumerate(header))
         body = "".join(
             f'<tr class="{"warned" if warned else ""}">'
             + "".join(f'<td class="{"l" if i == 0 else "reason" if i == len(cells) - 1 else ""}">'
@@ -340,11 +342,12 @@ def _traits_section(run: RunResult) -> str:
     else:
         leaf_table = '<p class="note">No leaf was found.</p>'
     plant_rows = [_plant_row(k, v) for k, v in sorted(traits.plant.items())
-                  if k != "quality" and not isinstance(v, (dict, list))]
+                  if k != "quality" and k not in _IN_VERDICT and not isinstance(v, (dict, list))]
     plant_table = _table(["plant trait", "value"], plant_rows) if plant_rows else ""
     n_warned = sum(1 for _, w in rows if w)
-    note = (f'<p class="note">{n_warned} of {len(rows)} leaves warned about (⚠, shaded): read '
-            "their numbers with care, the reasons are listed under Warnings. thick area: the "
+    note = (f'<p class="note">{n_warned} of {len(rows)} leaves to read with care (⚠, shaded): '
+            "low confidence or warned about, the reasons in short here and in full under "
+            "Warnings; confidence (0–1) is the measurer's. thick area: the "
             "share of a leaf's area where the reconstructed surface is several times thicker "
             "than the leaf elsewhere (phantom volume the views could not carve, or an organ "
             "fused with the leaf); that leaf's traits carry it.</p>" if rows else "")
@@ -373,10 +376,13 @@ def _verdict_section(run: RunResult) -> str:
     css = {"ok": "flag-ok", "check": "flag-check", "fail": "flag-fail"}.get(v.flag, "flag-na")
     lines = []
     if run.traits is not None:
-        notes = trust.leaf_notes(run)
-        warned = sum(1 for leaf in run.traits.leaves if leaf.leaf_id in notes)
-        lines.append(f"<b>Leaves</b>: {len(run.traits.leaves)} measured, {warned} warned about "
-                     "(marked ⚠ in the traits table)")
+        doubts = trust.leaf_doubts(run).values()
+        assessed = any(getattr(leaf, "quality_flag", "") for leaf in run.traits.leaves)
+        said = [f"{sum(d.low_confidence for d in doubts)} low confidence"] if assessed else []
+        said.append(f"{sum(d.warned for d in doubts)} warned about by a stage")
+        lines.append(f"<b>Leaves</b>: {len(doubts)} measured, "
+                     f"{sum(d.doubtful for d in doubts)} to read with care (⚠ in the traits "
+                     f"table): {', '.join(said)}")
     if run.calibration is not None:
         level, text = trust.calibration_line(run.calibration.quality)
         lines.append(f'<b>Calibration</b>: <span class="lvl lvl-{_esc(level)}">{_esc(level)}'

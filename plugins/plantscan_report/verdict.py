@@ -9,14 +9,14 @@ never mixes plain and scientific notation.
 
 Where a verdict comes from (for plugin authors; docs/report.md):
 
-* the plant flag: ``Traits.plant["quality"]``, either the flag (``"check"``)
-  or a mapping ``{"flag": "check", "reasons": ["...", ...]}``; a run record
-  ``run.info["quality"]`` of the same form is read when the traits have none;
+* the plant flag: ``Traits.plant["quality_flag"]`` (``ok``/``check``/``fail``)
+  and ``Traits.plant["quality_reasons"]`` (messages), as the ``leaf-geometry``
+  measurer writes them into ``plant_traits.json``; "not assessed" without;
+* a leaf's trust: its ``LeafTraits.confidence`` (0-1), ``confidence_reasons``
+  (``;``-separated codes) and ``quality_flag`` (``check``: low confidence);
 * warnings about one leaf: a ``StageWarning`` of the stage's report that names
   the leaf (``leaf``; for runs read back from disk, the same record in
   ``run.json``, or a message that starts ``leaf <id>:``);
-* per-leaf confidence: a ``confidence`` attribute of ``LeafTraits`` (0-1), when
-  the measurer sets one;
 * the calibration: ``Calibration.quality`` keys ``rms_px``, ``max_px``,
   ``corners``, ``detections``, ``flags`` (a list of notes), when present.
 """
@@ -182,29 +182,69 @@ class Verdict:
     source: str = ""
 
 
-def _as_verdict(value: Any, source: str) -> Verdict | None:
-    if isinstance(value, str) and value in FLAGS:
-        return Verdict(value, [], source)
-    if isinstance(value, dict) and value.get("flag") in FLAGS:
-        reasons = value.get("reasons") or []
-        reasons = [reasons] if isinstance(reasons, str) else [str(r) for r in reasons]
-        return Verdict(str(value["flag"]), reasons, source)
-    return None
-
-
 def plant_verdict(run: RunResult) -> Verdict:
-    """The plant's quality flag from the traits or the run record; else ``not assessed``."""
-    if run.traits is not None:
-        v = _as_verdict(run.traits.plant.get("quality"), "measurer")
-        if v is None:
-            v = _as_verdict(getattr(run.traits, "quality", None), "measurer")
-        if v is not None:
-            return v
-    v = _as_verdict((run.info or {}).get("quality"), "run")
-    if v is not None:
-        return v
+    """The plant's quality flag and reasons from its traits; else ``not assessed``."""
+    plant = run.traits.plant if run.traits is not None else {}
+    flag = plant.get("quality_flag")
+    if flag in FLAGS:
+        reasons = plant.get("quality_reasons") or []
+        reasons = [reasons] if isinstance(reasons, str) else [str(r) for r in reasons]
+        return Verdict(str(flag), reasons, "measurer")
     return Verdict(NOT_ASSESSED, ["the measurer in this run gives no plant quality flag; read "
                                   "the leaf warnings and the calibration line below"])
+
+
+def low_confidence(leaf: Any) -> bool:
+    """Whether the measurer flags ``leaf`` for a look (``quality_flag`` ``check``)."""
+    return getattr(leaf, "quality_flag", "") == "check"
+
+
+# Confidence reason codes of the leaf-geometry measurer (plantscan_leaves/trust.py), in a
+# few words for the table; another measurer's codes are shown as they are.
+_REASON_WORDS = {"phantom": "phantom volume", "outline": "perimeter too short for its length",
+                 "rejoined": "rejoined from pieces", "small": "few voxels across",
+                 "shape": "area does not fit length × width"}
+# The warning that repeats a leaf's confidence reasons as a sentence (measure's report).
+_CONFIDENCE_WARNING = "low-confidence"
+
+
+def leaf_reasons(leaf: Any, notes: list[StageNote]) -> list[str]:
+    """Short reasons a leaf is doubtful: its confidence reasons, then its warnings'."""
+    codes = [c for c in str(getattr(leaf, "confidence_reasons", "") or "").split(";") if c]
+    words = [_REASON_WORDS.get(c, c) for c in codes]
+    words += [short_reason(n) for n in notes if not (codes and n.code == _CONFIDENCE_WARNING)]
+    out: list[str] = []
+    for w in words:  # "phantom volume (18 % of area)" and "phantom volume" say one thing
+        if not any(w.startswith(o) or o.startswith(w) for o in out):
+            out.append(w)
+    return out
+
+
+@dataclass
+class LeafDoubt:
+    """Why one leaf's numbers are to be read with care (``doubtful``), in short."""
+
+    low_confidence: bool
+    warned: bool  # a stage warning names it (beyond restating its confidence)
+    reasons: list[str]
+
+    @property
+    def doubtful(self) -> bool:
+        return self.low_confidence or self.warned or bool(self.reasons)
+
+
+def leaf_doubts(run: RunResult) -> dict[int, LeafDoubt]:
+    """Leaf id -> its ``LeafDoubt``, for every measured leaf of ``run``."""
+    if run.traits is None:
+        return {}
+    notes = leaf_notes(run)
+    out = {}
+    for leaf in run.traits.leaves:
+        said = notes.get(leaf.leaf_id, [])
+        out[leaf.leaf_id] = LeafDoubt(
+            low_confidence(leaf), any(n.code != _CONFIDENCE_WARNING for n in said),
+            leaf_reasons(leaf, said))
+    return out
 
 
 def calibration_line(quality: dict[str, Any] | None) -> tuple[str, str]:

@@ -92,25 +92,50 @@ def test_verdict_says_not_assessed_without_a_flag(synthetic_run):
     block = _verdict_html(html)
     assert html.index('id="verdict"') < html.index('id="plant3d"')  # first thing on the page
     assert 'class="flag flag-na">not assessed' in block
-    assert "2 measured, 1 warned about" in block
+    assert "2 measured, 1 to read with care (⚠ in the traits table): 1 warned about" in block
     assert "Calibration</b>: <span class=\"lvl lvl-ok\">ok" in block  # RMS 0.21 px, no notes
     # the warned leaf's row is marked, with a short reason
     row = re.search(r'<tr class="warned">(.*?)</tr>', html, re.S).group(1)
     assert ">0 <span" in row and "phantom volume" in row
 
 
-@pytest.mark.parametrize("quality, flag, reason", [
-    ({"flag": "check", "reasons": ["3 of 12 leaves low confidence", "hull touches the box"]},
-     "check", "hull touches the box"),
-    ("fail", "fail", None),
+@pytest.mark.parametrize("flag, reasons", [
+    ("check", ["3 of 12 leaves have low confidence", "debris is 20 % of the leaf area"]),
+    ("fail", ["no leaf found"]),
+    ("ok", []),
 ])
-def test_verdict_shows_the_plant_flag_and_its_reasons(synthetic_run, quality, flag, reason):
-    synthetic_run.traits.plant["quality"] = quality
-    block = _verdict_html(render_report(synthetic_run, thumbnails=0))
+def test_verdict_shows_the_plant_flag_and_its_reasons(synthetic_run, flag, reasons):
+    # as the leaf-geometry measurer writes them into plant_traits.json
+    synthetic_run.traits.plant.update(quality_flag=flag, quality_reasons=reasons)
+    html = render_report(synthetic_run, thumbnails=0)
+    block = _verdict_html(html)
     assert f'class="flag flag-{flag}">{flag}</span>' in block
-    if reason:
+    for reason in reasons:
         assert f"<li>{reason}</li>" in block
     assert "not assessed" not in block
+    plant_table = re.search(r'<section id="traits">.*?</section>', html, re.S).group(0)
+    assert "quality flag" not in plant_table  # in the verdict, not among the traits
+
+
+def test_low_confidence_leaves_are_marked_with_their_reasons(synthetic_run):
+    # as leaf-geometry writes them: the traits.csv columns, and a warning that says the same
+    leaf = synthetic_run.traits.leaves[1]
+    leaf.confidence, leaf.confidence_reasons, leaf.quality_flag = 0.3, "outline;shape", "check"
+    synthetic_run.reports["measure"].warn(
+        "low-confidence", "leaf 1: confidence 0.30: its perimeter is under 1.8x its length: "
+        "...; its area does not fit its length and width", leaf=1)
+    synthetic_run.traits.leaves[0].confidence = 0.9
+    synthetic_run.traits.leaves[0].quality_flag = "ok"
+    html = render_report(synthetic_run, thumbnails=0)
+    rows = re.findall(r'<tr class="warned">(.*?)</tr>', html, re.S)
+    assert len(rows) == 2  # leaf 0 (warned about, confidence 0.9) and leaf 1 (low confidence)
+    assert ">0.90<" in rows[0] and "phantom volume" in rows[0]
+    # its two reasons in short, each once (the warning repeating them adds nothing)
+    reason = re.findall(r'<td class="reason">(.*?)</td>', rows[1])[0]
+    assert reason == "perimeter too short for its length; area does not fit length × width"
+    assert ">0.30<" in rows[1]
+    assert ("2 to read with care (⚠ in the traits table): 1 low confidence, 1 warned about "
+            "by a stage") in _verdict_html(html)
 
 
 def test_exports_are_named_by_plugin(synthetic_run):
