@@ -341,11 +341,40 @@ def acquire(
         lock.release()
 
 
+@dataclass
+class _Prepared:
+    """What ``_prepare`` readies: the scan folder, the built devices, what is left to take."""
+
+    scan: ScanFolder
+    cameras: dict[str, CameraBackend]
+    turntable: MotionAxis
+    tilt_arm: MotionAxis | None
+    clock: Callable[[], str]
+    todo: list[PlannedView]
+    estimates: dict[str, float]
+
+
 def _acquire(recipe: Recipe, out: Path, manager: PluginManager, lock: FolderLock,
              raw_recipe: dict | None, resume: bool, stop_after: int | None,
              on_role_start: Callable[[str], None] | None,
              progress: bool | Display) -> ScanFolder:
     """``acquire``, with ``lock`` taken before the folder is opened or created."""
+    display = display_for(progress)
+    # Building the devices, the virtual scene's plant and the timing estimate take seconds
+    # (a camera found on USB; a plant grown, its truth written): a step of their own.
+    with display.step("scan set-up"):
+        ready = _prepare(recipe, out, manager, lock, raw_recipe, resume, stop_after)
+    with _Signals() as signals, run_logging(ready.scan.root, display):
+        run = _Run(recipe, ready.scan, _Rig(ready.cameras, ready.turntable, ready.tilt_arm),
+                   on_role_start, signals, ready.clock)
+        run.display, run.estimates = display, ready.estimates
+        run.execute(ready.todo)
+    return ready.scan
+
+
+def _prepare(recipe: Recipe, out: Path, manager: PluginManager, lock: FolderLock,
+             raw_recipe: dict | None, resume: bool, stop_after: int | None) -> _Prepared:
+    """Open or create the scan folder and build the rig; nothing moves yet."""
     raw_recipe = raw_recipe if raw_recipe is not None else recipe.model_dump(mode="json")
     scan = None
     if resume:
@@ -395,13 +424,8 @@ def _acquire(recipe: Recipe, out: Path, manager: PluginManager, lock: FolderLock
     todo = [v for v in plan(recipe, manager.registry, planned) if v.key not in done]
     if stop_after is not None:
         todo = todo[: max(0, stop_after)]
-    display = display_for(progress)
-    with _Signals() as signals, run_logging(scan.root, display):
-        run = _Run(recipe, scan, _Rig(cameras, turntable, tilt_arm), on_role_start, signals,
-                   clock)
-        run.display, run.estimates = display, _role_estimates(recipe, manager, todo)
-        run.execute(todo)
-    return scan
+    return _Prepared(scan, cameras, turntable, tilt_arm, clock, todo,
+                     _role_estimates(recipe, manager, todo))
 
 
 def _take(lock: FolderLock) -> None:

@@ -381,7 +381,9 @@ def cmd_warm_up(args) -> int:
     import time
 
     t0 = time.perf_counter()
-    done = get_manager().warm_up()
+    display = _display(args)
+    done = get_manager().warm_up(display)
+    display.close()
     for plugin, said in done:
         print(f"warm-up: {plugin}: {said}")
     print(f"warm-up: {len(done)} plugin(s) in {time.perf_counter() - t0:.1f} s")
@@ -516,6 +518,7 @@ def build_parser(manager: PluginManager | None = None) -> argparse.ArgumentParse
 
     p = sub.add_parser("warm-up", help="compile the plugins' kernels now, so that the first "
                        "scan and run do not wait for it (make setup runs it)")
+    _add_output_args(p)
     p.set_defaults(func=cmd_warm_up)
 
     p = sub.add_parser("batch", help="process many scans in parallel on Dask")
@@ -585,6 +588,28 @@ def _report(exc: BaseException, argv: list[str], args, debug: bool) -> None:
         traceback.print_exception(exc, file=sys.stderr)
 
 
+# Commands that go on to work for minutes: loading the plugins is their first step on screen.
+_LONG_COMMANDS = frozenset({"scan", "calibrate", "process", "demo", "batch", "warm-up"})
+
+
+def _show_plugin_loading(argv: list[str]) -> None:
+    """Load the plugins under a progress step when a long command follows.
+
+    The parser needs the plugins (they add commands), and importing them (numba,
+    Open3D, SciPy, OpenCV) takes 2 s on an idle machine and up to 8 s on a busy
+    one: without this the command would start in silence.
+    """
+    words = [a for a in argv if not a.startswith("-")]
+    if not words or words[0] not in _LONG_COMMANDS or {"-q", "--quiet", "-h", "--help"} & set(argv):
+        return
+    from plantscan_core.progress import Display
+
+    display = Display("auto")
+    with display.step("load plugins"):
+        get_manager()
+    display.close()
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the command; every error is a message on stderr, never a traceback (--debug).
 
@@ -597,6 +622,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = [a for a in argv if a != "--debug"]
     args = None
     try:
+        _show_plugin_loading(argv)
         parser = build_parser()
         args = parser.parse_args(argv)
         if not getattr(args, "func", None):

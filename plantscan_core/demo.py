@@ -67,8 +67,11 @@ def run_demo(out: Path, overrides: list[str], recipe_name: str = "plastic-dicot"
     from plantscan_core.cli import profile_table
 
     print(profile_table(result.info))
-    metrics = manager.evaluate(run_dir, scan.ground_truth_dir) if scan.ground_truth_dir.is_dir() \
-        else {}
+    metrics = {}
+    if scan.ground_truth_dir.is_dir():
+        with display.step("evaluate against the truth"):
+            metrics = manager.evaluate(run_dir, scan.ground_truth_dir)
+    display.close()
     (run_dir / "evaluation.json").write_text(json.dumps(metrics, indent=2, sort_keys=True))
     report = run_dir / "report.html"
     if report.exists():
@@ -92,8 +95,8 @@ def run_demo(out: Path, overrides: list[str], recipe_name: str = "plastic-dicot"
         warned = traits.get("leaves_warned", 0)
         if warned:
             quiet = traits.get("mean_relative_error_unwarned", {})
-            print(f"demo: {warned} leaves warned about (see the report's warnings); the "
-                  "others: " + ", ".join(f"{k} {100 * v:.2f} %" for k, v in quiet.items()))
+            print(f"demo: {warned} of the {traits.get('leaves_found')} leaves matched to the "
+                  "truth are warned about (see the report); the others: " + ", ".join(f"{k} {100 * v:.2f} %" for k, v in quiet.items()))
     else:
         print("demo: no trait errors (the leaf stages did not run)")
     print(f"demo: evaluation {run_dir / 'evaluation.json'}")

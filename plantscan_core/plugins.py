@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import importlib.metadata as md
 import os
 import sys
@@ -205,12 +206,19 @@ class PluginManager:
                 merged.update(part)
         return merged
 
-    def warm_up(self) -> list[tuple[str, str]]:
-        """Each plugin's ``plantscan_warm_up``: (plugin name, what it did or its error)."""
+    def warm_up(self, display: Any = None) -> list[tuple[str, str]]:
+        """Each plugin's ``plantscan_warm_up``: (plugin name, what it did or its error).
+
+        ``display``: a ``progress.Display`` that shows each plugin's warm-up as a step
+        (compiling kernels takes a minute).
+        """
         done = []
         for impl in self.pm.hook.plantscan_warm_up.get_hookimpls():
+            step = (display.step(f"warm-up {impl.plugin_name}") if display is not None
+                    else contextlib.nullcontext())
             try:
-                said = impl.function()
+                with step:
+                    said = impl.function()
             except Exception as exc:  # noqa: BLE001 - one plugin's failure is reported only
                 said = "failed: " + "".join(traceback.format_exception_only(type(exc), exc))
             if said:
