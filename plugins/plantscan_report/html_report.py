@@ -69,7 +69,8 @@ font-size:.9em;text-transform:uppercase;letter-spacing:.03em}
 .flag-na{background:#757575} .lvl{font-weight:600} .lvl-ok{color:#2e7d32}
 .lvl-check{color:#b26a00} .lvl-fail{color:#b00020}
 #verdict ul{margin:4px 0 8px;padding-left:20px} #verdict li{margin:2px 0}
-tr.warned td{background:#fff4e0} td.reason{text-align:left;font-size:.85em;color:#7a4a00}
+tr.warned td{background:#fff4e0} td.reason{text-align:left;font-size:.85em;color:#7a4a00;
+min-width:14em} #traits .grid>div:first-child{flex:3 1 760px;overflow-x:auto}
 details>summary{cursor:pointer;color:#2f5d3a;margin:6px 0}
 """
 

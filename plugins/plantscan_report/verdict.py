@@ -214,9 +214,12 @@ def leaf_reasons(leaf: Any, notes: list[StageNote]) -> list[str]:
     words = [_REASON_WORDS.get(c, c) for c in codes]
     words += [short_reason(n) for n in notes if not (codes and n.code == _CONFIDENCE_WARNING)]
     out: list[str] = []
-    for w in words:  # "phantom volume (18 % of area)" and "phantom volume" say one thing
-        if not any(w.startswith(o) or o.startswith(w) for o in out):
+    for w in words:  # "phantom volume (18 % of area)" and "phantom volume" say one thing:
+        same = [i for i, o in enumerate(out) if w.startswith(o) or o.startswith(w)]
+        if not same:
             out.append(w)
+        elif len(w) > len(out[same[0]]):  # the one with the figure
+            out[same[0]] = w
     return out
 
 
