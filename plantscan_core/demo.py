@@ -96,7 +96,8 @@ def run_demo(out: Path, overrides: list[str], recipe_name: str = "plastic-dicot"
         if warned:
             quiet = traits.get("mean_relative_error_unwarned", {})
             print(f"demo: {warned} of the {traits.get('leaves_found')} leaves matched to the "
-                  "truth are warned about (see the report); the others: " + ", ".join(f"{k} {100 * v:.2f} %" for k, v in quiet.items()))
+                  "truth are warned about (see the report); the others: "
+                  + ", ".join(f"{k} {100 * v:.2f} %" for k, v in quiet.items()))
     else:
         print("demo: no trait errors (the leaf stages did not run)")
     print(f"demo: evaluation {run_dir / 'evaluation.json'}")
