@@ -39,10 +39,12 @@ import concurrent.futures as cf
 import contextlib
 import dataclasses
 import errno
+import logging
 import os
 import signal
 import sys
 import threading
+import time
 from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
@@ -364,11 +366,18 @@ def _acquire(recipe: Recipe, out: Path, manager: PluginManager, lock: FolderLock
     # (a camera found on USB; a plant grown, its truth written): a step of their own.
     with display.step("scan set-up"):
         ready = _prepare(recipe, out, manager, lock, raw_recipe, resume, stop_after)
+    log = logging.getLogger("plantscan.scan")
     with _Signals() as signals, run_logging(ready.scan.root, display):
+        log.info("scan %s (recipe %s%s): %d images to capture, estimated %.0f s",
+                 ready.scan.root, recipe.name, ", resumed" if resume else "", len(ready.todo),
+                 sum(ready.estimates.values()))
+        t0 = time.perf_counter()
         run = _Run(recipe, ready.scan, _Rig(ready.cameras, ready.turntable, ready.tilt_arm),
                    on_role_start, signals, ready.clock)
         run.display, run.estimates = display, ready.estimates
         run.execute(ready.todo)
+        log.info("done in %.1f s: %d images in the scan folder", time.perf_counter() - t0,
+                 len(ready.scan.views))
     return ready.scan
 
 
@@ -490,6 +499,8 @@ class _Run:
                     role = group[0].role
                     if self.on_role_start is not None:
                         self.on_role_start(role)
+                    logging.getLogger("plantscan.scan").info(
+                        "%s: %d images", role, per_role[role])
                     self.step = steps.enter_context(self.display.step(
                         f"scan {role}", per_role[role], "images", self.estimates.get(role)))
                     self.angle = None

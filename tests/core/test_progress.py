@@ -173,3 +173,34 @@ def test_in_a_terminal_every_stage_is_shown_live(small_scan, tmp_path):
         assert re.search(rf"✓ {re.escape(stage)} {TOOK}", text), (stage, text[-2000:])
     assert "\x1b[" in screen  # a live display (cursor movement, colours), not plain lines
     assert "segment: started" not in text  # the plain lines are for files and pipes
+
+
+@pytest.mark.slow
+def test_a_scan_without_a_terminal_says_each_role_with_its_estimate(tmp_path):
+    # The virtual rig, small: 4 board views, 1 background, 8 plant views per camera.
+    pytest.importorskip("plantscan_sim.api")
+    out = tmp_path / "scan"
+    cmd = [sys.executable, "-m", "plantscan_core.cli", "scan", "plastic-dicot", "--out",
+           str(out), "--set", "scan.image_size=[320,213]", "--set",
+           "scan.images_per_revolution=8", "--set",
+           "scan.roles.calibration.images_per_revolution=4"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            env={**os.environ, "COLUMNS": "120"})
+    err, longest = _read_timed(proc.stderr.fileno(), proc)
+    assert proc.wait() == 0, err[-3000:]
+    print(f"scan, no terminal: longest silence on stderr {longest:.1f} s")
+    lines = err.splitlines()
+    assert "scan set-up: started" in lines
+    for role, images in (("calibration", 8), ("background", 2), ("plant", 16)):
+        # the timing model's estimate of the virtual camera's render time, then its end
+        start = [ln for ln in lines if ln.startswith(f"scan {role}: started")]
+        assert len(start) == 1 and re.fullmatch(
+            rf"scan {role}: started \({images} images\), estimated {TOOK}",
+                                                start[0]), (role, err)
+        assert any(re.fullmatch(rf"scan {role}: done in {TOOK}(; .*)?", ln) for ln in lines)
+    assert "\x1b[" not in err
+    log = (out / "run.log").read_text()  # the scan's own log: what ran, per role, the end
+    assert re.search(r"plantscan.scan: scan .* \(recipe plastic-dicot[^)]*\): 26 images to "
+                     r"capture, estimated \d+ s", log), log
+    assert "plantscan.scan: plant: 16 images" in log
+    assert re.search(r"plantscan.scan: done in [\d.]+ s: 26 images in the scan folder", log)
