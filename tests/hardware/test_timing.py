@@ -104,3 +104,23 @@ def test_approach_adds_the_overshoot_to_backward_moves(registry):
     anti = estimate_scan_time(_recipe(registry, cam=cam, turntable=tt, roles=roles), registry)
     # calibration 0 -> 180, then plant starts with 180 -> 0 (backwards): +2 x 5 deg at 10 deg/s
     assert anti.total_s - plain.total_s == pytest.approx(1.0, abs=1e-6)
+
+
+
+def test_the_virtual_rig_is_modelled_by_its_render_time():
+    # `scan --dry-run` on the virtual scanner estimated 0.0 s for a scan of minutes: the
+    # sim camera gives its render time, which grows with the image's pixels.
+    pytest.importorskip("plantscan_sim")
+    from plantscan_core.plugins import get_manager
+    from plantscan_core.recipe import load_recipe
+
+    registry = get_manager().registry
+    est = {size: estimate_scan_time(load_recipe(
+        "plastic-dicot", [f"scan.image_size=[{size[0]},{size[1]}]"], registry), registry)
+        for size in ((640, 427), (1296, 864))}
+    small, large = est[(640, 427)], est[(1296, 864)]
+    assert not any(u.startswith("camera") for u in small.unmodelled), small.unmodelled
+    plant = next(r for r in small.roles if r.role == "plant")
+    assert plant.images == 72 and plant.capture_s > 0
+    # 4.1x the pixels: each image's fixed part stays, the per-pixel part grows
+    assert 1.5 * small.total_s < large.total_s < 4.1 * small.total_s

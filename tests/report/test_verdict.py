@@ -144,3 +144,22 @@ def test_exports_are_named_by_plugin(synthetic_run):
     html = render_report(synthetic_run, thumbnails=0)
     timings = re.search(r'<section id="timings">.*?</section>', html, re.S).group(0)
     assert "export ply" in timings and "export.0" not in timings
+
+
+def test_header_gives_the_scan_date_and_the_recipe_as_run(synthetic_run):
+    # the scan's own time stamp (scan.yaml), not the run's or the report's
+    synthetic_run.scan.info["created"] = "2025-05-04T09:30:00+00:00"
+    synthetic_run.info = {"created": "2026-12-01T10:00:00+00:00",
+                          "overrides": ["scan.protocol.tilts_deg=[20]",
+                                        "segment.params.l_threshold=30"]}
+    html = render_report(synthetic_run, thumbnails=0)
+    header = re.search(r"<header>.*?</header>", html, re.S).group(0)
+    assert "scanned 2025-05-04 09:30:00" in header and "2026-12-01" not in header
+    # --set changes the recipe: the header says so, and what was captured is the scan's
+    assert ("with --set scan.protocol.tilts_deg=[20] segment.params.l_threshold=30"
+            in header)
+    assert "8 plant images: 1 camera(s) (cam0) × 1 tilt(s) (0°) × 8 angles" in header
+    synthetic_run.info = {}
+    plain = re.search(r"<header>.*?</header>", render_report(synthetic_run, thumbnails=0),
+                      re.S).group(0)
+    assert "--set" not in plain
