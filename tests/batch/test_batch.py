@@ -118,8 +118,17 @@ def test_cli_batch_on_a_two_worker_local_cluster(tmp_path: Path, batch_inputs, c
     status = main(["batch", str(scans["good1"]), str(scans["corrupt"]), str(scans["good2"]),
                    "--recipe", str(recipe), "--workers", "2", "--out", str(out)])
     assert status != 0  # one plant failed
-    printed = capsys.readouterr().out
+    captured = capsys.readouterr()
+    printed = captured.out
     assert "2 succeeded, 1 failed" in printed and "local cluster (2 workers)" in printed
+    # Progress without a terminal (pytest's stderr): the batch's step with its plant count,
+    # one line per plant as it finishes, its end; no nanny's "killing" lines at the close.
+    err = captured.err.splitlines()
+    assert "plants on local cluster (2 workers): started (3 plants)" in err, captured.err
+    assert sum(ln.startswith("ok good") for ln in err) == 2
+    assert sum(ln.startswith("FAILED corrupt") for ln in err) == 1
+    assert any(ln.startswith("plants on local cluster (2 workers): done in") for ln in err)
+    assert "killing" not in captured.err
     rows = _check_two_good_one_corrupt(out, scans)
     # Both worker processes of the cluster took plants (3 tasks submitted at once to 2 idle
     # single-thread workers: the scheduler gives each at least one).
