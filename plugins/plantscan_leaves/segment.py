@@ -4,28 +4,43 @@ The plant surface from a visual hull is one closed mesh: a stem (a tube) with
 leaves (thin closed slabs) growing out of it.  Where a leaf meets the stem,
 or where two leaves touch, the union of the two solids has a *concave
 crease*; across a leaf (flat, bent, or over its convex rim) the surface is
-never sharply concave.  So (after Paproki et al. 2012, simplified):
+never sharply concave.  So (after Paproki et al. 2012, simplified), the
+passes of ``PASSES``, in order, over one labels record (``_Labels``):
 
-1. estimate the curvature of the surface at a scale of ``smoothing_mm``
+1. *seed regions*: the curvature of the surface at a scale of ``smoothing_mm``
    (Taubin-smoothed vertices, diffused face normals, normal curvature across
-   every edge);
-2. faces sharper than ``concave_curvature_per_mm`` in the concave direction
-   are crease faces, everything else is a seed face;
-3. seed regions are the connected components of seed faces; regions
-   smaller than ``min_region_area_mm2`` are dropped back to unlabelled;
-4. labels grow from the regions into the crease bands, one ring of faces
-   per step, until every face of every connected part is labelled;
-5. each region is a leaf or stem: stem pieces are tubes (their normals
-   turn all round an axis that is also their long axis), leaves are
-   everything else with at least ``min_leaf_area_mm2`` (one side); smaller
-   non-tube pieces join the neighbour they share most edges with;
-6. tube-like parts of leaves go to the stem: petioles touching it (at
-   ``petiole_scale_mm``) and stretches of main stem grown into a leaf (at
-   ``stem_scale_mm``).
+   every edge); faces sharper than ``concave_curvature_per_mm`` in the
+   concave direction are crease faces, the connected components of the
+   others are seed regions (smaller than ``min_region_area_mm2``: dropped),
+   and labels grow from them into the crease bands, one ring of faces per
+   step, until every face of every connected part is labelled;
+2. *region kinds*: each region is a leaf or stem: stem pieces are tubes
+   (``_tubes``: their normals turn all round an axis that is also their long
+   axis), leaves are everything else with at least ``min_leaf_area_mm2``
+   (one side); smaller non-tube pieces join the neighbour they share most
+   edges with;
+3. *blade tips* (``tips_to_leaf``) and 4. *stem sheets* (``stem_sheet_ratio``):
+   grass blade tips called tubes and flat blade bases in stem regions go back
+   to their leaf;
+5. *tubes to stem*: tube-like parts of leaves go to the stem: petioles
+   touching it (at ``petiole_scale_mm``) and stretches of main stem grown
+   into a leaf (at ``stem_scale_mm``);
+6. *leaf pieces*, 7. *stem and ground pieces*, 8. *blade pieces joined*, 9.
+   *numbered leaves*: a leaf that lost a petiole may fall apart; its pieces
+   that are tubes or lie on the ground go to the stem, pieces of one cut blade
+   are joined (``join_gap_mm``), small ones join their neighbour, the rest are
+   leaves 1..n;
+10. *touching leaves split* (``split_curvature_per_mm``), 11. *broken blades
+    joined* (``join_gap_mm``), 12. *bases off culms* (``base_reach_mm``).
+
+Every number that decides a label is a parameter above or a named module
+constant with its reason (``TUBE_AXIS_COS``, ``TIP_*``, ``JOIN_*``, ``CULM_*``...).
 """
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import logging
 
 import numpy as np
@@ -200,9 +215,271 @@ def _region_shape(c: np.ndarray, normals: np.ndarray, areas: np.ndarray, labels:
     }
 
 
+# A tube: normals spread round one axis (``stem_tube_ratio``) that is also the long axis
+# (|cos| between the two above this, within ~37°), and elongated (``stem_min_elongation``).
+TUBE_AXIS_COS = 0.8
+
+
+def _tubes(shape: dict[str, np.ndarray], p: CurvatureRegionsParams) -> np.ndarray:
+    """Which regions of ``_region_shape`` are tubes (stem pieces): the one tube test."""
+    return ((shape["spread"] > p.stem_tube_ratio) & (shape["axis_alignment"] > TUBE_AXIS_COS)
+            & (shape["elongation"] > p.stem_min_elongation))
+
+
+class _Surface:
+    """What every pass reads of the mesh: per-face geometry, curvature, the parameters."""
+
+    def __init__(self, mesh: Mesh, topo: geo.MeshTopology, p: CurvatureRegionsParams,
+                 report: StageReport) -> None:
+        self.mesh, self.topo, self.p, self.report = mesh, topo, p, report
+        self.pairs = topo.face_pairs  # (E, 2) faces sharing an edge
+        self.nf = len(mesh.faces)
+        self.normals, self.areas = geo.face_normals_areas(mesh.vertices, mesh.faces)
+        self.centroids = geo.face_centroids(mesh.vertices, mesh.faces)
+        self.curvature = face_curvature(mesh, topo, p.smoothing_mm)  # (F,) 1/mm, < 0 concave
+
+    @functools.cached_property
+    def spread(self) -> np.ndarray:
+        """(F,) how tube-like each face's neighbourhood is at ``petiole_scale_mm``."""
+        return _neighbourhood_spread(self.centroids, self.normals, self.areas,
+                                     self.p.petiole_scale_mm)
+
+
+@dataclasses.dataclass
+class _Labels:
+    """The labels record the passes refine, one after the other (``PASSES``).
+
+    ``regions`` (F,) region per face and the region kinds ``tube`` / ``leafy`` (R,);
+    ``leaf_face`` / ``stem_face`` (F,) what each face is now; ``pieces`` (F,) the
+    connected leaf piece of each leaf face (-1 elsewhere) and ``small`` (P,) the
+    pieces below a leaf's area; ``out`` (F,) the labels (0 stem, 1..``n_leaves``).
+    """
+
+    regions: np.ndarray
+    nlab: int = 0
+    tube: np.ndarray | None = None
+    leafy: np.ndarray | None = None
+    leaf_face: np.ndarray | None = None
+    stem_face: np.ndarray | None = None
+    pieces: np.ndarray | None = None
+    n_pieces: int = 0
+    small: np.ndarray | None = None
+    out: np.ndarray | None = None
+    n_leaves: int = 0
+
+    def faces_from_regions(self) -> None:
+        self.leaf_face, self.stem_face = self.leafy[self.regions], self.tube[self.regions]
+
+    def piece_areas(self, s: _Surface) -> None:
+        """``small`` from the pieces' areas (one side)."""
+        on = self.leaf_face
+        area = np.bincount(self.pieces[on], s.areas[on], self.n_pieces) / 2.0
+        self.small = area < s.p.min_leaf_area_mm2
+
+
+def _seed_regions(s: _Surface, lab: _Labels) -> None:
+    """Crease faces part the surface; seed regions grow into the creases (steps 1-4)."""
+    p, pairs = s.p, s.pairs
+    crease = s.curvature < -p.concave_curvature_per_mm
+    s.report.counts["crease_faces"] = int(crease.sum())
+    seeds = _regions_of(s.nf, pairs, ~crease)
+    seed_area = np.bincount(seeds[seeds >= 0], s.areas[seeds >= 0])
+    small = seed_area < p.min_region_area_mm2
+    seeds[(seeds >= 0) & small[np.maximum(seeds, 0)]] = -1
+    labels = _grow(_relabel(seeds), pairs)
+    # parts of the mesh with no seed at all (crumbs, all-crease bits) are their own region
+    if (labels < 0).any():
+        rest = _regions_of(s.nf, pairs, labels < 0)
+        labels[labels < 0] = labels.max() + 1 + rest[labels < 0]
+    lab.regions = _relabel(labels)
+    lab.nlab = int(lab.regions.max()) + 1
+    s.report.counts["regions"] = lab.nlab
+
+
+def _region_kinds(s: _Surface, lab: _Labels) -> None:
+    """Each region a tube (stem) or a leaf; smaller non-tube regions (crumbs) join the
+    neighbour they share most edges with (step 5)."""
+    p = s.p
+    shape = _region_shape(s.centroids, s.normals, s.areas, lab.regions, lab.nlab)
+    lab.tube = _tubes(shape, p)
+    lab.leafy = ~lab.tube & (shape["area"] / 2.0 >= p.min_leaf_area_mm2)
+    crumbs = ~lab.tube & ~lab.leafy
+    if crumbs.any():
+        lab.regions = _merge_crumbs(lab.regions, crumbs, s.pairs, lab.nlab, p.crumb_merge_rounds)
+    lab.faces_from_regions()
+
+
+def _blade_tips(s: _Surface, lab: _Labels) -> None:
+    """Blade tips called tubes, or broken off by the hull, go to their leaf (``tips_to_leaf``)."""
+    if not s.p.tips_to_leaf:
+        return
+    v, edges = s.mesh.vertices, s.topo.edges
+    # a broken-off tip lies within a few voxels of its blade; mesh edges are 0.5-0.8 voxel
+    edge_mm = float(np.mean(geo.row_norm(v[edges[:, 0]] - v[edges[:, 1]])))
+    lab.regions, n_tips = _tips_to_leaves(lab.regions, lab.tube, lab.leafy, s.pairs, lab.nlab,
+                                          s.centroids, TIP_GAP_EDGES * edge_mm)
+    s.report.counts["tips_to_leaf"] = n_tips
+    lab.faces_from_regions()
+
+
+def _stem_sheets(s: _Surface, lab: _Labels) -> None:
+    """Flat parts of stem regions go back to the leaves (``stem_sheet_ratio``)."""
+    p = s.p
+    if p.stem_sheet_ratio <= 0:
+        return
+    lab.regions, recovered = _sheets_of_stem(lab.regions, s.spread < p.stem_sheet_ratio,
+                                             lab.leaf_face, lab.stem_face, s.areas, s.pairs,
+                                             p.min_leaf_area_mm2)
+    s.report.counts["sheet_faces_from_stem"] = int(np.count_nonzero(recovered))
+    lab.leaf_face |= recovered
+    lab.stem_face &= ~recovered
+
+
+def _tubes_to_stem(s: _Surface, lab: _Labels) -> None:
+    """Tube-like parts of leaves go to the stem: petioles and main stem grown in (step 6)."""
+    p = s.p
+    moved = np.zeros(s.nf, bool)
+    if p.petiole_tube_ratio < 1:
+        moved = _petioles_to_stem(s.spread, s.pairs, lab.leaf_face, lab.stem_face, s.areas,
+                                  p.petiole_tube_ratio, p.min_leaf_area_mm2,
+                                  lab.regions if p.petiole_within_leaf else None)
+        if p.stem_scale_mm is not None:
+            # after the petiole test, not before: run against the recovered stem, the petiole
+            # test cuts further into blade bases the hull has fattened into rods
+            stem_in_leaf = _stems_in_leaves(s.pairs, lab.leaf_face, s.centroids, s.normals,
+                                            s.areas, p)
+            s.report.counts["stem_faces_from_leaves"] = int(np.count_nonzero(stem_in_leaf
+                                                                             & ~moved))
+            moved |= stem_in_leaf
+    s.report.counts["petiole_faces"] = int(np.count_nonzero(moved))
+    lab.stem_face |= moved
+    lab.leaf_face &= ~moved
+
+
+def _leaf_pieces(s: _Surface, lab: _Labels) -> None:
+    """A leaf region that lost its petiole or a stem piece may fall apart: its connected
+    pieces, each a leaf when big enough and a crumb of its neighbour otherwise."""
+    leaf_lab = np.where(lab.leaf_face, lab.regions, -1)
+    a, b = s.pairs[:, 0], s.pairs[:, 1]
+    same = (leaf_lab[a] == leaf_lab[b]) & (leaf_lab[a] >= 0)
+    lab.pieces = _relabel(_regions_of(s.nf, s.pairs[same], lab.leaf_face))
+    lab.n_pieces = int(lab.pieces.max()) + 1 if lab.leaf_face.any() else 0
+    lab.piece_areas(s)
+
+
+def _stem_and_ground_pieces(s: _Surface, lab: _Labels) -> None:
+    """Leaf pieces that are stem pieces (a thick stem is not tube-like at the petiole
+    scale) or remnants of the pot cut near the ground go to the stem."""
+    p, n, leaf_face = s.p, lab.n_pieces, lab.leaf_face
+    if not n:
+        return
+    at = np.where(leaf_face, lab.pieces, n)  # faces off leaves: piece n
+    drop = _tubes(_region_shape(s.centroids, s.normals, s.areas, at, n + 1), p)[:n]
+    z = s.mesh.vertices[:, 2]
+    if p.ground_band_mm > 0 and lab.stem_face.any():  # a plant on a pot, not a lone leaf
+        zmax = np.full(n + 1, -np.inf)
+        np.maximum.at(zmax, at, z[s.mesh.faces].max(axis=1))
+        drop |= zmax[:n] < z.min() + p.ground_band_mm
+    if p.tips_to_leaf:
+        # a small piece that is a mesh component of its own was given to its leaf on
+        # purpose (a broken-off blade tip, tube-like at that size): not a stem piece
+        alone = np.ones(n + 1, bool)
+        a, b = s.pairs[:, 0], s.pairs[:, 1]
+        diff = at[a] != at[b]
+        alone[at[a][diff]] = False
+        alone[at[b][diff]] = False
+        drop &= ~(alone[:n] & lab.small)
+    if drop.any():
+        s.report.counts["stem_or_ground_pieces"] = int(drop.sum())
+        to_stem = leaf_face & drop[np.maximum(lab.pieces, 0)]
+        lab.leaf_face &= ~to_stem
+        lab.stem_face |= to_stem
+        lab.pieces = np.where(lab.leaf_face, lab.pieces, -1)
+        lab.small |= drop
+
+
+def _blade_pieces_joined(s: _Surface, lab: _Labels) -> None:
+    """Pieces of one blade the petiole test cut apart across a tiller, joined before small
+    pieces merge into whatever they touch most (the stem) (``join_gap_mm``)."""
+    p = s.p
+    if p.join_gap_mm is None or lab.n_pieces <= 1:
+        return
+    lab.pieces, n_joined = _join_blade_pieces(lab.pieces, lab.leaf_face, lab.small, s.centroids,
+                                              s.areas, p.join_gap_mm, p.min_leaf_area_mm2)
+    if n_joined:
+        lab.leaf_face = lab.pieces >= 0
+        lab.n_pieces = int(lab.pieces.max()) + 1
+        lab.piece_areas(s)
+    s.report.counts["blade_pieces_joined"] = n_joined
+
+
+def _numbered_leaves(s: _Surface, lab: _Labels) -> None:
+    """Small pieces join the piece they share most edges with; the rest are leaves 1..n."""
+    small, n = lab.small, lab.n_pieces
+    if small.any() and (~small).any():
+        merged = _merge_crumbs(np.where(lab.leaf_face, lab.pieces, n), np.append(small, False),
+                               s.pairs, n + 1)
+        lab.pieces = np.where(lab.leaf_face, merged, -1)
+        if s.p.tips_to_leaf:
+            lab.pieces = _strays_to_region(lab.pieces, small, lab.regions, s.centroids)
+    lab.out = np.full(s.nf, STEM_LABEL, np.int32)
+    leaf_pieces = [r for r in range(n) if not small[r]]
+    for new, r in enumerate(leaf_pieces, start=1):
+        lab.out[lab.pieces == r] = new
+    lab.n_leaves = len(leaf_pieces)
+
+
+def _touching_leaves_split(s: _Surface, lab: _Labels) -> None:
+    """A leaf of two big regions at a finer crease threshold is two (``split_curvature_per_mm``)."""
+    p = s.p
+    if p.split_curvature_per_mm is None or not lab.n_leaves:
+        return
+    lab.out, n_split = _split_joined_leaves(lab.out, s.curvature < -p.split_curvature_per_mm,
+                                            s.areas, s.pairs, p.min_leaf_area_mm2)
+    s.report.counts["leaves_split"] = n_split
+    lab.n_leaves = int(lab.out.max())
+
+
+def _broken_blades_joined(s: _Surface, lab: _Labels) -> None:
+    """Two leaves that are pieces of one blade cut at a stem are one (``join_gap_mm``)."""
+    if s.p.join_gap_mm is None or lab.n_leaves <= 1:
+        return
+    lab.out, n_joined = _join_broken_blades(lab.out, s.centroids, s.areas, s.p.join_gap_mm)
+    s.report.counts["blades_joined"] = n_joined
+    lab.n_leaves = int(lab.out.max())
+
+
+def _bases_off_culms(s: _Surface, lab: _Labels) -> None:
+    """Stem faces along a blade's continuation, off the culms, go to it (``base_reach_mm``)."""
+    p = s.p
+    if p.base_reach_mm is None or not lab.n_leaves:
+        return
+    ground_z = float(s.mesh.vertices[:, 2].min()) + p.ground_band_mm
+    lab.out, n_claimed = _blade_bases_off_culms(lab.out, s.centroids, s.pairs, ground_z,
+                                                p.base_reach_mm)
+    s.report.counts["base_faces_from_stem"] = n_claimed
+
+
+PASSES = (
+    ("seed regions", _seed_regions),
+    ("region kinds", _region_kinds),
+    ("blade tips", _blade_tips),
+    ("stem sheets", _stem_sheets),
+    ("tubes to stem", _tubes_to_stem),
+    ("leaf pieces", _leaf_pieces),
+    ("stem and ground pieces", _stem_and_ground_pieces),
+    ("blade pieces joined", _blade_pieces_joined),
+    ("numbered leaves", _numbered_leaves),
+    ("touching leaves split", _touching_leaves_split),
+    ("broken blades joined", _broken_blades_joined),
+    ("bases off culms", _bases_off_culms),
+)
+"""The passes of ``segment_leaves``, in order, each ``(name, fn(surface, labels))``."""
+
+
 def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
                    ) -> tuple[LabelledMesh, StageReport]:
-    """Label every face of ``mesh`` as one leaf or the stem.
+    """Label every face of ``mesh`` as one leaf or the stem (``PASSES`` in turn).
 
     Returns
     -------
@@ -220,160 +497,26 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
         log.warning(msg)
         report.warn("empty-mesh", msg)
         return LabelledMesh(mesh, np.zeros(0, np.int32), {}), report
-    v, f = mesh.vertices, mesh.faces
-    nf = len(f)
-    topo = geo.topology(f)
+    topo = geo.topology(mesh.faces)
     if topo.non_manifold_edges:
         msg = (f"mesh has {topo.non_manifold_edges} non-manifold edges (used by more than two "
                "faces); they are treated as ordinary connections")
         log.warning(msg)
         report.warn("non-manifold", msg)
-    normals, areas = geo.face_normals_areas(v, f)
-    centroids = geo.face_centroids(v, f)
-    kf = face_curvature(mesh, topo, p.smoothing_mm)
-    crease = kf < -p.concave_curvature_per_mm
-    report.counts["crease_faces"] = int(crease.sum())
-
-    seeds = _regions_of(nf, topo.face_pairs, ~crease)
-    seed_area = np.bincount(seeds[seeds >= 0], areas[seeds >= 0])
-    small = seed_area < p.min_region_area_mm2
-    seeds[(seeds >= 0) & small[np.maximum(seeds, 0)]] = -1
-    labels = _grow(_relabel(seeds), topo.face_pairs)
-    # parts of the mesh with no seed at all (crumbs, all-crease bits) are their own region
-    if (labels < 0).any():
-        rest = _regions_of(nf, topo.face_pairs, labels < 0)
-        labels[labels < 0] = labels.max() + 1 + rest[labels < 0]
-    labels = _relabel(labels)
-    nlab = int(labels.max()) + 1
-    report.counts["regions"] = nlab
-
-    shape = _region_shape(centroids, normals, areas, labels, nlab)
-    tube = ((shape["spread"] > p.stem_tube_ratio) & (shape["axis_alignment"] > 0.8)
-            & (shape["elongation"] > p.stem_min_elongation))
-    leafy = ~tube & (shape["area"] / 2.0 >= p.min_leaf_area_mm2)
-    crumbs = ~tube & ~leafy
-    # small non-tube pieces join the region they share most edges with
-    if crumbs.any():
-        labels = _merge_crumbs(labels, crumbs, topo.face_pairs, nlab, p.crumb_merge_rounds)
-    if p.tips_to_leaf:
-        # a broken-off tip lies within a few voxels of its blade; mesh edges are 0.5-0.8 voxel
-        edge_mm = float(np.mean(geo.row_norm(v[topo.edges[:, 0]] - v[topo.edges[:, 1]])))
-        labels, n_tips = _tips_to_leaves(labels, tube, leafy, topo.face_pairs, nlab,
-                                         centroids, TIP_GAP_EDGES * edge_mm)
-        report.counts["tips_to_leaf"] = n_tips
-    leaf_face = leafy[labels]
-    stem_face = tube[labels]
-    moved = np.zeros(nf, bool)
-    spread = None
-    if p.petiole_tube_ratio < 1 or p.stem_sheet_ratio > 0:
-        spread = _neighbourhood_spread(centroids, normals, areas, p.petiole_scale_mm)
-    if p.stem_sheet_ratio > 0:
-        labels, recovered = _sheets_of_stem(labels, spread < p.stem_sheet_ratio, leaf_face,
-                                            stem_face, areas, topo.face_pairs,
-                                            p.min_leaf_area_mm2)
-        report.counts["sheet_faces_from_stem"] = int(np.count_nonzero(recovered))
-        leaf_face |= recovered
-        stem_face &= ~recovered
-    if p.petiole_tube_ratio < 1:
-        moved = _petioles_to_stem(spread, topo.face_pairs, leaf_face, stem_face, areas,
-                                  p.petiole_tube_ratio, p.min_leaf_area_mm2,
-                                  labels if p.petiole_within_leaf else None)
-        if p.stem_scale_mm is not None:
-            # after the petiole test, not before: run against the recovered stem, the petiole
-            # test cuts further into blade bases the hull has fattened into rods
-            stem_in_leaf = _stems_in_leaves(topo.face_pairs, leaf_face, centroids, normals,
-                                            areas, p)
-            report.counts["stem_faces_from_leaves"] = int(np.count_nonzero(stem_in_leaf & ~moved))
-            moved |= stem_in_leaf
-    report.counts["petiole_faces"] = int(np.count_nonzero(moved))
-    stem_face |= moved
-    leaf_face &= ~moved
-    # a leaf region that lost its petiole or a stem piece may fall apart: its connected
-    # pieces are leaves again if big enough, crumbs of the neighbouring leaf otherwise
-    leaf_lab = np.where(leaf_face, labels, -1)
-    a, b = topo.face_pairs[:, 0], topo.face_pairs[:, 1]
-    same = (leaf_lab[a] == leaf_lab[b]) & (leaf_lab[a] >= 0)
-    pieces = _regions_of(nf, topo.face_pairs[same], leaf_face)
-    pieces = _relabel(pieces)
-    n_pieces = int(pieces.max()) + 1 if leaf_face.any() else 0
-    piece_area = np.bincount(pieces[leaf_face], areas[leaf_face], n_pieces) / 2.0
-    small = piece_area < p.min_leaf_area_mm2
-    if n_pieces:
-        # a piece left after the petiole test may itself be a stem piece (a thick stem is
-        # not tube-like at the petiole scale) or a remnant of the pot cut near the ground
-        ps = _region_shape(centroids, normals, areas, np.where(leaf_face, pieces, n_pieces),
-                           n_pieces + 1)
-        piece_tube = ((ps["spread"] > p.stem_tube_ratio) & (ps["axis_alignment"] > 0.8)
-                      & (ps["elongation"] > p.stem_min_elongation))[:n_pieces]
-        ground = np.zeros(n_pieces, bool)
-        if p.ground_band_mm > 0 and stem_face.any():  # a plant on a pot, not a lone leaf
-            zmax = np.full(n_pieces + 1, -np.inf)
-            np.maximum.at(zmax, np.where(leaf_face, pieces, n_pieces), v[:, 2][f].max(axis=1))
-            ground = zmax[:n_pieces] < v[:, 2].min() + p.ground_band_mm
-        drop = piece_tube | ground
-        if p.tips_to_leaf:
-            # a small piece that is a mesh component of its own was given to its leaf on
-            # purpose (a broken-off blade tip, tube-like at that size): not a stem piece
-            alone = np.ones(n_pieces + 1, bool)
-            pk = np.where(leaf_face, pieces, n_pieces)
-            diff = pk[a] != pk[b]
-            alone[pk[a][diff]] = False
-            alone[pk[b][diff]] = False
-            drop &= ~(alone[:n_pieces] & small)
-        if drop.any():
-            report.counts["stem_or_ground_pieces"] = int(drop.sum())
-            to_stem = leaf_face & drop[np.maximum(pieces, 0)]
-            leaf_face &= ~to_stem
-            pieces = np.where(leaf_face, pieces, -1)
-            small |= drop
-    if p.join_gap_mm is not None and n_pieces > 1:
-        # a blade the petiole test cut where it lies across a tiller may leave a piece too
-        # small to be a leaf on its own (its base): join the pieces of one blade before
-        # small pieces merge into whatever they touch most (the stem)
-        pieces, n_joined = _join_blade_pieces(pieces, leaf_face, small, centroids, areas,
-                                              p.join_gap_mm, p.min_leaf_area_mm2)
-        if n_joined:
-            leaf_face = pieces >= 0
-            n_pieces = int(pieces.max()) + 1
-            piece_area = np.bincount(pieces[leaf_face], areas[leaf_face], n_pieces) / 2.0
-            small = piece_area < p.min_leaf_area_mm2
-        report.counts["blade_pieces_joined"] = n_joined
-    if small.any() and (~small).any():
-        merged = _merge_crumbs(np.where(leaf_face, pieces, n_pieces), np.append(small, False),
-                               topo.face_pairs, n_pieces + 1)
-        pieces = np.where(leaf_face, merged, -1)
-        if p.tips_to_leaf:
-            pieces = _strays_to_region(pieces, small, labels, centroids)
-    out = np.full(nf, STEM_LABEL, np.int32)
-    kinds: dict[int, str] = {}
-    leaf_pieces = [r for r in range(n_pieces) if not small[r]]
-    for new, r in enumerate(leaf_pieces, start=1):
-        out[pieces == r] = new
-    if p.split_curvature_per_mm is not None and leaf_pieces:
-        out, n_split = _split_joined_leaves(out, kf < -p.split_curvature_per_mm, areas,
-                                            topo.face_pairs, p.min_leaf_area_mm2)
-        report.counts["leaves_split"] = n_split
-        leaf_pieces = list(range(int(out.max())))
-    if p.join_gap_mm is not None and len(leaf_pieces) > 1:
-        out, n_joined = _join_broken_blades(out, centroids, areas, p.join_gap_mm)
-        report.counts["blades_joined"] = n_joined
-        leaf_pieces = list(range(int(out.max())))
-    if p.base_reach_mm is not None and leaf_pieces:
-        out, n_claimed = _blade_bases_off_culms(out, centroids, topo.face_pairs,
-                                                float(v[:, 2].min()) + p.ground_band_mm,
-                                                p.base_reach_mm)
-        report.counts["base_faces_from_stem"] = n_claimed
-    for new in range(1, len(leaf_pieces) + 1):
-        kinds[new] = "leaf"
-    if (out == STEM_LABEL).any() or not leaf_pieces:
+    surface = _Surface(mesh, topo, p, report)
+    lab = _Labels(regions=np.zeros(surface.nf, np.int64))
+    for _name, run_pass in PASSES:
+        run_pass(surface, lab)
+    kinds: dict[int, str] = {new: "leaf" for new in range(1, lab.n_leaves + 1)}
+    if (lab.out == STEM_LABEL).any() or not lab.n_leaves:
         kinds[STEM_LABEL] = "stem"
-    if not leaf_pieces:
+    if not lab.n_leaves:
         msg = "no leaf-like region found on the mesh (everything looks like stem or crumbs)"
         log.warning(msg)
         report.warn("no-leaf", msg)
-    report.counts["leaves"] = len(leaf_pieces)
-    report.counts["stem_pieces"] = int(tube.sum())
-    return LabelledMesh(mesh, out, kinds), report
+    report.counts["leaves"] = lab.n_leaves
+    report.counts["stem_pieces"] = int(lab.tube.sum())
+    return LabelledMesh(mesh, lab.out, kinds), report
 
 
 def _petioles_to_stem(spread: np.ndarray, pairs: np.ndarray, leaf_face: np.ndarray,
@@ -425,8 +568,7 @@ def _stems_in_leaves(pairs: np.ndarray, leaf_face: np.ndarray, centroids: np.nda
     ncomp = int(comp.max()) + 1
     big = np.bincount(comp[thick], areas[thick], ncomp) >= p.min_leaf_area_mm2
     shape = _region_shape(centroids, normals, areas, np.where(thick, comp, ncomp), ncomp + 1)
-    tube = ((shape["spread"] > p.stem_tube_ratio) & (shape["axis_alignment"] > 0.8)
-            & (shape["elongation"] > p.stem_min_elongation))[:ncomp]
+    tube = _tubes(shape, p)[:ncomp]
     return thick & (big & tube)[np.maximum(comp, 0)]
 
 
@@ -484,9 +626,13 @@ def _sheets_of_stem(labels: np.ndarray, sheet_face: np.ndarray, leaf_face: np.nd
     return labels, back
 
 
+TIP_CHAIN_ROUNDS = 3  # a tip the creases cut into a chain of up to this many tubes joins whole
+TIP_FAR_END_SHARE = 0.5  # a tip meets its leaf at least this share of the leaf's stem distance
+
+
 def _tips_to_leaves(labels: np.ndarray, tube: np.ndarray, leafy: np.ndarray,
                     pairs: np.ndarray, nlab: int, centroids: np.ndarray, gap: float,
-                    rounds: int = 3) -> tuple[np.ndarray, int]:
+                    rounds: int = TIP_CHAIN_ROUNDS) -> tuple[np.ndarray, int]:
     """Blade tips the tube test called stem, or the hull cut off, given to their leaf.
 
     A grass blade narrows to its tip over a few centimetres; there the hull's slab is
@@ -495,10 +641,10 @@ def _tips_to_leaves(labels: np.ndarray, tube: np.ndarray, leafy: np.ndarray,
     the tip is narrower than about a voxel the hull breaks it off altogether: a
     separate mesh component a voxel or two from the blade.  A piece is a tip of leaf
     L when it touches (or lies within ``gap`` mm of) L and nothing else, **at L's far
-    end**: at least half L's greatest distance from the stem, measured over L's
-    surface from the faces L shares with stem regions.  (A stalk's top hanging off
-    the top leaf that wraps it touches that leaf at its base; a leaf touching no stem
-    has no far end, and gets nothing.)  So
+    end**: at least ``TIP_FAR_END_SHARE`` of L's greatest distance from the stem,
+    measured over L's surface from the faces L shares with stem regions.  (A stalk's
+    top hanging off the top leaf that wraps it touches that leaf at its base; a leaf
+    touching no stem has no far end, and gets nothing.)  So
 
     * a tube region whose only neighbour is one leaf, at its far end, joins it;
       ``rounds`` rounds, so a tip cut into a short chain of tubes joins too;
@@ -509,24 +655,21 @@ def _tips_to_leaves(labels: np.ndarray, tube: np.ndarray, leafy: np.ndarray,
     (nlab,) region kinds; ``centroids`` (F, 3) mm.  Returns the new labels and the
     number of regions given to a leaf.
     """
-    from scipy.sparse.csgraph import dijkstra
-    from scipy.spatial import cKDTree
+    pruned, parent = _hanging_tubes(labels, tube, pairs, nlab, rounds)
+    far = _FarEnd(labels, leafy[labels], (tube & ~pruned)[labels], pairs, centroids, nlab)
+    if far.dist is None:
+        return labels.copy(), 0
+    labels, n_chains = _chains_to_leaves(labels, leafy, pairs, pruned, parent, far, rounds)
+    labels, n_lonely = _lonely_to_leaves(labels, leafy, pairs, centroids, far, gap)
+    return labels, n_chains + n_lonely
 
-    labels = labels.copy()
-    tube = tube.copy()
-    nf = len(labels)
-    a, b = pairs[:, 0], pairs[:, 1]
-    la, lb = labels[a], labels[b]
-    # distance from the stem over each leaf's surface (face centroids, shared edges)
-    leaf_face = leafy[labels]
-    inner = leaf_face[a] & leaf_face[b] & (la == lb)
-    w = geo.row_norm(centroids[a[inner]] - centroids[b[inner]])
-    g = sparse.csr_matrix((np.concatenate([w, w]), (np.concatenate([a[inner], b[inner]]),
-                                                    np.concatenate([b[inner], a[inner]]))),
-                          shape=(nf, nf))
-    # the stem the distance starts from: tube regions less the dangling ones (one
-    # neighbour, pruned ``rounds`` times like a tree's leaves: the tips themselves);
-    # each dangling tube remembers the neighbour it hung from
+
+def _hanging_tubes(labels: np.ndarray, tube: np.ndarray, pairs: np.ndarray, nlab: int,
+                   rounds: int) -> tuple[np.ndarray, np.ndarray]:
+    """Tube regions dangling off one neighbour, pruned ``rounds`` times like a tree's
+    leaves (the tips themselves): ``(pruned, parent)`` (nlab,), ``parent`` the region
+    each pruned tube hung from (-1 for the others)."""
+    la, lb = labels[pairs[:, 0]], labels[pairs[:, 1]]
     cross = la != lb
     uk = np.unique(np.concatenate([la[cross] * nlab + lb[cross], lb[cross] * nlab + la[cross]]))
     r_s, r_d = uk // nlab, uk % nlab
@@ -541,20 +684,47 @@ def _tips_to_leaves(labels: np.ndarray, tube: np.ndarray, leafy: np.ndarray,
         hang = alive & dangling[r_s]
         parent[r_s[hang]] = r_d[hang]
         pruned |= dangling
-    stem_face = (tube & ~pruned)[labels]
-    src = np.unique(np.concatenate([a[leaf_face[a] & stem_face[b]],
-                                    b[leaf_face[b] & stem_face[a]]]))
-    if not len(src):
-        return labels, 0
-    dist = dijkstra(g, directed=True, indices=src, min_only=True)
-    ok = np.isfinite(dist) & leaf_face
-    far_end = np.zeros(nlab)
-    np.maximum.at(far_end, labels[ok], dist[ok])
+    return pruned, parent
 
-    def at_far_end(face: np.ndarray, leaf: np.ndarray) -> np.ndarray:
-        return np.isfinite(dist[face]) & (dist[face] >= 0.5 * far_end[leaf]) & (far_end[leaf] > 0)
 
-    # a chain of dangling tubes hanging from a leaf joins it when it hangs at the far end
+class _FarEnd:
+    """Distance from the stem over each leaf's surface (``dist`` (F,), face centroids
+    over shared edges, from the leaf faces next to ``stem_face``) and each leaf's
+    greatest (``far_end`` (nlab,)); ``dist`` is None when no leaf touches the stem."""
+
+    def __init__(self, labels: np.ndarray, leaf_face: np.ndarray, stem_face: np.ndarray,
+                 pairs: np.ndarray, centroids: np.ndarray, nlab: int) -> None:
+        from scipy.sparse.csgraph import dijkstra
+
+        nf = len(labels)
+        a, b = pairs[:, 0], pairs[:, 1]
+        inner = leaf_face[a] & leaf_face[b] & (labels[a] == labels[b])
+        w = geo.row_norm(centroids[a[inner]] - centroids[b[inner]])
+        g = sparse.csr_matrix((np.concatenate([w, w]), (np.concatenate([a[inner], b[inner]]),
+                                                        np.concatenate([b[inner], a[inner]]))),
+                              shape=(nf, nf))
+        src = np.unique(np.concatenate([a[leaf_face[a] & stem_face[b]],
+                                        b[leaf_face[b] & stem_face[a]]]))
+        self.dist: np.ndarray | None = None
+        self.far_end = np.zeros(nlab)
+        if len(src):
+            self.dist = dijkstra(g, directed=True, indices=src, min_only=True)
+            ok = np.isfinite(self.dist) & leaf_face
+            np.maximum.at(self.far_end, labels[ok], self.dist[ok])
+
+    def at(self, face: np.ndarray, leaf: np.ndarray) -> np.ndarray:
+        """Whether each ``face`` lies at the far end of its ``leaf``."""
+        d, end = self.dist[face], self.far_end[leaf]
+        return np.isfinite(d) & (d >= TIP_FAR_END_SHARE * end) & (end > 0)
+
+
+def _chains_to_leaves(labels: np.ndarray, leafy: np.ndarray, pairs: np.ndarray,
+                      pruned: np.ndarray, parent: np.ndarray, far: _FarEnd,
+                      rounds: int) -> tuple[np.ndarray, int]:
+    """A chain of dangling tubes hanging from a leaf at its far end joins the leaf."""
+    nlab = len(leafy)
+    a, b = pairs[:, 0], pairs[:, 1]
+    la, lb = labels[a], labels[b]
     root = parent.copy()
     for _ in range(rounds):
         up = (root >= 0) & pruned[np.maximum(root, 0)]
@@ -565,7 +735,7 @@ def _tips_to_leaves(labels: np.ndarray, tube: np.ndarray, leafy: np.ndarray,
     link = np.where(first[la], la, lb)[to_leaf]
     leaf_side = np.where(first[la], b, a)[to_leaf]
     bad = np.zeros(nlab, bool)
-    bad[link[~at_far_end(leaf_side, labels[leaf_side])]] = True
+    bad[link[~far.at(leaf_side, labels[leaf_side])]] = True
     good_first = first & ~bad
     ok_chain = pruned & (root >= 0) & leafy[np.maximum(root, 0)]
     # the link of each chain that touches the leaf: follow parents up to it
@@ -578,10 +748,16 @@ def _tips_to_leaves(labels: np.ndarray, tube: np.ndarray, leafy: np.ndarray,
     target[move] = root[move]
     moved_face = move[labels]
     labels = target[labels]
-    dist[moved_face] = far_end[labels[moved_face]]  # a joined tip is at its leaf's far end
-    n_moved = int(np.count_nonzero(move))
-    # regions with no neighbour: their own mesh component
-    la, lb = labels[a], labels[b]
+    far.dist[moved_face] = far.far_end[labels[moved_face]]  # a joined tip: its leaf's far end
+    return labels, int(np.count_nonzero(move))
+
+
+def _lonely_to_leaves(labels: np.ndarray, leafy: np.ndarray, pairs: np.ndarray,
+                      centroids: np.ndarray, far: _FarEnd, gap: float) -> tuple[np.ndarray, int]:
+    """Non-leaf regions with no neighbour (their own mesh component) whose nearest leaf
+    face lies within ``gap`` mm, at that leaf's far end, join that leaf."""
+    nlab = len(leafy)
+    la, lb = labels[pairs[:, 0]], labels[pairs[:, 1]]
     cross = la != lb
     has_nbr = np.zeros(nlab, bool)
     has_nbr[la[cross]] = True
@@ -589,23 +765,22 @@ def _tips_to_leaves(labels: np.ndarray, tube: np.ndarray, leafy: np.ndarray,
     present = np.bincount(labels, minlength=nlab) > 0
     lonely = present & ~has_nbr & ~leafy
     leaf_face = leafy[labels]
-    if lonely.any() and leaf_face.any():
-        cand = np.flatnonzero(lonely[labels])
-        leaf_idx = np.flatnonzero(leaf_face)
-        d, idx = cKDTree(centroids[leaf_idx]).query(centroids[cand], distance_upper_bound=gap)
-        hit = np.isfinite(d)
-        reg = labels[cand]
-        # each lonely region: its face nearest to any leaf decides
-        order = np.lexsort((d, reg))
-        first = order[np.concatenate([[True], reg[order][1:] != reg[order][:-1]])]
-        first = first[hit[first]]
-        near = leaf_idx[idx[first]]
-        good = at_far_end(near, labels[near])
-        target = np.arange(nlab)
-        target[reg[first[good]]] = labels[near[good]]
-        labels = target[labels]
-        n_moved += int(np.count_nonzero(good))
-    return labels, n_moved
+    if not (lonely.any() and leaf_face.any()):
+        return labels, 0
+    cand = np.flatnonzero(lonely[labels])
+    leaf_idx = np.flatnonzero(leaf_face)
+    d, idx = cKDTree(centroids[leaf_idx]).query(centroids[cand], distance_upper_bound=gap)
+    hit = np.isfinite(d)
+    reg = labels[cand]
+    # each lonely region: its face nearest to any leaf decides
+    order = np.lexsort((d, reg))
+    first = order[np.concatenate([[True], reg[order][1:] != reg[order][:-1]])]
+    first = first[hit[first]]
+    near = leaf_idx[idx[first]]
+    good = far.at(near, labels[near])
+    target = np.arange(nlab)
+    target[reg[first[good]]] = labels[near[good]]
+    return target[labels], int(np.count_nonzero(good))
 
 
 def _strays_to_region(pieces: np.ndarray, small: np.ndarray, regions: np.ndarray,
@@ -696,6 +871,10 @@ JOIN_END_COS = 0.85
 JOIN_END_WIDTH_SHARE = 0.6
 JOIN_END_MM = 5.0  # the end zone whose width is read (a tapered base is narrow there)
 JOIN_DIRECTION_MM = 30.0  # the end zone whose principal axis is the end's direction
+JOIN_END_WIDTH_PERCENTILE = 95  # an end's half width: this percentile of its lateral offsets
+JOIN_STATION_MM = 10.0  # a piece's widest station: the widest of its slices this long
+JOIN_MIN_FACES = 10  # a piece of fewer faces has no ends to read (no direction, no width)
+JOIN_BRIDGE_MARGIN_MM = 2.0  # stem faces within half the wider end + this join the blade
 
 
 def _principal_axis(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -711,15 +890,15 @@ def _blade_ends(q: np.ndarray, w: np.ndarray) -> tuple[list[tuple[np.ndarray, np
     Ends are the last ``JOIN_END_MM`` along the piece's principal axis (area-weighted;
     the point is their mean, not the single extreme face, a corner of the cut); the
     direction is the principal axis of the last ``JOIN_DIRECTION_MM``, pointing out;
-    the width is twice the 95th percentile of the lateral distance over the last
-    ``JOIN_END_MM``.  Also returns the widest 10 mm station across the second
-    principal axis.
+    the width is twice the ``JOIN_END_WIDTH_PERCENTILE``th percentile of the lateral
+    distance over the last ``JOIN_END_MM``.  Also returns the widest ``JOIN_STATION_MM``
+    station across the second principal axis.
     """
     mu = np.average(q, axis=0, weights=w)
     _, _, vt = np.linalg.svd((q - mu) * np.sqrt(w)[:, None], full_matrices=False)
     s = (q - mu) @ vt[0]
     across = (q - mu) @ vt[1]
-    station = np.floor((s - s.min()) / 10.0).astype(np.int64)
+    station = np.floor((s - s.min()) / JOIN_STATION_MM).astype(np.int64)
     lo = np.full(int(station.max()) + 1, np.inf)
     hi = np.full(int(station.max()) + 1, -np.inf)
     np.minimum.at(lo, station, across)
@@ -733,7 +912,8 @@ def _blade_ends(q: np.ndarray, w: np.ndarray) -> tuple[list[tuple[np.ndarray, np
         d = d if d @ (sign * vt[0]) > 0 else -d  # pointing out of the blade
         tip = q[ss > top - JOIN_END_MM]
         rel = tip - tip.mean(axis=0)
-        width = 2.0 * float(np.percentile(geo.row_norm(rel - np.outer(rel @ d, d)), 95))
+        width = 2.0 * float(np.percentile(geo.row_norm(rel - np.outer(rel @ d, d)),
+                                          JOIN_END_WIDTH_PERCENTILE))
         ends.append((tip.mean(axis=0), d, width))
     return ends, widest
 
@@ -759,7 +939,7 @@ def _join_broken_blades(labels: np.ndarray, centroids: np.ndarray, areas: np.nda
     widest: dict[int, float] = {}
     for lab in range(1, n + 1):
         sel = labels == lab
-        if np.count_nonzero(sel) >= 10:
+        if np.count_nonzero(sel) >= JOIN_MIN_FACES:
             ends[lab], widest[lab] = _blade_ends(centroids[sel], areas[sel])
     root = np.arange(n + 1)
 
@@ -783,7 +963,7 @@ def _join_broken_blades(labels: np.ndarray, centroids: np.ndarray, areas: np.nda
                     u = (pb - pa) / max(gap, 1e-9)
                     rel = centroids - pa
                     t = rel @ u
-                    r = 0.5 * max(wa, wb) + 2.0
+                    r = 0.5 * max(wa, wb) + JOIN_BRIDGE_MARGIN_MM
                     bridge = ((labels == STEM_LABEL) & (t > -r) & (t < gap + r)
                               & (geo.row_norm(rel - np.outer(t, u)) < r))
                     ra, rb = find(a), find(b)
@@ -809,9 +989,16 @@ CULM_MARGIN_MM = 1.5  # faces beyond a culm's radius + this are off the culm
 CULM_SAMPLE = 30_000  # stem faces the RANSAC looks at
 CULM_TRIALS = 400
 CULM_MAX_LINES = 16
+CULM_MIN_POOL = 200  # fewer stem faces left than this: no further culm to find
+CULM_MIN_TRIAL_MM = 15.0  # a trial line's two points at least this far apart (a direction)
+CULM_REFINE_ROUNDS = 4  # PCA refinements of the best trial line over its inliers
+CULM_POOL_DROP = 2.0  # after each line, faces within this x CULM_INLIER_MM leave the pool
 BASE_DIRECTION_MM = 30.0  # a blade's direction at its cut: its faces within this of the cut
 BASE_MARGIN_MM = 1.0  # the corridor: the cut's half width (90th percentile) + this
 CUT_LINK_MM = 3.0  # cut faces this close are one place where a leaf meets the stem
+CUT_MIN_FACES = 3  # a place of fewer cut faces is a corner touching the stem, not a cut
+BASE_MIN_FACES = 10  # a blade with fewer faces near its cut has no direction to follow
+BASE_HALF_WIDTH_PERCENTILE = 90  # the cut's half width: this percentile of its lateral offsets
 
 
 def _culm_axes(points: np.ndarray, rng: np.random.Generator
@@ -830,13 +1017,13 @@ def _culm_axes(points: np.ndarray, rng: np.random.Generator
     pool = np.ones(len(points), bool)
     for _ in range(CULM_MAX_LINES):
         idx = np.flatnonzero(pool)
-        if len(idx) < 200:
+        if len(idx) < CULM_MIN_POOL:
             break
         pairs = [rng.choice(idx, 2, replace=False) for _t in range(CULM_TRIALS)]
         o_t = points[[i for i, _ in pairs]]
         d_t = points[[j for _, j in pairs]] - o_t
         length = geo.row_norm(d_t)
-        keep = length >= 15.0
+        keep = length >= CULM_MIN_TRIAL_MM
         if not keep.any():
             break
         o_t, d_t = o_t[keep], d_t[keep] / length[keep, None]
@@ -851,7 +1038,7 @@ def _culm_axes(points: np.ndarray, rng: np.random.Generator
             n_in += np.count_nonzero(w2 - along * along < CULM_INLIER_MM ** 2, axis=0)
         t = int(np.argmax(n_in))
         o, d = o_t[t], d_t[t]
-        for _r in range(4):
+        for _r in range(CULM_REFINE_ROUNDS):
             w = points[idx] - o
             q = points[idx][geo.row_norm(w - np.outer(w @ d, d)) < CULM_INLIER_MM]
             o, d = _principal_axis(q)
@@ -859,7 +1046,7 @@ def _culm_axes(points: np.ndarray, rng: np.random.Generator
         s = w @ d
         r = geo.row_norm(w - np.outer(s, d))
         inl = r < CULM_INLIER_MM
-        pool[idx[r < 2.0 * CULM_INLIER_MM]] = False
+        pool[idx[r < CULM_POOL_DROP * CULM_INLIER_MM]] = False
         if (np.percentile(s[inl], 98) - np.percentile(s[inl], 2) >= CULM_MIN_LENGTH_MM
                 and abs(d[2]) > CULM_MIN_STEEPNESS):
             axes.append((o, d, float(np.percentile(s[inl], 1)), float(np.percentile(s[inl], 99)),
@@ -880,16 +1067,16 @@ def _axis_distance(points: np.ndarray, axes: list) -> np.ndarray:
 def _cut_places(labels: np.ndarray, cut: np.ndarray, centroids: np.ndarray):
     """``(label, faces)`` for every place a leaf meets the stem: its cut faces grouped by
     single linkage within ``CUT_LINK_MM`` (a border's faces touch at vertices, not
-    edges), groups of at least 3 faces."""
+    edges), groups of at least ``CUT_MIN_FACES`` faces."""
     for lab in np.unique(labels[cut]):
         ids = np.flatnonzero(cut & (labels == lab))
-        if len(ids) < 3:
+        if len(ids) < CUT_MIN_FACES:
             continue
         links = cKDTree(centroids[ids]).query_pairs(CUT_LINK_MM, output_type="ndarray")
         g = sparse.csr_matrix((np.ones(len(links), np.int8), (links[:, 0], links[:, 1])),
                               shape=(len(ids), len(ids)))
         _, group = connected_components(g, directed=False)
-        for k in np.flatnonzero(np.bincount(group) >= 3):
+        for k in np.flatnonzero(np.bincount(group) >= CUT_MIN_FACES):
             faces = np.zeros(len(labels), bool)
             faces[ids[group == k]] = True
             yield lab, faces
@@ -936,12 +1123,13 @@ def _blade_bases_off_culms(labels: np.ndarray, centroids: np.ndarray, pairs: np.
     for lab, cf in _cut_places(labels, cut, centroids):
         c0 = centroids[cf].mean(axis=0)
         q = centroids[(labels == lab) & (geo.row_norm(centroids - c0) < BASE_DIRECTION_MM)]
-        if len(q) < 10:
+        if len(q) < BASE_MIN_FACES:
             continue
         mu, d = _principal_axis(q)
         d = d if d @ (c0 - mu) >= 0 else -d  # into the stem
         w = centroids[cf] - c0
-        half = float(np.percentile(geo.row_norm(w - np.outer(w @ d, d)), 90)) + BASE_MARGIN_MM
+        half = float(np.percentile(geo.row_norm(w - np.outer(w @ d, d)),
+                                   BASE_HALF_WIDTH_PERCENTILE)) + BASE_MARGIN_MM
         w = centroids[ids_all] - c0
         t = w @ d
         lat = geo.row_norm(w - np.outer(t, d))
