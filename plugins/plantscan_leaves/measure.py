@@ -495,6 +495,8 @@ def _detached_tips(sides: _Sides, base: int, tip: int, detached, sigma: float,
 
 
 WIDTH_PATH_SLACK = 1.25  # a rim-to-rim path longer than this x the lateral extent went astray
+WIDTH_MAX_BINS = 60  # the widest lateral extent is read in at most this many bins along the
+# midrib (each at least two path-point spacings long): finer bins only add noise to the max
 
 
 def _width(sides: _Sides, mid_pts: np.ndarray, dist_b: np.ndarray, outline_lines: list,
@@ -553,7 +555,7 @@ def _station_extents(sides: _Sides, mid_pts: np.ndarray, dist_b: np.ndarray,
     _, k = tree.query(q[valid])
     lateral = np.einsum("ij,ij->i", q[valid] - mid_pts[k], unit_across[k])
     mid_len = geo.polyline_length(mid_pts)
-    nbins = max(int(mid_len / max(2.0 * sides.spacing, mid_len / 60.0)), 1)
+    nbins = max(int(mid_len / max(2.0 * sides.spacing, mid_len / WIDTH_MAX_BINS)), 1)
 
     def extents(ks: np.ndarray, lat: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         st = np.minimum((ks * nbins) // len(mid_pts), nbins - 1)
