@@ -34,6 +34,7 @@ def _errors(cal, boards_world, dets, boards):
     return np.concatenate(out)
 
 
+@pytest.mark.slow  # real data: the rig solved over every real corner of two boards
 def test_real_corners_calibrate_better_than_the_original(corners):
     dets, boards, sizes = corners
     assert {d.camera for d in dets} == {"side", "top"} and set(boards) == {1, 2}

@@ -57,6 +57,7 @@ def _iou_per_view(mesh, sils, cal) -> np.ndarray:
     return np.array(out)
 
 
+@pytest.mark.slow  # real data: a 384^3 hull of 13 PhenoArch views
 def test_real_maize_hull_explains_its_silhouettes(real):
     cal, sils = real
     assert len(sils) == 13 and {s.view.camera for s in sils} == {"side", "top"}

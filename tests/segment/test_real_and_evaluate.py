@@ -13,6 +13,7 @@ from plantscan_segment.metrics import mask_metrics
 DATA = Path(__file__).resolve().parents[3] / "shared/data/phenoarch_maize_plant1"
 
 
+@pytest.mark.slow  # real data: PhenoArch photos decoded and segmented at full size
 @pytest.mark.skipif(not (DATA / "raw/side").is_dir(), reason="../shared data not present")
 def test_green_on_real_maize_photos_agrees_with_the_shipped_silhouettes():
     angles = sorted(int(p.stem) for p in (DATA / "raw/side").glob("*.jpg"))
