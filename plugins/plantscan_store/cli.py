@@ -113,7 +113,8 @@ def _print(df, level: str) -> None:
 
     keep = ["study_id", "plant_id", "genotype", "treatment", "scan_time"]
     if level == "leaf":
-        keep += ["leaf_id", "length_mm", "width_mm", "area_mm2", "perimeter_mm", "quality_flag"]
+        keep += ["leaf_id", "length_mm", "width_mm", "area_mm2", "perimeter_mm", "confidence",
+                 "quality_flag"]
     elif level == "plant":
         keep += [c for c in ("leaf_count", "total_leaf_area_mm2", "height_mm") if c in df]
         keep += ["plant_quality_flag", "warnings"]

@@ -43,7 +43,7 @@ STUDY_COLUMNS = ("Source Name", "Characteristics[Organism]", "Characteristics[Ge
                  "Factor Value[treatment]")
 ASSAY_COLUMNS = ("Sample Name", "Protocol REF", "Assay Name", "Raw Data File",
                  "Comment[Scan time (UTC)]", "Comment[Recipe]", "Comment[Quality flag]",
-                 "Derived Data File")
+                 "Comment[Quality reasons]", "Derived Data File")
 DATA_KEY_COLUMNS = ("Assay Name", "Sample Name", "Leaf ID", "Date")
 TRAIT_DICTIONARY_COLUMNS = ("Variable ID", "Variable name", "Trait", "Method", "Scale", "Level",
                             "Description")
@@ -63,6 +63,11 @@ class IsaTabError(ValueError):
 
 def _safe(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "_", name) or "study"
+
+
+def _text(v: Any) -> str:
+    """A text cell: empty for a missing value (None, NaN)."""
+    return "" if v is None or v != v else str(v)
 
 
 def _write_table(path: Path, header: list[str], rows: list[list[Any]]) -> None:
@@ -119,7 +124,8 @@ def export_isatab(store: Store, out: Path, **filters: Any) -> list[Path]:
         _write_table(a_file, list(ASSAY_COLUMNS), [
             [p.plant_id, "turntable 3D scan", p.run_key, p.scan_path,
              p.scan_time.isoformat(timespec="seconds"), p.recipe_name,
-             p.plant_quality_flag or "", d_file.name] for _, p in sp.iterrows()])
+             p.plant_quality_flag or "", _text(p.plant_quality_reasons), d_file.name]
+            for _, p in sp.iterrows()])
         # data matrix: plant rows, then leaf rows
         plant_traits = [c for c in sp.columns if c in defined and defined[c].level == "plant"]
         lv = leaves[(leaves["investigation_id"] == investigation)

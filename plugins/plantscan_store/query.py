@@ -26,7 +26,7 @@ if TYPE_CHECKING:
 PLANT_COLUMNS = ("investigation_id", "study_id", "plant_id", "species", "genotype", "accession",
                  "biological_material_id", "treatment", "replicate", "sowing_date")
 LEAF_TRAITS = ("length_mm", "width_mm", "area_mm2", "perimeter_mm")
-LEAF_QUALITY = ("thick_share", "confidence", "quality_flag")
+LEAF_QUALITY = ("thick_share", "confidence", "confidence_reasons", "quality_flag")
 UNFLAGGED = "none"  # the quality filter's name for rows without a flag
 
 
@@ -65,7 +65,8 @@ def _base(runs: str) -> Select:
                 p.c.sowing_date, p.c.factors, s.c.acquired_at.label("scan_time"),
                 s.c.scan_uid, s.c.path.label("scan_path"), r.c.recipe_name, r.c.recipe_hash,
                 r.c.run_key, r.c.run_dir, r.c.id.label("run_ref"),
-                r.c.quality_flag.label("plant_quality_flag"))
+                r.c.quality_flag.label("plant_quality_flag"),
+                r.c.quality_reasons.label("plant_quality_reasons"))
          .select_from(r.join(s, r.c.scan_ref == s.c.id).join(p, s.c.plant_ref == p.c.id)
                       .join(e, p.c.experiment_ref == e.c.id)))
     if runs == "latest":
@@ -153,9 +154,9 @@ def leaf_traits(store: Store, *, investigation: str | None = None,
         Columns ``PLANT_COLUMNS``, ``factor.NAME``..., ``scan_time``,
         ``days_after_sowing``, ``recipe_name``, ``run_key``, ``leaf_id``,
         ``length_mm``, ``width_mm``, ``area_mm2``, ``perimeter_mm``,
-        ``thick_share``, ``confidence``, ``quality_flag`` (leaf),
-        ``plant_quality_flag``, ``centroid_{x,y,z}_mm``; sorted by study, plant,
-        scan time and leaf id.
+        ``thick_share``, ``confidence``, ``confidence_reasons``, ``quality_flag``
+        (leaf), ``plant_quality_flag``, ``plant_quality_reasons``,
+        ``centroid_{x,y,z}_mm``; sorted by study, plant, scan time and leaf id.
     """
     lv = S.leaves
     q = _base(runs).add_columns(

@@ -46,6 +46,7 @@ class LeafRecord:
     confidence: float | None = None
     quality_flag: str | None = None
     centroid_mm: tuple[float, float, float] | None = None
+    confidence_reasons: str | None = None  # reason codes, ";"-separated (docs/leaves.md)
 
 
 @dataclass
@@ -100,6 +101,7 @@ class RunRecord:
     plantscan_version: str = ""
     plugins: dict[str, Any] = field(default_factory=dict)
     provenance: dict[str, Any] = field(default_factory=dict)
+    quality_reasons: str | None = None  # why the plant is flagged, "; "-separated messages
 
     @property
     def run_key(self) -> str:
@@ -174,7 +176,8 @@ def _flag(v: Any, where: str) -> str | None:
 
 
 def read_leaves(traits_csv: Path) -> list[LeafRecord]:
-    """The leaves of ``traits.csv`` (optional ``thick_share``, ``confidence``, ``quality``)."""
+    """The leaves of ``traits.csv`` (optional ``thick_share``, ``confidence``,
+    ``confidence_reasons``, ``quality_flag`` or ``quality``)."""
     rows = list(csv.DictReader(io.StringIO(Path(traits_csv).read_text())))
     out = []
     for n, r in enumerate(rows, start=2):
@@ -185,7 +188,8 @@ def read_leaves(traits_csv: Path) -> list[LeafRecord]:
         out.append(LeafRecord(
             leaf_id, _num(r.get("length_mm")), _num(r.get("width_mm")), _num(r.get("area_mm2")),
             _num(r.get("perimeter_mm")), _num(r.get("thick_share")), _num(r.get("confidence")),
-            _flag(r.get("quality_flag", r.get("quality")), f"{traits_csv}:{n}")))
+            _flag(r.get("quality_flag", r.get("quality")), f"{traits_csv}:{n}"),
+            confidence_reasons=(r.get("confidence_reasons") or "").strip() or None))
     return out
 
 
@@ -279,7 +283,15 @@ def record_from_run_dir(run_dir: Path, sample_sheet: SampleSheet | None = None) 
         plantscan_version=str(info.get("plantscan_version", "")),
         plugins={k: {"plugin": s.get("plugin"), "version": s.get("version")}
                  for k, s in stages.items() if isinstance(s, dict)},
-        provenance=provenance)
+        provenance=provenance, quality_reasons=_reasons(plant.get("quality_reasons")))
+
+
+def _reasons(v: Any) -> str | None:
+    """A plant's quality reasons (a list of messages, or one text) as "; "-separated text."""
+    if v is None:
+        return None
+    items = [str(x).strip() for x in v] if isinstance(v, (list, tuple)) else [str(v).strip()]
+    return "; ".join(x for x in items if x) or None
 
 
 def find_run_dirs(paths: list[Path]) -> list[Path]:

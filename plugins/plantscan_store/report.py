@@ -5,8 +5,8 @@ offline lab machine).  Each plant's curve is a plant-level trait over days
 (after sowing when the sowing date is known, else since the plant's first
 scan), coloured by its group (genotype x treatment); each point's marker is
 its quality flag (circle ok, triangle check, cross fail, open circle unflagged)
-and hovering it names the plant, the scan time, the flag and how many
-warnings the stages gave.  A second figure shows each group's mean and
+and hovering it names the plant, the scan time, the flag, why the measurer
+flagged it and how many warnings the stages gave.  A second figure shows each group's mean and
 standard deviation per day; a table lists every plant.
 """
 
@@ -63,13 +63,16 @@ def experiment_figures(series: pd.DataFrame, trait: str, truth: pd.DataFrame | N
     for (study, plant), p in series.groupby(["study_id", "plant_id"], sort=True):
         group = p.group.iloc[0]
         flags = [f if isinstance(f, str) else None for f in p.plant_quality_flag]
+        reasons = (p["plant_quality_reasons"] if "plant_quality_reasons" in p
+                   else [None] * len(p))
         per_plant.add_trace(go.Scatter(
             x=p["x_day"], y=p[trait], mode="lines+markers", name=group, legendgroup=group,
             showlegend=group not in shown, line={"color": colours[group], "width": 1.5},
             marker={"symbol": [FLAG_SYMBOLS.get(f, "circle-open") for f in flags], "size": 9,
                     "color": colours[group]},
             text=[f"{plant} ({study})<br>{t:%Y-%m-%d %H:%M} UTC<br>flag: {f or 'none'}, "
-                  f"{w} warning(s)" for t, f, w in zip(p.scan_time, flags, p.warnings)],
+                  f"{w} warning(s)" + (f"<br>{html.escape(why)}" if isinstance(why, str) else "")
+                  for t, f, w, why in zip(p.scan_time, flags, p.warnings, reasons)],
             hovertemplate="%{text}<br>%{y:.1f}<extra></extra>"))
         shown.add(group)
         if truth is not None:

@@ -95,6 +95,7 @@ runs = Table(
     Column("plugins", JSON, nullable=False, default=dict),
     Column("provenance", JSON, nullable=False, default=dict),
     Column("quality_flag", String(8)),
+    Column("quality_reasons", Text),  # why the plant is flagged: "; "-separated messages
     Column("leaf_count", Integer),
     Column("stored_at", DateTime, nullable=False),
 )
@@ -110,6 +111,7 @@ leaves = Table(
     Column("thick_share", Float),
     Column("confidence", Float),
     Column("quality_flag", String(8)),
+    Column("confidence_reasons", Text),  # reason codes behind a low confidence, ";"-separated
     Column("centroid_x_mm", Float),
     Column("centroid_y_mm", Float),
     Column("centroid_z_mm", Float),

@@ -226,7 +226,8 @@ class Store:
             "recipe_name": r.recipe_name, "recipe_hash": r.recipe_hash,
             "plantscan_version": r.plantscan_version, "plugins": r.plugins,
             "provenance": r.provenance, "quality_flag": r.quality_flag,
-            "leaf_count": len(r.leaves), "stored_at": stored_at} for key, r in group]).all())
+            "quality_reasons": r.quality_reasons, "leaf_count": len(r.leaves),
+            "stored_at": stored_at} for key, r in group]).all())
         self._bulk(conn, S.leaves, [_leaf_row(run_refs[key], leaf) for key, r in group
                                     for leaf in r.leaves])
         self._bulk(conn, S.plant_traits, [{"run_ref": run_refs[key], "trait": k, "value": v}
@@ -441,7 +442,8 @@ def _leaf_row(run_ref: int, leaf) -> dict[str, Any]:
             "width_mm": leaf.width_mm, "area_mm2": leaf.area_mm2,
             "perimeter_mm": leaf.perimeter_mm, "thick_share": leaf.thick_share,
             "confidence": leaf.confidence, "quality_flag": leaf.quality_flag,
-            "centroid_x_mm": c[0], "centroid_y_mm": c[1], "centroid_z_mm": c[2]}
+            "confidence_reasons": leaf.confidence_reasons, "centroid_x_mm": c[0],
+            "centroid_y_mm": c[1], "centroid_z_mm": c[2]}
 
 
 def _utcnow() -> _dt.datetime:

@@ -20,9 +20,10 @@ from plantscan_core.cli import main
 @pytest.fixture
 def experiment(store):
     """Two studies; 8 plants x 3 days in S1 (one run flagged 'fail'), 2 plants in S2."""
-    store.put_many(make_record(plant=p, day=d, quality_flag="fail" if (p, d) == (3, 2) else "ok",
-                               replicate=p // 4 + 1)
-                   for p in range(8) for d in range(3))
+    runs = [make_record(plant=p, day=d, quality_flag="fail" if (p, d) == (3, 2) else "ok",
+                        replicate=p // 4 + 1) for p in range(8) for d in range(3)]
+    runs[3 * 3 + 2].quality_reasons = "only 12 of 48 views see the plant"
+    store.put_many(runs)
     store.put_many(make_record(plant=p, study="S2") for p in range(2))
     return store
 
@@ -43,6 +44,9 @@ def test_isatab_export_matches_its_stated_columns(experiment, tmp_path):
     assert {r["Sample Name"] for r in study} == {f"P{p:04d}" for p in range(8)}
     assay = _table(tmp_path / "isa" / "a_S1_phenotyping.txt")
     assert len(assay) == 24 and list(assay[0]) == list(ASSAY_COLUMNS)
+    # the flagged run says why; the others say nothing
+    assert {(r["Comment[Quality flag]"], r["Comment[Quality reasons]"]) for r in assay} == {
+        ("ok", ""), ("fail", "only 12 of 48 views see the plant")}
     data = _table(tmp_path / "isa" / "d_S1_traits.txt")
     plant_rows = [r for r in data if not r["Leaf ID"]]
     assert len(plant_rows) == 24 and len(data) == 24 + 24 * 20

@@ -26,12 +26,15 @@ def _run_folder(root, plant="P1", genotype="Ler"):
             "warnings": [{"code": "thick-leaf", "message": "leaf 1 is thick", "leaf": 1}]}},
                    "export.0": {"plugin": "csv", "params": {}}}}))
     (root / "traits.csv").write_text("leaf_id,length_mm,width_mm,area_mm2,perimeter_mm,"
-                                     "thick_share,confidence,quality\n"
-                                     "0,100,40,3000,250,0.01,0.9,ok\n"
-                                     "1,80,30,2000,200,0.2,0.4,check\n")
+                                     "thick_share,confidence,confidence_reasons,quality\n"
+                                     "0,100,40,3000,250,0.01,0.9,,ok\n"
+                                     "1,80,30,2000,200,0.2,0.4,thick;short-outline,check\n")
     (root / "plant_traits.json").write_text(json.dumps({"height_mm": 150.0,
                                                         "total_leaf_area_mm2": 5000.0,
-                                                        "quality": "check"}))
+                                                        "quality": "check",
+                                                        "quality_reasons": [
+                                                            "1 of 2 leaves low confidence",
+                                                            "leaf 1 is thick"]}))
     return root
 
 
@@ -42,7 +45,9 @@ def test_a_run_folder_without_its_scan_reads_from_what_it_recorded(tmp_path):
     assert r.scan.acquired_at.isoformat() == "2026-05-06T08:30:00"  # UTC
     assert [(leaf.leaf_id, leaf.confidence, leaf.quality_flag) for leaf in r.leaves] == \
         [(0, 0.9, "ok"), (1, 0.4, "check")]
+    assert [leaf.confidence_reasons for leaf in r.leaves] == [None, "thick;short-outline"]
     assert r.quality_flag == "check" and r.plant_traits["leaf_count"] == 2.0
+    assert r.quality_reasons == "1 of 2 leaves low confidence; leaf 1 is thick"
     assert [(w.stage, w.code, w.leaf_id) for w in r.warnings] == [("measure", "thick-leaf", 1)]
 
 

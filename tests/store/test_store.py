@@ -33,7 +33,7 @@ def test_migrations_build_exactly_the_schema_module(store):
     with store.engine.connect() as conn:
         diff = compare_metadata(MigrationContext.configure(conn), metadata)
     assert diff == []
-    assert store.revision() == "0001"
+    assert store.revision() == "0002"
 
 
 def test_the_store_knows_every_column_of_the_core_traits_table():
@@ -122,6 +122,46 @@ def test_leaf_flags_and_unflagged_rows(store):
     assert len(store.leaf_traits(quality="fail")) == 4
     assert len(store.leaf_traits(quality="none")) == 16
 
+
+
+def test_why_to_trust_a_number_less_is_stored_per_leaf_and_plant(store):
+    record = make_record(plant=2, quality_flag="check")
+    record.leaves[3].confidence, record.leaves[3].quality_flag = 0.3, "check"
+    record.leaves[3].confidence_reasons = "short-outline;area-mismatch"
+    record.quality_reasons = "2 of 20 leaves have low confidence; leaf 3 is thick"
+    store.put(record)
+    leaves = store.leaf_traits().set_index("leaf_id")
+    assert (leaves.loc[3, "confidence"], leaves.loc[3, "confidence_reasons"]) == \
+        (0.3, "short-outline;area-mismatch")
+    assert leaves.drop(index=3).confidence_reasons.isna().all()  # none given: none stored
+    plant = store.plant_traits().iloc[0]
+    assert (plant.plant_quality_flag, plant.plant_quality_reasons) == \
+        ("check", "2 of 20 leaves have low confidence; leaf 3 is thick")
+
+
+def test_a_store_of_the_first_schema_is_upgraded_keeping_its_runs(store_target):
+    # a lab's database made before the reasons were stored: downgraded to 0001 here, with a
+    # run in it, then opened again
+    from alembic import command
+    from alembic.config import Config
+    from plantscan_store import Store
+    from plantscan_store.store import MIGRATIONS
+
+    with Store(store_target) as s:
+        s.put(make_record(plant=1))
+        cfg = Config()
+        cfg.set_main_option("script_location", str(MIGRATIONS))
+        with s.engine.begin() as conn:
+            cfg.attributes["connection"] = conn
+            command.downgrade(cfg, "0001")
+        assert s.revision() == "0001"
+    with Store(store_target) as s:
+        assert s.revision() == "0002"
+        leaves = s.leaf_traits()
+        assert len(leaves) == 20 and leaves.confidence_reasons.isna().all()
+        assert s.plant_traits().plant_quality_reasons.isna().all()
+        s.put(make_record(plant=1))  # stored again: replaced, not doubled
+        assert s.counts()["runs"] == 1 and s.counts()["leaves"] == 20
 
 WRITER = textwrap.dedent("""
     import sys, time
