@@ -14,6 +14,7 @@ watertight and the stem is cut flat at the rim.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,8 +31,12 @@ DISC_FILL = 0.75
 RIM_FILL = 0.9
 # Radius jump (voxels) between slices that splits pot from carrier.
 RADIUS_JUMP_VOXELS = 1.5
-# Non-disc slices tolerated at the bottom of the hull (the cone under the pot).
+# Non-disc slices tolerated at the bottom of the hull (the cone under the pot): at least this
+# many, and at least BOTTOM_SKIP_MM of height.  Views from near the horizon (adaptive scans,
+# tilts below 0) carve the cone under the pot to a stub 8 mm tall whose slices fill < 0.75
+# of their disc (1 mm voxels: 8 slices; 4 found no pot and left it in the mesh).
 BOTTOM_SKIP_SLICES = 4
+BOTTOM_SKIP_MM = 12.0
 # Slices copied out of the field at a time while walking up the pot.
 SLICE_CHUNK = 32
 # A pot narrower than this (voxels) is not told apart from a stem.
@@ -162,7 +167,8 @@ def fit_pot(volume: Volume) -> list[TaperedCylinder]:
         return st.area > 0 and st.fill >= DISC_FILL and st.r_eq >= MIN_POT_RADIUS_VOXELS * s
 
     # Under the pot the hull is a cone (no camera looks up): skip a few slices to the first disc.
-    starts = [k for k in range(k0, min(k0 + BOTTOM_SKIP_SLICES + 1, nz)) if disc(k)]
+    skip = max(BOTTOM_SKIP_SLICES, math.ceil(BOTTOM_SKIP_MM / s))
+    starts = [k for k in range(k0, min(k0 + skip + 1, nz)) if disc(k)]
     if not starts:
         return []
     k = ks = starts[0]

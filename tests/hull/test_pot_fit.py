@@ -64,3 +64,22 @@ def test_fit_keeps_the_stem_above_the_rim(potted_plant):
     below_rim = zs < POT[1] - 2 * VOXEL
     assert not (field[:, :, below_rim] > 0).any()
     assert removed > 0
+
+
+def test_fit_finds_the_pot_over_the_short_cone_low_views_leave():
+    # Views near the horizon (an adaptive scan's tilts below 0) carve the cone under the pot
+    # to a polygonal stub: here a square pyramid 8 mm tall under the pot, its slices filling
+    # 0.64 of their disc (< DISC_FILL) over 8 slices.  The pot is still found.
+    xs = np.arange(-80.0, 80.0 + VOXEL, VOXEL)
+    zs = np.arange(15.0, 200.0, VOXEL)
+    rho = np.hypot(xs[:, None], xs[None, :])[:, :, None]
+    diamond = (np.abs(xs[:, None]) + np.abs(xs[None, :]))[:, :, None]
+    z = zs[None, None, :]
+    cone = np.minimum((z - (POT[0] - 8.0)) / 8.0 * POT[2] - diamond, POT[0] - z + 0.5)
+    inside = np.maximum(_cylinder(rho, z, *POT), cone)
+    volume = Volume(np.clip(inside / VOXEL, -1.0, 1.0).astype(np.float32),
+                    np.array([xs[0], xs[0], zs[0]]), VOXEL)
+    cyl = fit_pot(volume)
+    assert len(cyl) == 1, cyl
+    assert cyl[0].z_top_mm == pytest.approx(POT[1], abs=1.5 * VOXEL)
+    assert cyl[0].r_top_mm == pytest.approx(POT[3], abs=1.5 * VOXEL)
