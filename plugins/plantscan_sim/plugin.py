@@ -109,6 +109,13 @@ class SimAxisParams(StageParams):
     report_position: bool = Field(False, description="return the true angle like an encoder "
                                   "(default: None, like an open-loop stepper)")
     seed: int = 0
+    # The virtual axis is where it is told at once; these say how long a lab's axis would
+    # take (plantscan_core.timing), for scan --dry-run and the adaptive planner's budget.
+    velocity_deg_s: float | None = Field(None, gt=0.0, le=1e6,
+                                         description="timing model only: cruise speed")
+    acceleration_deg_s2: float | None = Field(None, gt=0.0, le=1e9,
+                                              description="timing model only")
+    settle_s: float = Field(0.0, ge=0.0, le=60.0, description="timing model only")
 
 
 class SimAxis(MotionAxis):
