@@ -41,8 +41,8 @@ class SimCameraParams(StageParams):
         "as fractions of (width, height)")
     roll_deg: float = Field(0.0, ge=-45.0, le=45.0, description="camera roll about its axis")
     capture_s: float | None = Field(
-        None, ge=0.0, le=3600.0, description="timing model only (the virtual camera renders "
-        "at its own speed): shutter release to image, as a lab camera would take, so that "
+        None, ge=0.0, le=3600.0, description="timing model only: shutter release to image as a "
+        "lab camera would take, in place of the virtual camera's render time, so that "
         "scan --dry-run and the adaptive planner's time budget count a real rig's time")
     download_s: float | None = Field(None, ge=0.0, le=3600.0,
                                      description="timing model only: image to the computer")
