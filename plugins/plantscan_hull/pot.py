@@ -167,14 +167,19 @@ def fit_pot(volume: Volume) -> list[TaperedCylinder]:
         return st.area > 0 and st.fill >= DISC_FILL and st.r_eq >= MIN_POT_RADIUS_VOXELS * s
 
     # Under the pot the hull is a cone (no camera looks up): skip a few slices to the first disc.
+    # The pot starts at the first disc slice of the window from which 3 or more disc slices
+    # follow: a cone may hold a disc slice or two of its own below a non-disc one (adaptive
+    # scan of validation dicot 1000, 0.77 mm voxels: slices 1-2 discs, 3 fills 0.71, 4 on the
+    # pot; taking slice 1 found no pot and left it in the mesh).
     skip = max(BOTTOM_SKIP_SLICES, math.ceil(BOTTOM_SKIP_MM / s))
-    starts = [k for k in range(k0, min(k0 + skip + 1, nz)) if disc(k)]
-    if not starts:
-        return []
-    k = ks = starts[0]
-    while k < nz and disc(k):
-        k += 1
-    run = np.arange(ks, k)
+    run = np.arange(0)
+    for ks in range(k0, min(k0 + skip + 1, nz)):
+        k = ks
+        while k < nz and disc(k):
+            k += 1
+        if k - ks >= 3:
+            run = np.arange(ks, k)
+            break
     if len(run) < 3:
         return []
     r_eq = np.array([stats[int(kk)].r_eq for kk in run])

@@ -83,3 +83,28 @@ def test_fit_finds_the_pot_over_the_short_cone_low_views_leave():
     assert len(cyl) == 1, cyl
     assert cyl[0].z_top_mm == pytest.approx(POT[1], abs=1.5 * VOXEL)
     assert cyl[0].r_top_mm == pytest.approx(POT[3], abs=1.5 * VOXEL)
+
+
+def test_fit_finds_the_pot_over_a_cone_with_disc_slices_of_its_own():
+    # Under the pot the cone's lowest slices may fill enough of their disc to count as discs,
+    # with a slice above them that does not (adaptive scan of validation dicot 1000: discs,
+    # then 0.71, then the pot).  The pot starts at the first disc slice with 2 more above it.
+    xs = np.arange(-80.0, 80.0 + VOXEL, VOXEL)
+    zs = np.arange(15.0, 200.0, VOXEL)
+    rho = np.hypot(xs[:, None], xs[None, :])[:, :, None]
+    z = zs[None, None, :]
+    inside = _cylinder(rho, z, *POT)
+    k_pot = int(np.searchsorted(zs, POT[0]))
+    # two round slices (discs), then a cross of two bars (fill ~0.37 < DISC_FILL), then the pot
+    cross = (np.minimum(np.abs(xs[:, None]), np.abs(xs[None, :])) <= 8.0) \
+        & (rho[:, :, 0] <= POT[2])
+    field = np.clip(inside / VOXEL, -1.0, 1.0).astype(np.float32)
+    field[:, :, k_pot] = np.where(cross, 1.0, -1.0)
+    for k in (k_pot - 2, k_pot - 1):
+        field[:, :, k] = np.where(rho[:, :, 0] <= 0.5 * POT[2], 1.0, -1.0)
+    volume = Volume(field, np.array([xs[0], xs[0], zs[0]]), VOXEL)
+    cyl = fit_pot(volume)
+    assert len(cyl) == 1, cyl
+    assert cyl[0].z_top_mm == pytest.approx(POT[1], abs=1.5 * VOXEL)
+    assert cyl[0].r_top_mm == pytest.approx(POT[3], abs=1.5 * VOXEL)
+    assert cyl[0].z_bottom_mm <= zs[k_pot - 2]  # the cone's slices go with the pot
