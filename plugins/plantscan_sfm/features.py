@@ -26,6 +26,8 @@ import numpy as np
 from plantscan_core.data import ViewRecord
 from plantscan_core.errors import PlantScanError
 
+RANSAC_SEED = 0  # geometric verification's random seed (match_pairs): one run, one result
+
 
 class SfmError(PlantScanError):
     """Structure from motion could not calibrate the rig; the message says what to change."""
@@ -178,6 +180,11 @@ def match_pairs(db: Path, work_dir: Path, views: list[SfmView], pairs: list[tupl
     popt.match_list_path = str(pair_file)
     vopt = pycolmap.TwoViewGeometryOptions()
     vopt.ransac.max_error = max_error_px
+    # COLMAP's RANSAC seeds itself from std::random_device unless given a seed (-1): the
+    # same photos gave other inlier sets from run to run (and, through them, another
+    # calibration). One fixed seed: every pair's verification is the same on every run and
+    # with any number of threads.
+    vopt.ransac.random_seed = RANSAC_SEED
     # Features of the lab (backdrop, stand) do not turn with the plate: a match that
     # stays put between two photos of one camera is not a point of the turntable scene.
     vopt.filter_stationary_matches = True
