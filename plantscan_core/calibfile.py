@@ -17,6 +17,7 @@ from pydantic import Field, ValidationError, field_validator, model_validator
 
 from plantscan_core.bounds import (
     MAX_IMAGE_SIDE_PX,
+    AngleDeg,
     CheckedModel,
     FiniteFloat,
     LengthMM,
@@ -85,6 +86,8 @@ class CalibrationEntry(CheckedModel):
     angle_scale: float = Field(1.0, gt=0.5, lt=2.0, description="real per commanded degree")
     tilt_axis: TiltAxisEntry | None = None
     quality: dict[str, Any] | None = None
+    view_angles_deg: dict[int, AngleDeg] = Field(
+        default_factory=dict, description="solved turntable angle per view index (sfm)")
 
     @model_validator(mode="after")
     def _poses_name_models(self) -> CalibrationEntry:

@@ -84,11 +84,12 @@ def test_calibration_yaml_round_trip(tmp_path):
         {"a": MODEL}, {("a", 0): Pose(rotation_x(30) @ rotation_z(10), [1.0, 2.0, 3.0])},
         tilts_deg={0: 0.0, 1: 20.0}, angle_scale=1.0002,
         tilt_axis=TiltAxis(np.array([0.0, 0.0, 120.0]), np.array([0.0, 1.0, 0.0])),
-        quality={"rms_px": np.float64(0.12)})
+        quality={"rms_px": np.float64(0.12)}, view_angles_deg={0: 0.02, 7: 70.01})
     cal.save(tmp_path / "c.yaml")
     text = (tmp_path / "c.yaml").read_text()
     assert "!!" not in text  # plain YAML, no Python/numpy tags
     back = Calibration.load(tmp_path / "c.yaml")
+    assert back.view_angles_deg == {0: 0.02, 7: 70.01}  # the sfm calibrator's solved angles
     p = np.array([[10.0, -20.0, 150.0]])
     for angle in (0.0, 37.0):
         assert np.allclose(back.camera_at("a", 0, angle).project(p),
