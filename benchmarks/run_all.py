@@ -19,7 +19,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 ORDER = ["population", "render", "calibration", "segmentation", "hull", "leaves", "batch",
-         "store", "end_to_end", "first_run"]
+         "store", "experiment", "end_to_end", "first_run"]
 
 
 def assemble() -> Path:
