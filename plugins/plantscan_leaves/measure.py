@@ -578,8 +578,8 @@ def _station_extents(sides: _Sides, mid_pts: np.ndarray, dist_b: np.ndarray,
     return extent, station, valid, lateral
 
 
-def thick_shares(mesh: Mesh, face_labels: np.ndarray, leaf_labels: list[int]
-                 ) -> dict[int, tuple[float, float]]:
+def thick_shares(mesh: Mesh, face_labels: np.ndarray, leaf_labels: list[int],
+                 unit_mm: float | None = None) -> dict[int, tuple[float, float]]:
     """``{leaf: (share, median mm)}``: the share of each leaf's area where the mesh is over
     ``THICK_FACTOR`` x the leaf's median thickness there, and that median.
 
@@ -590,7 +590,8 @@ def thick_shares(mesh: Mesh, face_labels: np.ndarray, leaf_labels: list[int]
     surface is several times thicker it is not the leaf's own: phantom volume the
     views could not carve (a young leaf folded against its neighbours) or another
     organ fused with it, and the traits measured there carry it.  Rays that leave
-    through nothing (a numerically open spot) are not counted.
+    through nothing (a numerically open spot) are not counted.  ``unit_mm``: the
+    mesh's ``geometry.mesh_unit`` when the caller has it (a median over every edge).
     """
     import open3d as o3d
 
@@ -602,7 +603,7 @@ def thick_shares(mesh: Mesh, face_labels: np.ndarray, leaf_labels: list[int]
     scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)),
                         o3d.core.Tensor(f.astype(np.uint32)))
     rng = np.random.default_rng(0)  # the same figure from the same mesh
-    eps = 1e-3 * geo.mesh_unit(v, f)  # off the face, well inside any slab
+    eps = 1e-3 * (unit_mm or geo.mesh_unit(v, f))  # off the face, well inside any slab
     for label in leaf_labels:
         ids = np.flatnonzero(face_labels == label)
         if not len(ids):
@@ -1087,19 +1088,20 @@ def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = No
     done = thread_map(one, leaf_labels, _submeshes(labelled, leaf_labels))
     measurements = [m for m, _ in done if m is not None]
     report.warnings += [w for _, w in done if w is not None]
-    _thick_and_outline_checks(labelled, measurements, report)
+    _thick_and_outline_checks(labelled, measurements, report, unit)
     leaves = [m.traits for m in measurements]
-    traits = Traits(leaves, plant_traits(mesh, leaves))
+    traits = Traits(leaves, plant_traits(mesh, leaves, PROJECTION_PIXEL_UNITS * unit))
     _judge(traits, measurements, labelled, p, plant_views, report)
     return traits, measurements, report
 
 
 def _thick_and_outline_checks(labelled: LabelledMesh, measurements: list[LeafMeasurement],
-                              report: StageReport) -> None:
+                              report: StageReport, unit_mm: float | None = None) -> None:
     """Each leaf's ``thick_share`` (and a warning at ``THICK_WARN_SHARE``), and the
     perimeter-against-length warnings."""
     mesh = labelled.mesh
-    shares = thick_shares(mesh, labelled.face_labels, [m.traits.leaf_id for m in measurements])
+    shares = thick_shares(mesh, labelled.face_labels, [m.traits.leaf_id for m in measurements],
+                          unit_mm)
     for m in measurements:
         if m.traits.leaf_id not in shares:
             continue
