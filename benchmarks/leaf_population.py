@@ -78,6 +78,9 @@ def run_leaf_stages(mesh_npz: Path, sections: dict[str, Any], out_dir: Path,
             "measure_wall_s": t2 - t1, "measure_cpu_s": c2 - c1}
 
 
+TIMING = ("segment_wall_s", "segment_cpu_s", "measure_wall_s", "measure_cpu_s")
+
+
 def trust_figures(leaves: list[dict], plants: list[dict]) -> dict[str, float]:
     """The issue's trust figures over matched leaves and plants."""
     def worst(lf):
@@ -155,10 +158,12 @@ def confusion_table(counts: dict[tuple[str, bool], int]) -> str:
 
 
 def evaluate_variant(name: str, recipe_dir: Path, segmenter: str | None, runs: Path,
-                     families: list[str], seeds: list[int] | None, work: Path
-                     ) -> tuple[list[dict], list[dict], dict]:
+                     families: list[str], seeds: list[int] | None, work: Path,
+                     reuse: bool = False) -> tuple[list[dict], list[dict], dict]:
     """Every finished run of ``families`` through the variant's leaf stages, evaluated;
-    the trust figures carry ``confusion`` ({(kind, low confidence): leaves})."""
+    the trust figures carry ``confusion`` ({(kind, low confidence): leaves}).  ``reuse``:
+    a plant whose folder under ``work`` holds a finished evaluation is read, not redone
+    (a run cut short goes on where it stopped)."""
     plants, leaves = [], []
     confusion: dict[tuple[str, bool], int] = {}
     for family in families:
@@ -172,12 +177,19 @@ def evaluate_variant(name: str, recipe_dir: Path, segmenter: str | None, runs: P
             record = info.get("scan_record") or {}
             truth_dir = Path(info.get("scan") or record.get("path", "")) / "ground_truth"
             out = work / name / family / run_dir.name
-            if out.exists():
-                shutil.rmtree(out)
-            plant_views = record.get("views")
-            timing = run_leaf_stages(run_dir / "mesh.npz", sections, out, plant_views)
-            evaluation = pop.evaluate_plant(out, truth_dir)
-            (out / "evaluation.json").write_text(json.dumps(evaluation, indent=1, default=str))
+            if reuse and (out / "evaluation.json").exists():
+                evaluation = json.loads((out / "evaluation.json").read_text())
+                timing = json.loads((out / "timing.json").read_text()) \
+                    if (out / "timing.json").exists() else dict.fromkeys(TIMING, float("nan"))
+            else:
+                if out.exists():
+                    shutil.rmtree(out)
+                timing = run_leaf_stages(run_dir / "mesh.npz", sections, out,
+                                         record.get("views"))
+                (out / "timing.json").write_text(json.dumps(timing))
+                evaluation = pop.evaluate_plant(out, truth_dir)
+                (out / "evaluation.json").write_text(json.dumps(evaluation, indent=1,
+                                                                default=str))
             row = pop.plant_row(key, evaluation, truth_dir, None)
             row.update(timing)
             measured = json.loads((out / "plant_traits.json").read_text())
@@ -218,6 +230,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--work", type=Path, default=Path("/tmp/plantscan-leaf-population"))
     ap.add_argument("--out", type=Path, default=REPO / "docs/benchmarks/leaf_population.md")
     ap.add_argument("--title", default="")
+    ap.add_argument("--reuse", action="store_true",
+                    help="read the plants already evaluated under --work instead of redoing them")
     args = ap.parse_args(argv)
     variants = args.variant or ["rules=curvature-regions", "learned=learned-organs"]
     seeds = pop.parse_seeds(args.seeds) if args.seeds else None
@@ -228,7 +242,7 @@ def main(argv: list[str] | None = None) -> int:
         segmenter, _, folder = rest.partition("@")
         recipe_dir = Path(folder) if folder else REPO / "recipes"
         plants, leaves, trust = evaluate_variant(name, recipe_dir, segmenter or None, args.runs,
-                                                 families, seeds, args.work)
+                                                 families, seeds, args.work, args.reuse)
         pop.write_csv(plants, args.work / f"{name}-plants.csv")
         pop.write_csv(leaves, args.work / f"{name}-leaves.csv")
         seg = np.array([p["segment_wall_s"] + p["measure_wall_s"] for p in plants])
