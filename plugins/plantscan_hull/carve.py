@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from plantscan_core.data import FIELD_BLOCK, BlockField
 from plantscan_hull.views import (
     DISTANCE_LIPSCHITZ,
     SD_STEP,
@@ -394,12 +395,15 @@ def _children(cells: np.ndarray, size: int) -> np.ndarray:
 
 def carve_octree(views: Sequence[ViewField], grid: Grid, k: int, top_cell: int = 32,
                  keep_thin: bool = True, thin_value: float = 0.15, backend: str = "numpy",
-                 min_seen: int = 0) -> tuple[np.ndarray, CarveStats]:
+                 min_seen: int = 0, blocks: bool = False
+                 ) -> tuple[np.ndarray | BlockField, CarveStats]:
     """Coarse-to-fine carving; same field as ``carve_dense`` with far fewer tests.
 
     Cells of ``top_cell`` voxels (a power of two) are classified with
     ``classify_cells``; undecided ones are split in 8 down to single voxels,
-    whose field is computed by ``voxel_field``.
+    whose field is computed by ``voxel_field``.  With ``blocks`` the field is
+    returned as a ``BlockField`` (the compiled path fills it so, without ever
+    holding the dense grid), else as the dense ``(NX, NY, NZ)`` array.
     """
     if top_cell < 1 or top_cell & (top_cell - 1):
         raise ValueError(f"top_cell must be a power of two, got {top_cell}")
@@ -408,7 +412,8 @@ def carve_octree(views: Sequence[ViewField], grid: Grid, k: int, top_cell: int =
     kern = _Kernels(views, backend, min_seen)
     stats.backend = kern.name
     if kern.name == "numba" and top_cell > 1:  # top_cell 1 is the dense grid (below)
-        return _carve_tree(kern, grid, k, top_cell, keep_thin, thin_value, stats, t0)
+        field, stats = _carve_tree(kern, grid, k, top_cell, keep_thin, thin_value, stats, t0)
+        return (field if blocks else field.dense()), stats
     shape = np.array(grid.shape)
     s = grid.voxel_size
     padded = -(-shape // top_cell) * top_cell
@@ -439,24 +444,78 @@ def carve_octree(views: Sequence[ViewField], grid: Grid, k: int, top_cell: int =
         phi[cells[:, 0], cells[:, 1], cells[:, 2]] = kern.voxel_field(
             grid.centres(cells), s, k, stats)
     phi = np.ascontiguousarray(phi[: shape[0], : shape[1], : shape[2]])
-    return _finish(phi, stats, keep_thin, thin_value, t0), stats
+    phi = _finish(phi, stats, keep_thin, thin_value, t0)
+    return (BlockField.from_dense(phi) if blocks else phi), stats
+
+
+class _Blocks:
+    """The compiled carve's field as it is filled, block by block (``BlockField``).
+
+    Decided cells of a block's side or larger make their blocks implicit (wholly
+    inside; never-touched blocks are wholly outside); the split cells of a block's
+    side become the mixed blocks, whose rows start at -1 and take every smaller
+    decided cell and fine voxel.  When the top cells are smaller than a block, every
+    block holding a cell that is not removed is mixed from the start.
+    """
+
+    def __init__(self, shape: tuple[int, int, int], block: int):
+        self.shape = tuple(int(n) for n in shape)
+        self.block = block
+        self.index = np.full(tuple(-(-np.array(self.shape) // block)), BlockField.OUTSIDE,
+                             dtype=np.int32)
+        self.values: np.ndarray | None = None
+
+    def _materialise(self, blocks: np.ndarray) -> None:
+        from plantscan_hull import kernels
+
+        self.index[tuple(blocks.T)] = np.arange(len(blocks), dtype=np.int32)
+        self.values = kernels.minus_ones((len(blocks),) + (self.block,) * 3)
+
+    def level(self, cells: np.ndarray, size: int, decision: np.ndarray) -> None:
+        """Write a level's decided cells (corners ``cells`` (C, 3), side ``size``)."""
+        from plantscan_hull import kernels
+
+        B = self.block
+        full = cells[decision == kernels.FULL]
+        if self.values is None and size <= B:
+            if size == B:
+                blocks = cells[decision == kernels.SPLIT] // B
+            else:  # top cells smaller than a block
+                blocks = np.unique(cells[decision != kernels.REMOVED] // B, axis=0)
+            self._materialise(blocks.reshape(-1, 3))
+        if size >= B:
+            n = size // B
+            for off in np.ndindex(n, n, n):
+                at = full // B + np.array(off)
+                at = at[np.all(at < self.index.shape, axis=1)]
+                self.index[tuple(at.T)] = BlockField.INSIDE
+        elif len(full):
+            kernels._fill_blocked(self.index, self.values, self.shape, np.ascontiguousarray(full),
+                                  size, np.float32(1.0))
+
+    def field(self) -> BlockField:
+        values = self.values if self.values is not None else np.zeros(
+            (0,) + (self.block,) * 3, np.float32)
+        return BlockField(self.shape, self.block, self.index, values)
 
 
 def _carve_tree(kern: _Kernels, grid: Grid, k: int, top_cell: int, keep_thin: bool,
-                thin_value: float, stats: CarveStats, t0: float) -> tuple[np.ndarray, CarveStats]:
+                thin_value: float, stats: CarveStats, t0: float
+                ) -> tuple[BlockField, CarveStats]:
     """``carve_octree`` with the compiled kernels and inherited view decisions.
 
     A cell's conservative test in a view holds for all of its points, so its
     children test only the views it left ambiguous (``kernels.classify_tree``,
     ``classify_group``: the 8 siblings together); the field equals
-    ``carve_dense``'s (tested).  Decided cells are written as blocks and the
+    ``carve_dense``'s (tested).  The field is filled block by block
+    (``_Blocks``): only the blocks the surface crosses hold values, and the
     thin-part rescue visits only the fine voxels.
     """
     from plantscan_hull import kernels
 
     shape = np.array(grid.shape)
     s = grid.voxel_size
-    phi = np.full(tuple(shape), -1.0, dtype=np.float32)
+    out = _Blocks(grid.shape, FIELD_BLOCK)
     padded = -(-shape // top_cell) * top_cell
     ranges = [np.arange(0, p, top_cell) for p in padded]
     cells = np.stack(np.meshgrid(*ranges, indexing="ij"), axis=-1).reshape(-1, 3)
@@ -468,22 +527,21 @@ def _carve_tree(kern: _Kernels, grid: Grid, k: int, top_cell: int, keep_thin: bo
         grid.centres(cells + (size - 1) / 2.0), kern.cell_consts(size * s / 2.0, s, k), stats)
     voxel_consts = kernels.carve_consts(s, k, kern.min_seen)
     while True:
-        kernels._fill_cells(phi, np.ascontiguousarray(cells[decision == 1]), size,
-                            np.float32(1.0))
+        out.level(cells, size, decision)
         split = cells[decision == 2]  # (P, 3) corners, in the order of ``tree``
         stats.split_views_per_level[size] = float(np.diff(tree.start).mean()) if len(
             split) else 0.0
         stats.seconds_per_level[size] = time.perf_counter() - t_level
         t_level = time.perf_counter()
         if size == 1 or not len(split):
-            return _done(phi, stats, t0)
+            return _done(out.field(), stats, t0)
         centres = grid.centres(split + (size - 1) / 2.0)
         if size == 2:  # top_cell == 2: the voxels of the split cells, in one go
             valid = _fine_valid(split, shape)
             stats.cells_per_level[1] = stats.fine_voxels = int(valid.sum())
             values = kernels.voxel_group(kern._packed, tree, centres, valid, voxel_consts, stats)
             del tree
-            return _scatter(phi, split, values, valid, keep_thin, thin_value, stats, t_level, t0)
+            return _scatter(out, split, values, valid, keep_thin, thin_value, stats, t_level, t0)
         if size == 4:
             break
         cells = _children(split, size)
@@ -508,8 +566,7 @@ def _carve_tree(kern: _Kernels, grid: Grid, k: int, top_cell: int, keep_thin: bo
         decision, sub = kernels.classify_group(
             kern._packed, kernels._sub_tree(tree, b0, b1), centres[b0:b1], valid,
             kern.cell_consts(s, s, k), stats)
-        kernels._fill_cells(phi, np.ascontiguousarray(cells[decision == 1]), 2,
-                            np.float32(1.0))
+        out.level(cells, 2, decision)
         split_2 = cells[decision == 2]
         n_split += len(split_2)
         n_listed += int(sub.start[-1])
@@ -528,11 +585,11 @@ def _carve_tree(kern: _Kernels, grid: Grid, k: int, top_cell: int, keep_thin: bo
     stats.split_views_per_level[2] = n_listed / n_split if n_split else 0.0
     stats.seconds_per_level[2] = t_cells
     if not n_split:
-        return _done(phi, stats, t0)
+        return _done(out.field(), stats, t0)
     split = np.concatenate(splits)
     valid = np.concatenate(valids)
     stats.cells_per_level[1] = stats.fine_voxels = int(valid.sum())
-    return _scatter(phi, split, np.concatenate(values), valid, keep_thin, thin_value, stats,
+    return _scatter(out, split, np.concatenate(values), valid, keep_thin, thin_value, stats,
                     time.perf_counter() - t_voxels, t0)
 
 
@@ -551,18 +608,20 @@ def _fine_valid(split: np.ndarray, shape: np.ndarray) -> np.ndarray:
     return valid.ravel()
 
 
-def _scatter(phi: np.ndarray, split: np.ndarray, values: np.ndarray, valid: np.ndarray,
+def _scatter(out: _Blocks, split: np.ndarray, values: np.ndarray, valid: np.ndarray,
              keep_thin: bool, thin_value: float, stats: CarveStats, t_level: float,
-             t0: float) -> tuple[np.ndarray, CarveStats]:
-    """Writes the fine voxels' values (and the thin-part rescue) into ``phi``."""
+             t0: float) -> tuple[BlockField, CarveStats]:
+    """Writes the fine voxels' values (and the thin-part rescue) into ``out``."""
     from plantscan_hull import kernels
 
-    stats.rescued_voxels = int(kernels._scatter_fine(
-        phi, np.ascontiguousarray(split), values, valid, np.float32(thin_value), keep_thin))
+    stats.rescued_voxels = int(kernels._scatter_fine_blocked(
+        out.index, out.values, out.shape, np.ascontiguousarray(split), values, valid,
+        np.float32(thin_value), keep_thin))
     stats.seconds_per_level[1] = time.perf_counter() - t_level
-    return _done(phi, stats, t0)
+    return _done(out.field(), stats, t0)
 
 
-def _done(phi: np.ndarray, stats: CarveStats, t0: float) -> tuple[np.ndarray, CarveStats]:
+def _done(phi: np.ndarray | BlockField, stats: CarveStats, t0: float
+          ) -> tuple[np.ndarray | BlockField, CarveStats]:
     stats.seconds = time.perf_counter() - t0
     return phi, stats

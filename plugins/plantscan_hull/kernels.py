@@ -29,7 +29,9 @@ from plantscan_hull.views import SD_DTYPE, SD_STEP, ViewField
 
 try:  # numba is optional: the numpy path is complete without it
     import numba
-    from numba import njit, prange
+    from numba import njit, prange, types
+    from numba.core import cgutils
+    from numba.extending import intrinsic
 
     # Debian's libtbb is older than numba wants; numba then uses OpenMP or its own
     # work queue by itself.  The warning says nothing a user can act on.
@@ -187,6 +189,23 @@ Passes = namedtuple("Passes", ["X", "Y", "Z", "IDX", "FX", "FY", "A", "B", "C", 
                                "MARGIN", "BIL", "ZF", "ON", "DD", "SEL"])
 
 if HAVE_NUMBA:
+
+    @intrinsic
+    def _take(typingctx, counter):
+        # Atomically counter[0] += 1; returns the value before: the next chunk of a
+        # work-stealing loop (``_steal``).  numba has no CPU atomics of its own, and its
+        # prange schedule is static halves (its chunk size setting gave none of the
+        # interleaving with the omp or workqueue layers here, measured).
+        sig = types.int64(counter)
+
+        def codegen(context, builder, signature, args):
+            ary = context.make_array(signature.args[0])(context, builder, args[0])
+            ptr = cgutils.get_item_pointer(context, builder, signature.args[0], ary,
+                                           [context.get_constant(types.intp, 0)])
+            return builder.atomic_rmw("add", ptr, context.get_constant(types.int64, 1),
+                                      "seq_cst")
+
+        return sig, codegen
 
     @njit(cache=True, inline="always")
     def _row(params, j):
@@ -433,55 +452,70 @@ if HAVE_NUMBA:
     # before its loops: each read of a field holds a reference to its array, and those
     # counts in the inner loops made the kernels 1.35-1.8x slower (measured).
 
-    @njit(cache=True, parallel=True)
-    def _classify_tree(centres, parent, tree, cc, packed, out, chunk):
-        # Cell i, a child of ``tree``'s cell parent[i], tests its parent's ambiguous views;
-        # its counts and decision go to ``out`` (``cell_counts``).
+    @njit(cache=True)
+    def _tree_range(lo, hi, centres, parent, tree, cc, packed, out):
+        # Cells lo..hi, each a child of ``tree``'s cell parent[i], test their parent's
+        # ambiguous views; their counts and decisions go to ``out`` (``cell_counts``).
         params, tables = packed.params, packed.tables
-        m_all = centres.shape[0]
         rho = (cc.half_size - 0.5 * cc.voxel_size) * np.sqrt(3.0)  # voxel centres: see carve
         max_off = params.shape[0] - cc.min_seen
         decision, c_out, c_in, c_off, c_amb, amb, amb_start = out
         start, views, p_out, p_in, p_off = tree
+        count = 0
+        for i in range(lo, hi):
+            q = parent[i]
+            n_out = p_out[q]
+            n_in = p_in[q]
+            n_off = p_off[q]
+            n_on_amb = 0
+            na = 0  # ambiguous views, in the global view order
+            w = amb_start[i]
+            x = centres[i, 0]
+            y = centres[i, 1]
+            z = centres[i, 2]
+            for t in range(start[q], start[q + 1]):
+                if _removed(n_out, n_off, cc.k, max_off):
+                    break
+                j = views[t]
+                count += 1
+                vr = _row(params, j)
+                xc, yc, zc = _cam(vr, x, y, z)
+                res = _cell_test(vr, tables, xc, yc, zc, rho, cc)
+                if res == CELL_OFF:
+                    n_off += 1
+                elif res == CELL_OUT:
+                    n_out += 1
+                elif res == CELL_IN:
+                    n_in += 1
+                else:
+                    amb[w + na] = j  # ambiguous views, in the global view order
+                    na += 1
+                    n_on_amb += res == CELL_AMB
+            c_out[i] = n_out
+            c_in[i] = n_in
+            c_off[i] = n_off
+            c_amb[i] = na
+            decision[i] = _decide(n_out, n_in, n_off, na, n_on_amb, max_off, cc)
+        return count
+
+    # The parallel kernels steal work: each of ``workers`` threads takes the next chunk
+    # of ``chunk`` points or parents (``_take``) until none is left, so both cores stay
+    # busy to the end of a level however unevenly the work lies (a static split into
+    # halves leaves one core idle while the other finishes the leafy half).  Each chunk
+    # writes its own outputs and test count: the same field and counts in any order.
+
+    @njit(cache=True, parallel=True)
+    def _classify_tree(centres, parent, tree, cc, packed, out, chunk, workers):
+        m_all = centres.shape[0]
         nchunks = (m_all + chunk - 1) // chunk
         tests = np.zeros(nchunks, dtype=np.int64)
-        for c in prange(nchunks):
-            count = 0
-            for i in range(c * chunk, min(m_all, (c + 1) * chunk)):
-                q = parent[i]
-                n_out = p_out[q]
-                n_in = p_in[q]
-                n_off = p_off[q]
-                n_on_amb = 0
-                na = 0  # ambiguous views, in the global view order
-                w = amb_start[i]
-                x = centres[i, 0]
-                y = centres[i, 1]
-                z = centres[i, 2]
-                for t in range(start[q], start[q + 1]):
-                    if _removed(n_out, n_off, cc.k, max_off):
-                        break
-                    j = views[t]
-                    count += 1
-                    vr = _row(params, j)
-                    xc, yc, zc = _cam(vr, x, y, z)
-                    res = _cell_test(vr, tables, xc, yc, zc, rho, cc)
-                    if res == CELL_OFF:
-                        n_off += 1
-                    elif res == CELL_OUT:
-                        n_out += 1
-                    elif res == CELL_IN:
-                        n_in += 1
-                    else:
-                        amb[w + na] = j  # ambiguous views, in the global view order
-                        na += 1
-                        n_on_amb += res == CELL_AMB
-                c_out[i] = n_out
-                c_in[i] = n_in
-                c_off[i] = n_off
-                c_amb[i] = na
-                decision[i] = _decide(n_out, n_in, n_off, na, n_on_amb, max_off, cc)
-            tests[c] = count
+        counter = np.zeros(1, np.int64)
+        for _ in prange(workers):
+            c = _take(counter)
+            while c < nchunks:
+                tests[c] = _tree_range(c * chunk, min(m_all, (c + 1) * chunk), centres, parent,
+                                       tree, cc, packed, out)
+                c = _take(counter)
         return tests.sum()
 
     @njit(cache=True)  # serial: cheap, and parallel compiles slowly
@@ -495,61 +529,89 @@ if HAVE_NUMBA:
                 views[o + q] = counts.amb[a + q]
         return views
 
-    @njit(cache=True)  # serial: cheap, and parallel compiles slowly
-    def _fill_cells(phi, cells, size, value):
-        nx, ny, nz = phi.shape
-        for c in range(cells.shape[0]):
-            x0, y0, z0 = cells[c, 0], cells[c, 1], cells[c, 2]
-            for a in range(x0, min(x0 + size, nx)):
-                for b in range(y0, min(y0 + size, ny)):
-                    for e in range(z0, min(z0 + size, nz)):
-                        phi[a, b, e] = value
+    # ------------------------------------------------------------------ the field in blocks
+    # ``plantscan_core.data.BlockField``: index (BX, BY, BZ) int32, OUTSIDE -1 / INSIDE -2 /
+    # a row of values (M, B, B, B) float32.  The carve writes only into the rows (the mixed
+    # blocks, allocated from the split cells of the block's side); voxels beyond the grid
+    # stay -1.
+
+    @njit(cache=True, parallel=True)
+    def _fill_minus_one(flat):
+        for i in prange(flat.shape[0]):
+            flat[i] = np.float32(-1.0)
+
+    @njit(cache=True, inline="always")
+    def _block_get(index, values, bs, a, b, c):
+        row = index[a // bs, b // bs, c // bs]
+        if row == -1:
+            return np.float32(-1.0)
+        if row == -2:
+            return np.float32(1.0)
+        return values[row, a % bs, b % bs, c % bs]
 
     @njit(cache=True)  # serial: cheap, and parallel compiles slowly
-    def _scatter_fine(phi, cells, values, valid, thin_value, keep_thin):
+    def _fill_blocked(index, values, shape, cells, size, value):
+        # Cells (corners ``cells`` (C, 3), side ``size`` <= the block's) inside mixed
+        # blocks: their voxels within the grid get ``value``.
+        bs = values.shape[1]
+        nx, ny, nz = shape
+        for t in range(cells.shape[0]):
+            x0, y0, z0 = cells[t, 0], cells[t, 1], cells[t, 2]
+            row = index[x0 // bs, y0 // bs, z0 // bs]
+            a0, b0, e0 = x0 % bs, y0 % bs, z0 % bs
+            for a in range(min(size, nx - x0)):
+                for b in range(min(size, ny - y0)):
+                    for e in range(min(size, nz - z0)):
+                        values[row, a0 + a, b0 + b, e0 + e] = value
+
+    @njit(cache=True)  # serial: cheap, and parallel compiles slowly
+    def _scatter_fine_blocked(index, values, shape, cells, vals, valid, thin_value, keep_thin):
         # The fine voxels are the 8 children of the split 2-voxel cells with corners
         # ``cells`` (P, 3) (order of ``carve._children``; never materialised: 0.7 GB of
-        # int64 indices at 1024^3).  Writes their ``values`` (P * 8,) where ``valid``,
-        # then the thin-part rescue: only fine voxels can hold a value in (-0.5, 0]
-        # (decided cells hold exactly -1 or +1); a candidate with no 6-neighbour inside
-        # (before any rescue) gets ``thin_value``; exact zeros -> -1e-3.  Returns the
-        # number rescued.
-        nx, ny, nz = phi.shape
+        # int64 indices at 1024^3), all in mixed blocks.  Writes their ``vals`` (P * 8,)
+        # where ``valid``, then the thin-part rescue: only fine voxels can hold a value in
+        # (-0.5, 0] (decided cells hold exactly -1 or +1); a candidate with no 6-neighbour
+        # inside (before any rescue; a neighbour may lie in an implicit block) gets
+        # ``thin_value``; exact zeros -> -1e-3.  Returns the number rescued.
+        bs = values.shape[1]
+        nx, ny, nz = shape
         n = cells.shape[0]
         for p in range(n):
+            row = index[cells[p, 0] // bs, cells[p, 1] // bs, cells[p, 2] // bs]
             for ch in range(8):
                 if valid[p * 8 + ch]:
-                    phi[cells[p, 0] + (ch >> 2), cells[p, 1] + ((ch >> 1) & 1),
-                        cells[p, 2] + (ch & 1)] = values[p * 8 + ch]
+                    values[row, cells[p, 0] % bs + (ch >> 2), cells[p, 1] % bs + ((ch >> 1) & 1),
+                           cells[p, 2] % bs + (ch & 1)] = vals[p * 8 + ch]
         rescue = np.zeros(n * 8, dtype=np.bool_)
         for p in range(n):
             for ch in range(8):
-                val = values[p * 8 + ch]
+                val = vals[p * 8 + ch]
                 if not (valid[p * 8 + ch] and val > -0.5 and val <= 0.0):
                     continue
                 a = cells[p, 0] + (ch >> 2)
                 b = cells[p, 1] + ((ch >> 1) & 1)
                 c = cells[p, 2] + (ch & 1)
-                near = ((a > 0 and phi[a - 1, b, c] > 0)
-                        or (a + 1 < nx and phi[a + 1, b, c] > 0)
-                        or (b > 0 and phi[a, b - 1, c] > 0)
-                        or (b + 1 < ny and phi[a, b + 1, c] > 0)
-                        or (c > 0 and phi[a, b, c - 1] > 0)
-                        or (c + 1 < nz and phi[a, b, c + 1] > 0))
+                near = ((a > 0 and _block_get(index, values, bs, a - 1, b, c) > 0)
+                        or (a + 1 < nx and _block_get(index, values, bs, a + 1, b, c) > 0)
+                        or (b > 0 and _block_get(index, values, bs, a, b - 1, c) > 0)
+                        or (b + 1 < ny and _block_get(index, values, bs, a, b + 1, c) > 0)
+                        or (c > 0 and _block_get(index, values, bs, a, b, c - 1) > 0)
+                        or (c + 1 < nz and _block_get(index, values, bs, a, b, c + 1) > 0))
                 rescue[p * 8 + ch] = keep_thin and not near
         count = 0
         for p in range(n):
+            row = index[cells[p, 0] // bs, cells[p, 1] // bs, cells[p, 2] // bs]
             for ch in range(8):
                 if not valid[p * 8 + ch]:
                     continue
-                a = cells[p, 0] + (ch >> 2)
-                b = cells[p, 1] + ((ch >> 1) & 1)
-                c = cells[p, 2] + (ch & 1)
+                a = cells[p, 0] % bs + (ch >> 2)
+                b = cells[p, 1] % bs + ((ch >> 1) & 1)
+                c = cells[p, 2] % bs + (ch & 1)
                 if rescue[p * 8 + ch]:
-                    phi[a, b, c] = thin_value
+                    values[row, a, b, c] = thin_value
                     count += 1
-                elif phi[a, b, c] == 0:
-                    phi[a, b, c] = -1e-3
+                elif values[row, a, b, c] == 0:
+                    values[row, a, b, c] = -1e-3
         return count
 
     # ------------------------------------------------------------------ groups of 8 siblings
@@ -815,15 +877,19 @@ if HAVE_NUMBA:
         return count
 
     @njit(cache=True, parallel=True)
-    def _classify_group(centres, valid, tree, cc, packed, out, chunk):
+    def _classify_group(centres, valid, tree, cc, packed, out, chunk, workers):
         # centres: (P, 3) parents' centres; children have half-side ``cc.half_size``;
         # their counts and decisions go to ``out`` (``cell_counts`` of P * 8 cells).
         n_par = centres.shape[0]
         nchunks = (n_par + chunk - 1) // chunk
         tests = np.zeros(nchunks, dtype=np.int64)
-        for c in prange(nchunks):
-            tests[c] = _classify_range(c * chunk, min(n_par, (c + 1) * chunk), centres, valid,
-                                       tree, cc, packed, out)
+        counter = np.zeros(1, np.int64)
+        for _ in prange(workers):
+            c = _take(counter)
+            while c < nchunks:
+                tests[c] = _classify_range(c * chunk, min(n_par, (c + 1) * chunk), centres,
+                                           valid, tree, cc, packed, out)
+                c = _take(counter)
         return tests.sum()
 
     # ------------------------------------------------------------------ fine voxels, in passes
@@ -987,15 +1053,19 @@ if HAVE_NUMBA:
         return count
 
     @njit(cache=True, parallel=True)
-    def _voxel_group(centres, valid, tree, cc, packed, chunk):
+    def _voxel_group(centres, valid, tree, cc, packed, chunk, workers):
         # centres: (P, 3) centres of split 2-voxel cells; out: (P * 8,) voxel values.
         n_par = centres.shape[0]
         nchunks = (n_par + chunk - 1) // chunk
         out = np.full(n_par * 8, np.float32(-1.0))
         tests = np.zeros(nchunks, dtype=np.int64)
-        for c in prange(nchunks):
-            tests[c] = _voxel_range(c * chunk, min(n_par, (c + 1) * chunk), centres, valid,
-                                    tree, cc, packed, out)
+        counter = np.zeros(1, np.int64)
+        for _ in prange(workers):
+            c = _take(counter)
+            while c < nchunks:
+                tests[c] = _voxel_range(c * chunk, min(n_par, (c + 1) * chunk), centres,
+                                        valid, tree, cc, packed, out)
+                c = _take(counter)
         return out, tests.sum()
 
 
@@ -1121,6 +1191,16 @@ def voxel_field(packed: Packed, points: np.ndarray, consts: CarveConsts,
     return out
 
 
+def minus_ones(shape: tuple[int, ...]) -> np.ndarray:
+    """A new float32 array of ``shape`` filled with -1 (on every thread when large)."""
+    out = np.empty(shape, dtype=np.float32)
+    if HAVE_NUMBA and out.size > 1 << 20:
+        _fill_minus_one(out.reshape(-1))
+    else:
+        out.fill(-1.0)
+    return out
+
+
 def threads() -> int:
     return int(numba.get_num_threads()) if HAVE_NUMBA else 1
 
@@ -1156,7 +1236,7 @@ def classify_tree(packed: Packed, tree: Tree, parent: np.ndarray, centres: np.nd
     """
     counts = cell_counts(len(centres), _offsets(np.diff(tree.start)[parent]))
     tests = _classify_tree(np.ascontiguousarray(centres, dtype=np.float64), parent, tree,
-                           consts, packed, counts, CHUNK)
+                           consts, packed, counts, CHUNK, threads())
     if stats is not None:
         stats.cell_view_tests += int(tests)
     return counts.decision, _split_tree(counts)
@@ -1179,7 +1259,7 @@ def classify_group(packed: Packed, tree: Tree, centres: np.ndarray, valid: np.nd
         sub = _sub_tree(tree, b0, b1)
         counts = cell_counts(8 * (b1 - b0), _offsets(np.repeat(np.diff(sub.start), 8)))
         tests = _classify_group(centres[b0:b1], valid[8 * b0:8 * b1], sub, consts, packed,
-                                counts, GROUP_CHUNK)
+                                counts, GROUP_CHUNK, threads())
         decision[8 * b0:8 * b1] = counts.decision
         parts.append(_split_tree(counts))
         if stats is not None:
@@ -1216,7 +1296,7 @@ def voxel_group(packed: Packed, tree: Tree, centres: np.ndarray, valid: np.ndarr
                 consts: CarveConsts, stats=None) -> np.ndarray:
     """Clamped field of the 8 voxels of every split 2-voxel cell (``centres``: the cells')."""
     out, tests = _voxel_group(np.ascontiguousarray(centres, dtype=np.float64), valid, tree,
-                              consts, packed, GROUP_CHUNK)
+                              consts, packed, GROUP_CHUNK, threads())
     if stats is not None:
         stats.voxel_view_tests += int(tests)
     return out

@@ -7,27 +7,20 @@ import logging
 import numpy as np
 
 from plantscan_core.data import Mesh
+from plantscan_hull.fields import (
+    Field,
+    chunk_max,
+    inside_indices,
+    read_box,
+    set_voxels,
+    values_at,
+)
 
 log = logging.getLogger(__name__)
 
 
-def inside_indices(field: np.ndarray, slab_voxels: int = 1 << 23) -> np.ndarray:
-    """Sorted linear indices of the voxels with ``field > 0`` ((N,) int64).
-
-    Slab by slab (about ``slab_voxels`` each) along the first axis:
-    ``np.flatnonzero(field > 0)`` makes an (NX, NY, NZ) bool temporary first
-    (106 MB of fresh pages at 512^3, half of the call's time on a process that
-    has just carved).
-    """
-    field = np.ascontiguousarray(field)
-    plane = int(np.prod(field.shape[1:]))
-    step = max(1, slab_voxels // max(plane, 1))
-    return np.concatenate([np.flatnonzero(field[x:x + step] > 0) + x * plane
-                           for x in range(0, field.shape[0], step)] or [np.zeros(0, np.int64)])
-
-
-def drop_small_components(field: np.ndarray, min_voxels: int, in_place: bool = False,
-                          undo: list | None = None) -> tuple[np.ndarray, int]:
+def drop_small_components(field: Field, min_voxels: int, in_place: bool = False,
+                          undo: list | None = None) -> tuple[Field, int]:
     """Set inside components smaller than ``min_voxels`` (26-connected) to outside.
 
     Works on the inside voxels only (the cost follows the hull, not the grid):
@@ -36,8 +29,8 @@ def drop_small_components(field: np.ndarray, min_voxels: int, in_place: bool = F
 
     Returns the field (``field`` itself when ``in_place`` or nothing was
     dropped, else a modified copy) and the number of components dropped.
-    With ``in_place`` and ``undo`` (a list), the dropped voxels' flat indices
-    and former values are appended to ``undo`` (see :func:`restore`).
+    With ``in_place`` and ``undo`` (a list), the edits are recorded in ``undo``
+    (see :func:`restore`).  ``field`` is a dense array or a ``BlockField``.
     """
     from plantscan_hull import kernels
 
@@ -55,24 +48,17 @@ def drop_small_components(field: np.ndarray, min_voxels: int, in_place: bool = F
         return field, 0
     # Each component of size s contributes s voxels of size s.
     dropped = int(np.sum(1.0 / sizes[small]).round())
-    out = field if in_place else field.copy()
-    flat = out.reshape(-1)
-    if in_place and undo is not None:
-        undo.append((idx[small], flat[idx[small]]))
-    flat[idx[small]] = -1.0
+    out = field if in_place else _copy(field)
+    set_voxels(out, idx[small], -1.0, undo if in_place else None)
     return out, dropped
 
 
-def restore(field: np.ndarray, undo: list) -> None:
-    """Undo in-place edits of ``field``, last first: ``undo`` holds ``(box, values)``
-    (``box`` a tuple of slices) or ``(flat indices, values)`` pairs."""
-    flat = field.reshape(-1)
-    for where, values in reversed(undo):
-        if isinstance(where, tuple):
-            field[where] = values
-        else:
-            flat[where] = values
-    undo.clear()
+def _copy(field: Field) -> Field:
+    if isinstance(field, np.ndarray):
+        return field.copy()
+    from plantscan_core.data import BlockField
+
+    return BlockField(field.shape, field.block, field.index.copy(), field.values.copy())
 
 
 def _component_sizes_scipy(idx: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
@@ -108,18 +94,7 @@ LEVEL_GAP = 1e-3
 MC_BLOCK = 32
 
 
-def _block(field: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """``field[lo:hi]`` (per axis) with -1 (outside) where the range leaves the grid."""
-    out = np.full(tuple(hi - lo), -1.0, dtype=np.float32)
-    a = np.maximum(lo, 0)
-    b = np.minimum(hi, field.shape)
-    if np.all(b > a):
-        out[tuple(slice(x - y, z - y) for x, y, z in zip(a, lo, b, strict=True))] = \
-            field[tuple(slice(x, z) for x, z in zip(a, b, strict=True))]
-    return out
-
-
-def _surface_blocks(field: np.ndarray, block: int) -> np.ndarray:
+def _surface_blocks(field: Field, block: int) -> np.ndarray:
     """Indices ``(K, 3)`` of the blocks whose samples hold an inside voxel (C order).
 
     Block ``b`` (along each axis) samples voxels ``b * block - 1 .. b * block +
@@ -127,22 +102,21 @@ def _surface_blocks(field: np.ndarray, block: int) -> np.ndarray:
     last voxel of chunk ``b - 1`` and chunk ``b``, where chunk ``c`` is voxels
     ``[c * block, (c + 1) * block)``.  A block without an inside sample has no
     surface.  The chunks' maxima take one read of the field (``reduceat``),
-    instead of copying every block out of the grid to look at it.
+    instead of copying every block out of the grid to look at it (on a
+    ``BlockField`` of the same block side, the blocks' own maxima).
     """
     n = np.array(field.shape)
     n_blocks = -(-(n + 1) // block)
-    chunk_max = field
-    for ax in range(3):
-        chunk_max = np.maximum.reduceat(chunk_max, np.arange(0, n[ax], block), axis=ax)
+    maxima = chunk_max(field, block)
     pad = np.zeros(tuple(n_blocks + 1), bool)
-    pad[tuple(slice(1, 1 + c) for c in chunk_max.shape)] = chunk_max > 0
+    pad[tuple(slice(1, 1 + c) for c in maxima.shape)] = maxima > 0
     hit = np.zeros(tuple(n_blocks), bool)
     for shift in np.ndindex(2, 2, 2):
         hit |= pad[tuple(slice(s, s + nb) for s, nb in zip(shift, n_blocks, strict=True))]
     return np.argwhere(hit)
 
 
-def marching_cubes(field: np.ndarray, origin: np.ndarray, voxel_size: float,
+def marching_cubes(field: Field, origin: np.ndarray, voxel_size: float,
                    block: int = MC_BLOCK, thin_rims: bool = False) -> Mesh:
     """Closed surface of ``field > 0`` (0 level, linear interpolation between voxels).
 
@@ -160,7 +134,7 @@ def marching_cubes(field: np.ndarray, origin: np.ndarray, voxel_size: float,
 
     Parameters
     ----------
-    field : (NX, NY, NZ) float array, > 0 inside
+    field : (NX, NY, NZ) float array or BlockField, > 0 inside
     origin : (3,) mm, centre of voxel (0, 0, 0)
     voxel_size : mm
 
@@ -170,7 +144,8 @@ def marching_cubes(field: np.ndarray, origin: np.ndarray, voxel_size: float,
     """
     from skimage.measure import marching_cubes as sk_marching_cubes
 
-    field = np.asarray(field, dtype=np.float32)
+    if isinstance(field, np.ndarray):
+        field = np.asarray(field, dtype=np.float32)
     # Padded grid: index g = voxel index + 1, one outside layer all round.
     n_cubes = np.array(field.shape) + 1
     stride = np.array([(n_cubes[1] + 1) * (n_cubes[2] + 1), n_cubes[2] + 1, 1])
@@ -178,7 +153,7 @@ def marching_cubes(field: np.ndarray, origin: np.ndarray, voxel_size: float,
     for bi in _surface_blocks(field, block):
         lo = bi * block
         hi = np.minimum(lo + block, n_cubes) + 1  # samples of the block's cubes
-        sub = _block(field, lo - 1, hi - 1)
+        sub = read_box(field, lo - 1, hi - 1)
         if not (sub.max() > 0 and sub.min() <= 0):
             continue  # no surface in this block
         near = np.abs(sub) < LEVEL_GAP
@@ -233,7 +208,7 @@ def marching_cubes(field: np.ndarray, origin: np.ndarray, voxel_size: float,
 
 
 def _thin_rims(verts: np.ndarray, low: np.ndarray, axis: np.ndarray, on_edge: np.ndarray,
-               field: np.ndarray) -> np.ndarray:
+               field: Field) -> np.ndarray:
     """Move vertices on grid edges leaving a one-voxel-thick part out to its rim.
 
     ``verts`` are padded-grid coordinates (voxel index + 1); ``low``, ``axis``
@@ -251,17 +226,9 @@ def _thin_rims(verts: np.ndarray, low: np.ndarray, axis: np.ndarray, on_edge: np
     edge, so the mesh's topology is unchanged.
     """
     frac = verts - low
-    shape = field.shape
-    flat = np.ascontiguousarray(field).reshape(-1)
 
     def value(idx):  # field at padded-grid points, -1 outside the grid
-        # Column by column and one flat gather: reductions over a length-3 axis and
-        # 3-array fancy indexing of the grid are several times slower.
-        x, y, z = idx[:, 0] - 1, idx[:, 1] - 1, idx[:, 2] - 1
-        ok = ((x >= 0) & (x < shape[0]) & (y >= 0) & (y < shape[1]) & (z >= 0)
-              & (z < shape[2]))
-        lin = (x * shape[1] + y) * shape[2] + z
-        return np.where(ok, flat[np.where(ok, lin, 0)], np.float32(-1.0))
+        return values_at(field, idx - 1)
 
     rows = np.arange(len(verts))
     step = np.eye(3, dtype=np.int64)[axis]

@@ -23,6 +23,7 @@ from scipy import ndimage
 
 from plantscan_core.bounds import CheckedModel
 from plantscan_core.data import Volume
+from plantscan_hull.fields import read_box, write_box, z_profile
 
 # A slice is disc-like when its area fills this fraction of the disc through its
 # farthest voxel (a polygonal hull of a circle from >= 8 views fills > 0.9).
@@ -134,12 +135,12 @@ def fit_pot(volume: Volume) -> list[TaperedCylinder]:
     volume : Volume
         The hull (field > 0 inside), turntable frame.
     """
-    field = volume.field
+    field = volume.blocks if volume.blocks is not None else volume.field
     s = float(volume.voxel_size)
     origin = np.asarray(volume.origin, dtype=float)
-    nz = field.shape[2]
+    nx, ny, nz = field.shape
     # max over x, y: no (NX, NY, NZ) bool temporary (106 MB of fresh pages at 512^3).
-    occupied_slices = np.flatnonzero(field.max(axis=(0, 1)) > 0)
+    occupied_slices = np.flatnonzero(z_profile(field) > 0)
     if occupied_slices.size == 0:
         return []
     k0 = int(occupied_slices[0])
@@ -155,8 +156,9 @@ def fit_pot(volume: Volume) -> list[TaperedCylinder]:
             c = (k - k0) // SLICE_CHUNK
             if c not in chunks:
                 a = k0 + c * SLICE_CHUNK
-                chunks[c] = np.ascontiguousarray(np.moveaxis(field[:, :, a:a + SLICE_CHUNK] > 0,
-                                                             2, 0))
+                b = min(nz, a + SLICE_CHUNK)
+                chunks[c] = np.ascontiguousarray(np.moveaxis(
+                    read_box(field, (0, 0, a), (nx, ny, b)) > 0, 2, 0))
             filled[k] = filled_slice(chunks[c][(k - k0) % SLICE_CHUNK])
         return filled[k]
 
@@ -224,21 +226,24 @@ def remove_cylinders(volume: Volume, cylinders: list[TaperedCylinder],
     ``margin_mm`` is the full margin; callers add a voxel to it because the
     hull's rim is only known to a voxel.  With ``undo`` (a list) the volume's
     own field is changed in place and each changed sub-box's former values are
-    appended to ``undo`` (``meshing.restore`` puts them back): no copy of the
-    grid (411 MB of fresh pages at 512^3, 0.3-1.2 s of page faults).
+    recorded in ``undo`` (``fields.restore`` puts them back): no copy of the
+    grid (411 MB of fresh pages at 512^3, 0.3-1.2 s of page faults).  A volume
+    held in blocks is edited block by block (always in place, ``undo`` or not).
 
     Returns
     -------
     field : (NX, NY, NZ) float32 array, voxels (a new array, or the volume's own
-        when ``cylinders`` is empty or ``undo`` is given)
+        when ``cylinders`` is empty or ``undo`` is given), or the volume's
+        ``BlockField``
     removed : int, voxels that were inside and are now outside
     """
+    own = volume.blocks if volume.blocks is not None else volume.field
     if not cylinders:
-        return volume.field, 0  # nothing to subtract: no copy of a possibly large grid
-    if undo is None:
-        field = np.array(volume.field, dtype=np.float32, copy=True)
+        return own, 0  # nothing to subtract: no copy of a possibly large grid
+    if undo is None and volume.blocks is None:
+        field = np.array(own, dtype=np.float32, copy=True)
     else:
-        field = volume.field
+        field = own
     s = float(volume.voxel_size)
     origin = np.asarray(volume.origin, dtype=float)
     removed = 0
@@ -262,11 +267,9 @@ def remove_cylinders(volume: Volume, cylinders: list[TaperedCylinder],
         rho = np.hypot(xs[:, None], ys[None, :])[:, :, None]
         zs = (origin[2] + np.arange(k_lo, k_hi) * s).astype(np.float32)
         d_in = cyl.inside_distance(rho, zs, margin_mm).astype(np.float32) / np.float32(s)
-        box = (slice(i_lo, i_hi), slice(j_lo, j_hi), slice(k_lo, k_hi))
-        sub = field[box]
+        lo = (i_lo, j_lo, k_lo)
+        sub = read_box(field, lo, (i_hi, j_hi, k_hi))
         cut = np.minimum(sub, -np.clip(d_in, -1.0, 1.0))
         removed += int(np.count_nonzero((sub > 0) & (cut <= 0)))
-        if undo is not None:
-            undo.append((box, sub.copy()))
-        field[box] = cut
+        write_box(field, lo, cut, undo)
     return field, removed

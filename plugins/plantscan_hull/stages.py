@@ -15,13 +15,13 @@ from plantscan_core.data import Calibration, Mesh, Silhouettes, Volume
 from plantscan_core.errors import DataError
 from plantscan_core.preflight import WorkEstimate, WorkPlan, check
 from plantscan_core.stages import Mesher, Reconstructor, StageParams
-from plantscan_hull.bbox import BoundingBoxError, auto_box, touching_faces
+from plantscan_hull.bbox import BoundingBoxError, auto_box
 from plantscan_hull.carve import Grid, carve_dense, carve_octree
+from plantscan_hull.fields import faces_inside, restore
 from plantscan_hull.meshing import (
     drop_small_components,
     marching_cubes,
     postprocess,
-    restore,
     topology_report,
 )
 from plantscan_hull.pot import TaperedCylinder, fit_pot, remove_cylinders
@@ -165,7 +165,7 @@ class _HullBase(Reconstructor):
         phi, stats = self._carve(views, grid)
         n_views = len(views)
         del views  # the tables (1.3 GB for 360 views at 2592x1728) are not needed any more
-        faces = touching_faces(phi > 0)
+        faces = faces_inside(phi)
         if p.floor_z_mm is not None and grid.lo[2] <= p.floor_z_mm + 1e-6:
             faces = [f for f in faces if f != "z-"]  # resting on the plate is not clipping
         if faces:
@@ -211,7 +211,7 @@ class OctreeHull(_HullBase):
     def _carve(self, views, grid):
         p = self.params
         return carve_octree(views, grid, self.k, p.top_cell, p.keep_thin, p.thin_value,
-                            backend=p.backend, min_seen=self.min_seen)
+                            backend=p.backend, min_seen=self.min_seen, blocks=True)
 
 
 class DenseHull(_HullBase):
@@ -260,9 +260,10 @@ class MarchingCubesMesher(Mesher):
         margin = p.pot_margin_mm + float(volume.voxel_size)
         # Pot and specks are removed in the volume's own field and put back afterwards (the
         # volume is the caller's): a copy of the grid is 411 MB of fresh pages at 512^3.
-        own = volume.field
-        undo = [] if (isinstance(own, np.ndarray) and own.dtype == np.float32
-                      and own.flags.writeable and own.flags.c_contiguous) else None
+        own = volume.blocks if volume.blocks is not None else volume.field
+        undo = [] if (volume.blocks is not None or (
+            isinstance(own, np.ndarray) and own.dtype == np.float32
+            and own.flags.writeable and own.flags.c_contiguous)) else None
         try:
             field, removed = remove_cylinders(volume, cylinders, margin, undo=undo)
             field, dropped = drop_small_components(

@@ -204,3 +204,63 @@ def test_formats_md_lists_the_trait_table():
     rows = [[cell.strip().strip("`") for cell in line.strip("|").split("|")[:3]]
             for line in section.splitlines() if line.startswith("| `")]
     assert rows == [[c.name, c.level, c.unit or "text"] for c in (*LEAF_COLUMNS, *PLANT_TRAITS)]
+
+
+# --------------------------------------------------------------------------- block fields
+def _clamped_field(shape, seed=0):
+    """A hull-like clamped field: mostly exact -1, a solid of +1, values in between."""
+    rng = np.random.default_rng(seed)
+    field = np.full(shape, -1.0, np.float32)
+    field[3:20, 4:30, 2:9] = 1.0
+    band = rng.random(shape) < 0.05
+    field[band] = rng.uniform(-1, 1, band.sum()).astype(np.float32)
+    return field
+
+
+@pytest.mark.parametrize("block", [4, 8, 32])
+def test_block_field_gives_the_dense_field_back(block):
+    from plantscan_core.data import BlockField
+
+    field = _clamped_field((37, 33, 11))
+    blocks = BlockField.from_dense(field, block)
+    assert np.array_equal(blocks.dense(), field)
+    # any box, reaching beyond the grid on every side: -1 there
+    box = blocks.read((-3, 5, -2), (40, 31, 14))
+    want = np.full((43, 26, 16), -1.0, np.float32)
+    want[3:40, :, 2:13] = field[:, 5:31, :]
+    assert np.array_equal(box, want)
+    idx = np.array([[0, 0, 0], [36, 32, 10], [10, 10, 5], [5, 20, 3]])
+    assert np.array_equal(blocks.values_at(idx), field[tuple(idx.T)])
+    maxima = np.maximum.reduceat(np.maximum.reduceat(np.maximum.reduceat(
+        field, np.arange(0, 37, block), 0), np.arange(0, 33, block), 1), np.arange(0, 11, block), 2)
+    assert np.array_equal(blocks.block_max(), maxima)
+
+
+def test_block_field_stores_only_the_mixed_blocks():
+    from plantscan_core.data import BlockField
+
+    field = np.full((64, 64, 64), -1.0, np.float32)
+    field[:32, :32, :32] = 1.0  # one block wholly inside
+    field[40, 40, 40] = 0.3  # one mixed block
+    blocks = BlockField.from_dense(field, 32)
+    assert len(blocks.values) == 1
+    assert blocks.index[0, 0, 0] == BlockField.INSIDE and blocks.index[1, 0, 0] == -1
+    blocks.materialise(np.array([[0, 0, 0], [1, 1, 1]]))  # an implicit block given a row
+    assert len(blocks.values) == 2 and np.array_equal(blocks.dense(), field)
+
+
+def test_volume_in_blocks_saves_loads_and_reads_densely(tmp_path):
+    from plantscan_core.data import BlockField, Volume
+
+    field = _clamped_field((37, 33, 11), seed=3)
+    vol = Volume(BlockField.from_dense(field, 8), np.array([1.0, 2.0, 3.0]), 0.5)
+    assert vol.shape == (37, 33, 11) and vol.blocks is not None
+    assert np.array_equal(vol.field, field) and np.array_equal(vol.occupancy, field > 0)
+    vol.save(tmp_path / "v.npz")
+    back = Volume.load(tmp_path / "v.npz")
+    assert back.blocks is not None and np.array_equal(back.field, field)
+    assert back.voxel_size == 0.5 and np.array_equal(back.origin, [1.0, 2.0, 3.0])
+    dense = Volume(field, np.zeros(3), 1.0)
+    dense.save(tmp_path / "d.npz")
+    assert Volume.load(tmp_path / "d.npz").blocks is None
+    assert Volume.load(tmp_path / "d.npz").field is not None

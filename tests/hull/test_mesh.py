@@ -328,6 +328,40 @@ def test_mesher_leaves_the_volume_as_it_was(potted_volume):
     assert np.array_equal(mesh.faces, copied.faces)
 
 
+@pytest.mark.parametrize("pot", ["auto", "given"])
+def test_mesher_on_blocks_equals_the_dense_field_and_leaves_them(potted_volume, pot):
+    # The octree hull's volume holds its field in blocks; pot removal, speck removal and
+    # marching cubes read and edit them block by block.  Same mesh to the bit as on the
+    # dense field, and the blocks are as they were afterwards.
+    from plantscan_core.data import BlockField
+
+    field = potted_volume.field.copy()
+    field[0, 0, 0] = 0.5  # a speck in a corner (an implicit block before): dropped
+    blocks = BlockField.from_dense(field, 32)
+    index, values = blocks.index.copy(), blocks.values.copy()
+    cyl = pot if pot == "auto" else [TaperedCylinder(z_bottom_mm=POT.z0, z_top_mm=POT.z1,
+                                                     r_bottom_mm=POT.r0, r_top_mm=POT.r1)]
+    mesher = MarchingCubesMesher(MarchingCubesMesher.Params(pot=cyl))
+    on_blocks = mesher.mesh(Volume(blocks, potted_volume.origin, potted_volume.voxel_size))
+    counts = dict(mesher.report.counts)
+    dense = mesher.mesh(Volume(field, potted_volume.origin, potted_volume.voxel_size))
+    assert counts == mesher.report.counts and counts["pot_voxels_removed"] > 0
+    assert counts["components_dropped"] >= 1
+    assert np.array_equal(on_blocks.vertices, dense.vertices)
+    assert np.array_equal(on_blocks.faces, dense.faces)
+    assert np.array_equal(blocks.index, index) and np.array_equal(blocks.values, values)
+
+
+def test_octree_hull_volume_is_held_in_blocks(potted_volume, rig, potted):
+    # The reconstructor hands on the field in blocks (never the dense grid); its dense
+    # view equals the dense reconstructor's field.
+    cal, _ = rig
+    assert potted_volume.blocks is not None
+    dense = DenseHull(DenseHull.Params(resolution=72, floor_z_mm=None)).reconstruct(potted, cal)
+    assert dense.blocks is None
+    assert np.array_equal(potted_volume.field, dense.field)
+
+
 def test_given_pot_is_removed(potted_volume):
     pot = [TaperedCylinder(z_bottom_mm=POT.z0, z_top_mm=POT.z1, r_bottom_mm=POT.r0,
                            r_top_mm=POT.r1)]
