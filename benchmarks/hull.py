@@ -32,6 +32,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -87,23 +88,121 @@ def make_scene(views: int, size: tuple[int, int]) -> Path:
     cal = Calibration(models, truth.poses, truth.tilts_deg)
     cal.save(out / "calibration.yaml")
     cams = sorted(models)
-    records, packed = [], []
+    records = []
     per_cam = views // len(cams)
     for a in range(per_cam):
         for cam in cams:
             ang = 360.0 * a / per_cam
-            v = ViewRecord(len(records), "plant", cam, 0, 0.0, a, ang, None,
-                           f"images/plant/{cam}_t00_a{a:03d}.png")
-            uv = cal.camera_for_view(v).project(verts)
-            mask = np.zeros((size[1], size[0]), np.uint8)
-            tri = np.round(uv[faces] * 16).astype(np.int32)  # 4 fractional bits
-            cv2.fillPoly(mask, list(tri), 1, lineType=cv2.LINE_8, shift=4)
-            records.append(v.to_dict())
-            packed.append(np.packbits(mask.astype(bool)))
+            records.append(ViewRecord(len(records), "plant", cam, 0, 0.0, a, ang, None,
+                                      f"images/plant/{cam}_t00_a{a:03d}.png"))
+
+    def fill(mask, tri):  # the masks these figures were measured on (parity fill)
+        cv2.fillPoly(mask, list(tri), 1, lineType=cv2.LINE_8, shift=4)
+
+    return _save_scene(out, cal, records, verts, faces, size, fill)
+
+
+def _save_scene(out: Path, cal, records, verts: np.ndarray, faces: np.ndarray,
+                size: tuple[int, int], fill) -> Path:
+    """Rasterise the mesh in every view (``fill(mask, triangles)``, triangles in pixels
+    with 4 fractional bits) and cache the packed masks, the views and ``done``."""
+    packed = []
+    for v in records:
+        uv = cal.camera_for_view(v).project(verts)
+        mask = np.zeros((size[1], size[0]), np.uint8)
+        fill(mask, np.round(uv[faces] * 16).astype(np.int32))
+        packed.append(np.packbits(mask.astype(bool)))
     np.save(out / "masks.npy", np.stack(packed))
-    (out / "views.json").write_text(json.dumps(records))
+    (out / "views.json").write_text(json.dumps([v.to_dict() for v in records]))
     (out / "done").write_text("")
     return out
+
+
+# The shared synthetic scene (issue #28): an analytic plant with thin leaves on a ring of
+# pinhole cameras, simple enough for any peer (Open3D, phenomenal) to take the same cameras.
+SYNTH_TARGET = (0.0, 0.0, 140.0)  # mm: the cameras look here
+SYNTH_DISTANCE = 900.0  # mm from the target
+SYNTH_ELEVATIONS = {72: (10.0, 40.0), 360: (-5.0, 10.0, 25.0, 40.0, 55.0)}
+
+
+def synthetic_plant() -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (mm) and faces of the shared synthetic plant: a 4 mm stem 260 mm tall and
+    ten drooping elliptic leaves 0.5 mm thick (phyllotaxis 137.5 deg), closed surfaces."""
+    parts = [_frustum(0.0, 260.0, 2.0, 1.6, n=24)]
+    for i in range(10):
+        z0 = 50.0 + 19.0 * i
+        az = np.radians(137.5 * i)
+        length, width = 100.0 - 5.0 * i, 34.0 - 1.5 * i
+        rise = np.radians(35.0 - 2.5 * i)
+        n_l, n_w = 24, 7
+        t = np.linspace(0.0, 1.0, n_l)
+        half = 0.5 * width * np.sin(np.pi * np.clip(t, 0.0, 1.0)) ** 0.7 + 0.3
+        s = np.linspace(-1.0, 1.0, n_w)
+        along = t[:, None] * length * np.ones_like(s)[None, :]
+        across = half[:, None] * s[None, :]
+        # Drooping: rises at ``rise`` then bends down along a parabola; cupped across.
+        up = along * np.tan(rise) - 0.004 * along ** 2 + 3.0 * (s[None, :] ** 2)
+        rows = []
+        for off in (0.25, -0.25):
+            x = along * np.cos(az) - across * np.sin(az)
+            y = along * np.sin(az) + across * np.cos(az)
+            rows.append(np.stack([x, y, z0 + up + off], axis=-1).reshape(-1, 3))
+        v = np.concatenate(rows)
+        n = n_l * n_w
+        g = np.arange(n).reshape(n_l, n_w)
+        q = np.stack([g[:-1, :-1], g[1:, :-1], g[1:, 1:], g[:-1, 1:]], -1).reshape(-1, 4)
+        top = np.concatenate([q[:, [0, 1, 2]], q[:, [0, 2, 3]]])
+        ring = np.concatenate([g[0], g[1:, -1], g[-1, ::-1][1:], g[::-1, 0][1:-1]])
+        side = np.concatenate([np.stack([ring, np.roll(ring, -1), ring + n], 1),
+                               np.stack([np.roll(ring, -1), np.roll(ring, -1) + n, ring + n], 1)])
+        parts.append((v, np.concatenate([top, top[:, ::-1] + n, side])))
+    verts, faces, count = [], [], 0
+    for v, f in parts:
+        verts.append(v)
+        faces.append(f + count)
+        count += len(v)
+    return np.concatenate(verts), np.concatenate(faces)
+
+
+def make_synthetic_scene(views: int, size: tuple[int, int]) -> Path:
+    """Cache the shared synthetic scene's silhouettes: ``views`` (72: 2 elevations x 36,
+    360: 5 x 72) pinhole cameras ``SYNTH_DISTANCE`` from the plant, images ``size``."""
+    import cv2
+
+    from plantscan_core.data import Calibration, CameraModel, Pose, ViewRecord
+
+    out = CACHE / f"synthetic_{views}_{size[0]}x{size[1]}"
+    if (out / "done").exists():
+        return out
+    out.mkdir(parents=True, exist_ok=True)
+    elevations = SYNTH_ELEVATIONS.get(views, (10.0, 40.0))
+    per_tilt = views // len(elevations)
+    w, h = size
+    f = 0.8 * h * SYNTH_DISTANCE / 300.0  # the plant's ~300 mm fill 80 % of the height
+    model = CameraModel(f=f, cu=(w - 1) / 2, cv=(h - 1) / 2, d1=0.0, d2=0.0, width=w, height=h)
+    poses = {}
+    for ti, el in enumerate(elevations):
+        e = np.radians(el)
+        centre = np.array(SYNTH_TARGET) + SYNTH_DISTANCE * np.array(
+            [np.cos(e), 0.0, np.sin(e)])
+        poses[("cam0", ti)] = Pose.look_at(centre, SYNTH_TARGET)
+    cal = Calibration({"cam0": model}, poses, {ti: float(el) for ti, el in enumerate(elevations)})
+    cal.save(out / "calibration.yaml")
+    verts, faces = synthetic_plant()
+    records = []
+    for ti, el in enumerate(elevations):
+        for a in range(per_tilt):
+            records.append(ViewRecord(len(records), "plant", "cam0", ti, float(el), a,
+                                      360.0 * a / per_tilt, None,
+                                      f"images/plant/cam0_t{ti:02d}_a{a:03d}.png"))
+
+    def fill(mask, triangles):
+        # One triangle at a time: fillPoly of many polygons fills by parity, so the
+        # pixels of shared edges would cancel out.
+        for tri in triangles:
+            cv2.fillConvexPoly(mask, tri, 1, lineType=cv2.LINE_8, shift=4)
+
+    return _save_scene(out, cal, records, verts, faces, size, fill)
 
 
 def load_scene(folder: Path):
@@ -120,14 +219,25 @@ def load_scene(folder: Path):
 
 
 # --------------------------------------------------------------------------- cases
-def run_case(folder: Path, case: str, res: int, k: int) -> dict:
+def _carve(views, grid, k, min_seen):
+    """The stage's carve: the field in blocks where this revision of the plugin has them."""
+    from plantscan_hull.carve import carve_octree
+
+    try:
+        return carve_octree(views, grid, k, 32, backend="numba", min_seen=min_seen, blocks=True)
+    except TypeError:  # a revision before the block field
+        return carve_octree(views, grid, k, 32, backend="numba", min_seen=min_seen)
+
+
+def run_case(folder: Path, case: str, res: int, k: int, every: int = 1) -> dict:
     from plantscan_hull.bbox import auto_box
     from plantscan_hull.carve import Grid, carve_dense, carve_octree
     from plantscan_hull.views import prepare_views
 
     sils, cal = load_scene(folder)
+    sils = list(sils)[::every]
     t0, c0 = time.perf_counter(), time.process_time()
-    views = prepare_views(list(sils), cal)
+    views = prepare_views(sils, cal)
     prep, prep_cpu = time.perf_counter() - t0, time.process_time() - c0
     del sils
     min_seen = max(k + 1, len(views) // 2)
@@ -142,16 +252,23 @@ def run_case(folder: Path, case: str, res: int, k: int) -> dict:
            "grid": list(grid.shape)}
     if case in ("octree", "carve"):
         _ = carve_octree(views, Grid.from_box(lo, hi, 16), k, 16, backend="numba")  # JIT warm-up
+        rss0 = _rss_mb()
+        threads0 = _thread_cpu()
         t0, c0 = time.perf_counter(), time.process_time()
-        phi, st = carve_octree(views, grid, k, 32, backend="numba", min_seen=min_seen)
+        phi, st = _carve(views, grid, k, min_seen)
+        threads1 = _thread_cpu()
+        busy = sorted((threads1[t] - threads0.get(t, 0.0) for t in threads1), reverse=True)
+        out["thread_cpu_s"] = [round(b, 2) for b in busy if b > 0.005]
         out.update(carve_s=time.perf_counter() - t0, carve_cpu_s=time.process_time() - c0,
                    voxel_view_tests=st.voxel_view_tests,
-                   cell_view_tests=st.cell_view_tests, inside=int((phi > 0).sum()),
+                   cell_view_tests=st.cell_view_tests, inside=_inside(phi),
                    fine_voxels=st.fine_voxels, field_digest=_digest(phi),
                    load=os.getloadavg()[0],
                    seconds_per_level={str(a): round(b, 2)
                                       for a, b in st.seconds_per_level.items()})
         out["peak_rss_carve_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        out["carve_added_mb"] = out["peak_rss_carve_mb"] - rss0
+        out["field_mb"] = (phi.nbytes if hasattr(phi, "nbytes") else 0) / 2**20
     if case == "octree":
         _warm_mesh_kernels()
         t0, c0 = time.perf_counter(), time.process_time()
@@ -179,11 +296,46 @@ def run_case(folder: Path, case: str, res: int, k: int) -> dict:
     return out
 
 
-def _digest(field: np.ndarray) -> str:
-    """Short hash of a field's bytes: equal digests = the same field to the bit."""
+def _thread_cpu() -> dict[int, float]:
+    """CPU seconds (user + system) of each thread of this process (Linux)."""
+    tick = os.sysconf("SC_CLK_TCK")
+    out = {}
+    for task in Path("/proc/self/task").iterdir():
+        try:
+            fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        out[int(task.name)] = (int(fields[11]) + int(fields[12])) / tick
+    return out
+
+
+def _slabs(field):
+    """The field's float32 bytes in C order, 32 x-planes at a time (dense or in blocks)."""
+    if isinstance(field, np.ndarray):
+        yield np.ascontiguousarray(field).tobytes()
+        return
+    nx, ny, nz = field.shape
+    for x in range(0, nx, 32):
+        yield field.read((x, 0, 0), (min(nx, x + 32), ny, nz)).tobytes()
+
+
+def _inside(field) -> int:
+    if isinstance(field, np.ndarray):
+        return int((field > 0).sum())
+    nx, ny, nz = field.shape
+    return sum(int((field.read((x, 0, 0), (min(nx, x + 32), ny, nz)) > 0).sum())
+               for x in range(0, nx, 32))
+
+
+def _digest(field) -> str:
+    """Short hash of a field's bytes: equal digests = the same field to the bit (a field
+    in blocks hashes as its dense grid)."""
     import hashlib
 
-    return hashlib.sha1(np.ascontiguousarray(field).tobytes()).hexdigest()[:12]
+    h = hashlib.sha1()
+    for part in _slabs(field):
+        h.update(part)
+    return h.hexdigest()[:12]
 
 
 def open3d_carve(views, grid) -> dict:
@@ -416,16 +568,19 @@ def mesh_case(field_path: Path, repeats: int = 5) -> dict:
 
     from plantscan_hull.stages import MarchingCubesMesher
 
-    from plantscan_core.data import Volume
+    from plantscan_core.data import BlockField, Volume
 
-    with np.load(field_path) as z:
-        field = np.ascontiguousarray(z["field"], dtype=np.float32)
-        origin, voxel = np.asarray(z["origin"], float), float(z["voxel_size"])
+    saved = Volume.load(field_path)  # a dense field or one in blocks, as the run saved it
+    field = saved.blocks if saved.blocks is not None else np.ascontiguousarray(
+        saved.field, dtype=np.float32)
+    origin, voxel = np.asarray(saved.origin, float), float(saved.voxel_size)
     _warm_mesh_kernels()
     mesher = MarchingCubesMesher(MarchingCubesMesher.Params(pot="auto"))
     walls, cpus = [], []
     for _ in range(repeats):
-        vol = Volume(field.copy(), origin, voxel)
+        own = field.copy() if isinstance(field, np.ndarray) else BlockField(
+            field.shape, field.block, field.index.copy(), field.values.copy())
+        vol = Volume(own, origin, voxel)
         t0, c0 = time.perf_counter(), time.process_time()
         mesh = mesher.mesh(vol)
         walls.append(time.perf_counter() - t0)
@@ -614,6 +769,60 @@ def _extract(rev: str) -> Path:
     return base_dir / "plugins"
 
 
+# --------------------------------------------------------------------------- scaling
+def fit_exponent(x: Sequence[float], y: Sequence[float]) -> float:
+    """Least-squares slope of log y against log x: y ~ x^slope."""
+    return float(np.polyfit(np.log(np.asarray(x, float)), np.log(np.asarray(y, float)), 1)[0])
+
+
+def scaling_main(args) -> int:
+    """Carve-only cases at every ``--res`` with all views and at the largest ``--res`` with
+    1/8, 1/4, 1/2 of the views, each in its own process; a table and fitted exponents."""
+    res_list = [int(r) for r in args.res.split(",") if r]
+    rows = []
+    plan = [(r, 1) for r in res_list] + [(res_list[-1], e) for e in (8, 4, 2)]
+    for res, every in plan:
+        row = _run_child(["--views", str(args.views), "--size", args.size, "--k", str(args.k),
+                          "--scene", args.scene, "--every", str(every),
+                          "--case", f"carve:{res}"], None, f"{res} 1/{every}")
+        if row is None:
+            continue
+        row["every"] = every
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    print(scaling_markdown(rows, args))
+    return 0
+
+
+def scaling_markdown(rows: list[dict], args) -> str:
+    lines = [f"Scaling, scene {args.scene}, {args.size} px, k = {args.k} (carve only; each row "
+             "its own process; load = 1-min load average at the end of the case):", "",
+             "| grid | views | carve s CPU | carve s wall | CPU / wall | load | voxel-view tests "
+             "| cell-view tests | carve added MB | field digest |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['res']} ({'x'.join(map(str, r['grid']))}) | {r['views']} | "
+                     f"{r['carve_cpu_s']:.2f} | {r['carve_s']:.2f} | "
+                     f"{r['carve_cpu_s'] / r['carve_s']:.2f} | {r['load']:.1f} | "
+                     f"{r['voxel_view_tests']:.3g} | {r['cell_view_tests']:.3g} | "
+                     f"{r['carve_added_mb']:.0f} | {r['field_digest']} |")
+    full = [r for r in rows if r["every"] == 1]
+    top = max(r["res"] for r in rows) if rows else 0
+    by_views = [r for r in rows if r["res"] == top]
+    lines.append("")
+    for label, sel, key in (("resolution", full, "res"), ("views", by_views, "views")):
+        if len({r[key] for r in sel}) < 2:
+            continue
+        x = [r[key] for r in sel]
+        tests = [r["voxel_view_tests"] + r["cell_view_tests"] for r in sel]
+        lines.append(f"Fitted exponents in {label} ({', '.join(map(str, x))}): tests ~ "
+                     f"{label}^{fit_exponent(x, tests):.2f}, carve CPU ~ "
+                     f"{label}^{fit_exponent(x, [r['carve_cpu_s'] for r in sel]):.2f}, "
+                     f"carve added memory ~ "
+                     f"{label}^{fit_exponent(x, [max(r['carve_added_mb'], 1) for r in sel]):.2f}.")
+    return "\n".join(lines)
+
+
 # --------------------------------------------------------------------------- driver
 def main() -> int:
     ap = argparse.ArgumentParser()
@@ -643,6 +852,14 @@ def main() -> int:
                          "inputs of a RES^3 carve")
     ap.add_argument("--prep-band", action="store_true",
                     help="per-view preparation: tables vs the banded idea")
+    ap.add_argument("--scene", choices=("dicot", "synthetic"), default="dicot",
+                    help="dicot: the virtual scanner's plastic dicot on its rig; synthetic: "
+                         "the shared analytic thin-leaf plant on a ring of pinhole cameras "
+                         "(the peer comparison's scene)")
+    ap.add_argument("--every", type=int, default=1, help=argparse.SUPPRESS)
+    ap.add_argument("--scaling", action="store_true",
+                    help="carve only, at every --res and at 1/8, 1/4, 1/2 and all of the "
+                         "views (every 8th... view): CPU, wall and tests with fitted exponents")
     args = ap.parse_args()
     if args.mesh:
         if args.case:
@@ -668,13 +885,15 @@ def main() -> int:
             return 0
         return run_masks_main(args)
     size = tuple(int(x) for x in args.size.split("x"))
-    folder = make_scene(args.views, size)
+    folder = (make_synthetic_scene if args.scene == "synthetic" else make_scene)(args.views, size)
     if args.case:  # child process: one case
         if args.plugins:  # an older revision of the plugin (the "before" column)
             sys.path.insert(0, args.plugins)
         case, res = args.case.split(":")
-        print(json.dumps(run_case(folder, case, int(res), args.k)))
+        print(json.dumps(run_case(folder, case, int(res), args.k, args.every)))
         return 0
+    if args.scaling:
+        return scaling_main(args)
     rows = []
     octree = "carve" if args.carve_only else "octree"
     cases = [(octree, r) for r in args.res.split(",") if r] + \
@@ -688,7 +907,8 @@ def main() -> int:
             cases.insert(i, ("baseline", cases[i][1]))
     for case, res in cases:
         cmd = [sys.executable, __file__, "--views", str(args.views), "--size", args.size,
-               "--k", str(args.k), "--case", f"{octree if case == 'baseline' else case}:{res}"]
+               "--k", str(args.k), "--scene", args.scene,
+               "--case", f"{octree if case == 'baseline' else case}:{res}"]
         if case == "baseline":
             cmd += ["--plugins", str(base_dir)]
         proc = subprocess.run(cmd, capture_output=True, text=True)
