@@ -58,12 +58,11 @@ def _frustum(z0, z1, r0, r1, n=96):
 
 def make_scene(views: int, size: tuple[int, int]) -> Path:
     """Cache ``views`` truth-mesh silhouettes at ``size``; returns the cache folder."""
-    import cv2
     import yaml
 
     from plantscan_core.data import Calibration, CameraModel, ViewRecord
 
-    out = CACHE / f"{views}_{size[0]}x{size[1]}"
+    out = CACHE / f"dicot_{views}_{size[0]}x{size[1]}"  # filled masks (issue #28)
     if (out / "done").exists():
         return out
     out.mkdir(parents=True, exist_ok=True)
@@ -95,22 +94,25 @@ def make_scene(views: int, size: tuple[int, int]) -> Path:
             ang = 360.0 * a / per_cam
             records.append(ViewRecord(len(records), "plant", cam, 0, 0.0, a, ang, None,
                                       f"images/plant/{cam}_t00_a{a:03d}.png"))
-
-    def fill(mask, tri):  # the masks these figures were measured on (parity fill)
-        cv2.fillPoly(mask, list(tri), 1, lineType=cv2.LINE_8, shift=4)
-
-    return _save_scene(out, cal, records, verts, faces, size, fill)
+    return _save_scene(out, cal, records, verts, faces, size)
 
 
 def _save_scene(out: Path, cal, records, verts: np.ndarray, faces: np.ndarray,
-                size: tuple[int, int], fill) -> Path:
-    """Rasterise the mesh in every view (``fill(mask, triangles)``, triangles in pixels
-    with 4 fractional bits) and cache the packed masks, the views and ``done``."""
+                size: tuple[int, int]) -> Path:
+    """Rasterise the mesh in every view and cache the packed masks, the views and ``done``.
+
+    One triangle at a time: ``cv2.fillPoly`` of many polygons fills by parity, so
+    overlapping triangles and shared edges cancel out (until issue #28 the dicot's masks
+    were drawn so: leaves full of holes along the mesh's edges, a wireframe).
+    """
+    import cv2
+
     packed = []
     for v in records:
         uv = cal.camera_for_view(v).project(verts)
         mask = np.zeros((size[1], size[0]), np.uint8)
-        fill(mask, np.round(uv[faces] * 16).astype(np.int32))
+        for tri in np.round(uv[faces] * 16).astype(np.int32):  # 4 fractional bits
+            cv2.fillConvexPoly(mask, tri, 1, lineType=cv2.LINE_8, shift=4)
         packed.append(np.packbits(mask.astype(bool)))
     np.save(out / "masks.npy", np.stack(packed))
     (out / "views.json").write_text(json.dumps([v.to_dict() for v in records]))
@@ -167,7 +169,6 @@ def synthetic_plant() -> tuple[np.ndarray, np.ndarray]:
 def make_synthetic_scene(views: int, size: tuple[int, int]) -> Path:
     """Cache the shared synthetic scene's silhouettes: ``views`` (72: 2 elevations x 36,
     360: 5 x 72) pinhole cameras ``SYNTH_DISTANCE`` from the plant, images ``size``."""
-    import cv2
 
     from plantscan_core.data import Calibration, CameraModel, Pose, ViewRecord
 
@@ -195,14 +196,7 @@ def make_synthetic_scene(views: int, size: tuple[int, int]) -> Path:
             records.append(ViewRecord(len(records), "plant", "cam0", ti, float(el), a,
                                       360.0 * a / per_tilt, None,
                                       f"images/plant/cam0_t{ti:02d}_a{a:03d}.png"))
-
-    def fill(mask, triangles):
-        # One triangle at a time: fillPoly of many polygons fills by parity, so the
-        # pixels of shared edges would cancel out.
-        for tri in triangles:
-            cv2.fillConvexPoly(mask, tri, 1, lineType=cv2.LINE_8, shift=4)
-
-    return _save_scene(out, cal, records, verts, faces, size, fill)
+    return _save_scene(out, cal, records, verts, faces, size)
 
 
 def load_scene(folder: Path):
@@ -252,7 +246,7 @@ def run_case(folder: Path, case: str, res: int, k: int, every: int = 1) -> dict:
            "grid": list(grid.shape)}
     if case in ("octree", "carve"):
         _ = carve_octree(views, Grid.from_box(lo, hi, 16), k, 16, backend="numba")  # JIT warm-up
-        rss0 = _rss_mb()
+        rss0 = _reset_peak_rss()  # the carve's own peak (ru_maxrss holds the masks' earlier one)
         threads0 = _thread_cpu()
         t0, c0 = time.perf_counter(), time.process_time()
         phi, st = _carve(views, grid, k, min_seen)
@@ -266,9 +260,14 @@ def run_case(folder: Path, case: str, res: int, k: int, every: int = 1) -> dict:
                    load=os.getloadavg()[0],
                    seconds_per_level={str(a): round(b, 2)
                                       for a, b in st.seconds_per_level.items()})
-        out["peak_rss_carve_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        out["peak_rss_carve_mb"] = _status_mb("VmHWM")
         out["carve_added_mb"] = out["peak_rss_carve_mb"] - rss0
         out["field_mb"] = (phi.nbytes if hasattr(phi, "nbytes") else 0) / 2**20
+        try:  # the pre-flight model of what the carve adds (the tables are already held)
+            from plantscan_hull.stages import hull_peak_bytes
+            out["model_added_mb"] = hull_peak_bytes(tuple(grid.shape), 0, True) / 2**20
+        except ImportError:  # a revision before the model
+            pass
     if case == "octree":
         _warm_mesh_kernels()
         t0, c0 = time.perf_counter(), time.process_time()
@@ -624,11 +623,22 @@ def mesh_main(args) -> int:
 
 # --------------------------------------------------------------------------- run masks
 def _rss_mb() -> float:
+    return _status_mb("VmRSS")
+
+
+def _status_mb(key: str) -> float:
+    """A field of /proc/self/status (VmRSS, VmHWM: the peak since the last reset), MB."""
     with open("/proc/self/status") as f:
         for line in f:
-            if line.startswith("VmRSS"):
+            if line.startswith(key):
                 return int(line.split()[1]) / 1024
     return float("nan")
+
+
+def _reset_peak_rss() -> float:
+    """Reset the process's peak RSS (VmHWM) to its current RSS (Linux); returns that, MB."""
+    Path("/proc/self/clear_refs").write_text("5")
+    return _rss_mb()
 
 
 class _RssProbe:
