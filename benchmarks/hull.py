@@ -636,7 +636,14 @@ def _status_mb(key: str) -> float:
 
 
 def _reset_peak_rss() -> float:
-    """Reset the process's peak RSS (VmHWM) to its current RSS (Linux); returns that, MB."""
+    """Reset the process's peak RSS (VmHWM) to its current RSS (Linux); returns that, MB.
+
+    The heap's freed pages are given back first (``malloc_trim``): otherwise the carve
+    reuses the pages the masks held, and what it adds would read as nothing.
+    """
+    import ctypes
+
+    ctypes.CDLL("libc.so.6").malloc_trim(0)
     Path("/proc/self/clear_refs").write_text("5")
     return _rss_mb()
 

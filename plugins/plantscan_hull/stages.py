@@ -48,11 +48,17 @@ def resolve_k(k: int | str, n_views: int) -> int:
 
 
 # The hull's memory, measured (tests/hull/test_hull_memory.py checks the model at 256^3 and
-# 512^3 against the peak RSS of a real carve): the float32 field plus one bool mask of the grid
-# (the thin-part rescue, the clipping test) at once, 5 bytes per voxel; the int16 distance
-# tables, 2 bytes per pixel of each view's plant box; and, the first time a process carves,
-# ~130 MB for loading the compiled kernels.
-HULL_BYTES_PER_VOXEL = 5
+# 512^3 against the peak RSS of a real carve).  Since issue #28 the field is held in blocks
+# near the surface (docs/reconstruction.md), so what the carve adds follows the surface, not
+# the grid: the mixed blocks, the octree's view lists of the cells near the surface and the
+# fine voxels' values, modelled per voxel of the grid's three faces (nx ny + ny nz + nz nx).
+# Measured (predicted / added): the test's sphere on 18 views 54 / 55 MB at 256^3, 210 / 205 MB
+# at 512^3; 360 views of 3000x2000 px (benchmarks/hull.py, tables excluded): the shared
+# synthetic plant 128 / 132 MB at 512^3, the benchmark dicot 179 / 274 MB at 512^3 (35 % low,
+# not understood) and 715 / 731 MB at 1024^3.  Then the
+# int16 distance tables, 2 bytes per pixel of each view's plant box; and, the first time a
+# process carves, ~130 MB for loading the compiled kernels.
+HULL_BYTES_PER_FACE_VOXEL = 265
 HULL_BYTES_PER_TABLE_PX = 2
 KERNEL_LOAD_BYTES = 130_000_000
 # Time: the carve at 512^3 with 360 views of 1500x1000 px takes ~17 s wall and 1024^3 ~167 s on
@@ -70,8 +76,9 @@ def hull_peak_bytes(grid_shape: tuple[int, int, int], table_pixels: int,
     table_pixels : pixels of the views' distance tables (plant box + margin, summed).
     kernels_loaded : the compiled kernels are already in the process (a second carve).
     """
-    voxels = int(np.prod(grid_shape, dtype=np.int64))
-    return (HULL_BYTES_PER_VOXEL * voxels + HULL_BYTES_PER_TABLE_PX * int(table_pixels)
+    nx, ny, nz = (int(n) for n in grid_shape)
+    faces = nx * ny + ny * nz + nz * nx
+    return (HULL_BYTES_PER_FACE_VOXEL * faces + HULL_BYTES_PER_TABLE_PX * int(table_pixels)
             + (0 if kernels_loaded else KERNEL_LOAD_BYTES))
 
 
