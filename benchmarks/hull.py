@@ -276,7 +276,9 @@ def run_case(folder: Path, case: str, res: int, k: int, every: int = 1) -> dict:
         from plantscan_core.data import Volume
 
         mesher = MarchingCubesMesher(MarchingCubesMesher.Params(pot="auto"))
+        rss0 = _reset_peak_rss()
         mesh = mesher.mesh(Volume(phi, grid.origin, grid.voxel_size))
+        out["mesh_added_mb"] = _status_mb("VmHWM") - rss0
         out.update(mesh_s=time.perf_counter() - t0, mesh_cpu_s=time.process_time() - c0,
                    faces=len(mesh.faces),
                    watertight=mesher.report.figures["topology"]["watertight"])
@@ -284,8 +286,10 @@ def run_case(folder: Path, case: str, res: int, k: int, every: int = 1) -> dict:
         backend = "numba" if case == "dense" else "numpy"
         if backend == "numba":
             _ = carve_dense(views, Grid.from_box(lo, hi, 8), k, backend="numba")
+        rss0 = _reset_peak_rss()
         t0, c0 = time.perf_counter(), time.process_time()
         phi, st = carve_dense(views, grid, k, backend=backend, min_seen=min_seen)
+        out["carve_added_mb"] = _status_mb("VmHWM") - rss0
         out.update(carve_s=time.perf_counter() - t0, carve_cpu_s=time.process_time() - c0,
                    voxel_view_tests=st.voxel_view_tests,
                    cell_view_tests=0, inside=int((phi > 0).sum()))

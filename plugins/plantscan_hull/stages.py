@@ -54,8 +54,8 @@ def resolve_k(k: int | str, n_views: int) -> int:
 # fine voxels' values, modelled per voxel of the grid's three faces (nx ny + ny nz + nz nx).
 # Measured (predicted / added): the test's sphere on 18 views 54 / 55 MB at 256^3, 210 / 205 MB
 # at 512^3; 360 views of 3000x2000 px (benchmarks/hull.py, tables excluded): the shared
-# synthetic plant 128 / 132 MB at 512^3, the benchmark dicot 179 / 274 MB at 512^3 (35 % low,
-# not understood) and 715 / 731 MB at 1024^3.  Then the
+# synthetic plant 128 / 132 MB at 512^3 and 512 / 455 MB at 1024^3, the benchmark dicot
+# 179 / 274 MB at 512^3 (35 % low, not understood) and 715 / 731 MB at 1024^3.  Then the
 # int16 distance tables, 2 bytes per pixel of each view's plant box; and, the first time a
 # process carves, ~130 MB for loading the compiled kernels.
 HULL_BYTES_PER_FACE_VOXEL = 265
