@@ -181,6 +181,12 @@ class Run:
         input_files = getattr(plugin, "input_files", None)
         if input_files is not None:  # files a stage reads besides the scan's images: by content
             identity["files"] = [file_content_hash(p) for p in input_files(self.scan)]
+        input_roles = getattr(plugin, "input_roles", None)
+        if input_roles is not None:  # views a stage reads besides its step's own inputs
+            from plantscan_core.steps import views_fingerprint
+
+            identity["roles"] = {role: views_fingerprint(self.scan, self.scan.views_by_role(role))
+                                 for role in input_roles(self.scan)}
         key = sha(identity)
         record = {"plugin": spec.plugin, "version": plugin.version(), "params": params,
                   "key": key}

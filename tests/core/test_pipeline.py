@@ -121,6 +121,35 @@ def test_changed_input_image_invalidates_the_cache(tiny_scan, manager, tmp_path)
     assert CALLS["segment"] == 2 * len(tiny_scan.views_by_role("plant"))
 
 
+def test_a_calibrator_reading_the_plant_photos_is_redone_when_they_change(
+        tiny_scan, manager, tmp_path):
+    """A calibrator that declares ``input_roles`` (the sfm calibrator reads the plant
+    photos) has them in its cache key: new plant photos redo it; the default
+    fingerprints only the calibration views (the test above: calibrated once)."""
+    import os
+
+    from plantscan_core.testing import TinyExactCalibrator
+
+    class PlantPhotoCalibrator(TinyExactCalibrator):
+        name = "tiny-from-plants"
+
+        def input_roles(self, scan):
+            return ["plant"]
+
+    manager.register(stages_plugin(PlantPhotoCalibrator), name="tiny-from-plants")
+    recipe, raw = _recipe(manager)
+    raw["calibrate"] = {"plugin": "tiny-from-plants"}
+    recipe = validate_recipe(raw, manager.registry)
+    process(tiny_scan.root, recipe, tmp_path / "run", manager, raw_recipe=raw)
+    process(tiny_scan.root, recipe, tmp_path / "run", manager, raw_recipe=raw)
+    assert CALLS["calibrate"] == 1  # nothing changed: cached
+    path = tiny_scan.path_of(tiny_scan.views_by_role("plant")[0])
+    st = path.stat()
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns + 10_000_000))
+    process(tiny_scan.root, recipe, tmp_path / "run", manager, raw_recipe=raw)
+    assert CALLS["calibrate"] == 2
+
+
 def test_each_image_is_decoded_once_per_run(tiny_scan, manager, tmp_path):
     recipe, raw = _recipe(manager)
     iostats.reset()
