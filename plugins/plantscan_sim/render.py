@@ -187,7 +187,8 @@ class Renderer:
     board: BoardTexture | None = None
     board_material: int = -1
     moving: dict[str, TriMesh] = field(default_factory=dict)
-    textures: dict[int, object] = field(default_factory=dict)  # material -> .albedo(p) (N,)
+    # material -> .albedo(p) (N,); p in the world frame, or the lab's if .lab_frame
+    textures: dict[int, object] = field(default_factory=dict)
     _layers: dict = field(default_factory=dict, init=False)
     _lab: _Layer | None = field(default=None, init=False)
     _moving: dict = field(default_factory=dict, init=False)
@@ -205,7 +206,9 @@ class Renderer:
         self._lab = _Layer(self.lab, _raycasting_scene(self.lab), self.lab.face_attr)
         for role, mesh in self.moving.items():
             self._moving[role] = _Layer(mesh, _raycasting_scene(mesh), mesh.face_attr)
-        self._room = _room(self.lab) if HAVE_NUMBA else None
+        # A printed backdrop is shaded per point: it goes through the cast path.
+        lab_printed = any(getattr(t, "lab_frame", False) for t in self.textures.values())
+        self._room = _room(self.lab) if HAVE_NUMBA and not lab_printed else None
 
     def _textured(self) -> list[tuple[int, object]]:
         """(material, texture) pairs: the board's pattern and any other printed surface."""
@@ -485,6 +488,8 @@ class Renderer:
             ob = np.flatnonzero(mat == m_tex)
             if len(ob):
                 p = centre + t[ob, None] * d_w[ob]
+                if getattr(tex, "lab_frame", False):  # printed on the backdrop
+                    p = p @ rz.T
                 board_albedo[ob] = tex.albedo(p.astype(np.float64))
         lam = np.empty(n_rays, dtype=np.float32)
         shadow_cand = np.empty(n_rays, dtype=bool)
@@ -577,9 +582,12 @@ class Renderer:
         for m_tex, tex in self._textured():
             on_board = m_hit == m_tex
             if on_board.any():
-                a = tex.albedo(p[on_board].astype(np.float64))
-                albedo[on_board] = a[:, None]
-                key[idx[on_board]] += 4 * (a < 0.4)
+                q = p[on_board] @ rz.T if getattr(tex, "lab_frame", False) else p[on_board]
+                a = tex.albedo(q.astype(np.float64))
+                printed = a >= 0  # a texture may leave parts of its surface unprinted (-1)
+                sel = np.flatnonzero(on_board)[printed]
+                albedo[sel] = a[printed, None]
+                key[idx[sel]] += 4 * (a[printed] < 0.4)
         n_hit = normal[idx]
         to_light = light_w - p
         dist = np.sqrt(np.einsum("ij,ij->i", to_light, to_light))

@@ -48,7 +48,7 @@ from plantscan_sim.render import (
     Renderer,
 )
 from plantscan_sim.rig import Rig, SimCameraParams
-from plantscan_sim.texture import plate_textures
+from plantscan_sim.texture import BackdropMarkers, plate_textures
 
 SHARED_KEY = "sim_scene"
 TRUTH_VIEWS_DIR = "views"  # ground_truth/views/<role>/<image stem>.json|.mask.png (staging)
@@ -101,11 +101,16 @@ class SimSceneParams(StageParams):
     soil_depth_mm: float = Field(8.0, ge=0.0)
     carrier_radius_mm: float = 60.0
     plate_radius_mm: float = 200.0
-    plate_texture: Literal["plain", "random-dots"] = Field(
+    plate_texture: Literal["plain", "random-dots", "aruco-dots"] = Field(
         "plain", description="pattern printed on the plate's top and rim and on the pot carrier: "
         "'random-dots' gives structure from motion (calibrate: sfm) features that turn with "
-        "the plant")
+        "the plant; 'aruco-dots' adds a row of ArUco markers (DICT_4X4_50) round the plate's "
+        "rim and the carrier, which cameras far apart in elevation both identify")
     plate_texture_pitch_mm: float = Field(10.0, gt=0.5, description="cell side of the dots")
+    backdrop_texture: Literal["plain", "aruco"] = Field(
+        "plain", description="'aruco' prints a grid of 100 mm ArUco markers (DICT_4X4_250, "
+        "ids from 50) on the backdrop's wall and floor: fixed in the lab, seen by every "
+        "camera, for structure from motion (calibrate: sfm)")
     sway_deg: float = Field(0.0, ge=0.0, le=10.0, description="plant sway: per turntable stop "
                             "the plant (not the pot) tilts about its stem base by a random "
                             "angle of this standard deviation (seeded, in cameras.jsonl)")
@@ -116,6 +121,10 @@ class SimSceneParams(StageParams):
         "clock) instead of now, so virtual scans of a growing plant fall on the days of a "
         "virtual experiment")
 
+
+# The studio sweep, arm frame (+X towards the cameras): floor height and wall position.
+BACKDROP_FLOOR_Z_MM = -60.0
+BACKDROP_WALL_X_MM = -750.0
 
 # material indices
 M_BACKDROP, M_PLATE, M_CARRIER, M_POT, M_SOIL, M_PANEL, M_BOARD, M_POST, M_STEM = range(9)
@@ -313,7 +322,7 @@ class SimScene(Scene):
 
     def _backdrop(self) -> TriMesh:
         """Studio sweep in the lab frame: floor, curve, wall behind the plant."""
-        floor_z, wall_x, rc = -60.0, -750.0, 300.0
+        floor_z, wall_x, rc = BACKDROP_FLOOR_Z_MM, BACKDROP_WALL_X_MM, 300.0
         arc = np.linspace(0.0, np.pi / 2, 16)
         prof = [(1600.0, floor_z), (wall_x + rc, floor_z)]
         prof += [(wall_x + rc - rc * math.sin(t), floor_z + rc - rc * math.cos(t)) for t in arc[1:]]
@@ -361,8 +370,12 @@ class SimScene(Scene):
                          gamma=p.gamma)
         printed = plate_textures(p.plate_texture, p.plate_radius_mm, p.carrier_radius_mm,
                                  p.pot_z_bottom_mm, p.plate_texture_pitch_mm, p.seed)
+        textures = dict(zip((M_PLATE, M_CARRIER), printed))
+        if p.backdrop_texture == "aruco":
+            textures[M_BACKDROP] = BackdropMarkers(p.arm_azimuth_deg, BACKDROP_WALL_X_MM,
+                                                   BACKDROP_FLOOR_Z_MM, p.plate_radius_mm)
         self.renderer = Renderer(world, self._backdrop(), materials, light, tex, M_BOARD,
-                                 moving, textures=dict(zip((M_PLATE, M_CARRIER), printed)))
+                                 moving, textures=textures)
 
     # ------------------------------------------------------------------ axes
     def axis_moved(self, axis: str, true_deg: float) -> None:
