@@ -128,8 +128,10 @@ def _make_track_cost():
         intrinsics 6, pose 6, stop 1 and the angle scale 1 it is seen with]."""
 
         def __init__(self, uv: np.ndarray, thetas: np.ndarray, offsets: np.ndarray,
-                     sizes: list[int]):
+                     sizes: list[int], inv_noise: np.ndarray):
             super().__init__()
+            self.w = np.repeat(np.asarray(inv_noise, dtype=float), 2)
+            self.unit = bool(np.all(self.w == 1.0))
             self.uv = np.ascontiguousarray(uv, dtype=float)
             self.thetas = np.ascontiguousarray(thetas, dtype=float)
             self.offsets = np.ascontiguousarray(offsets, dtype=np.int64)
@@ -142,11 +144,17 @@ def _make_track_cost():
         def Evaluate(self, parameters, residuals, jacobians):  # noqa: N802 - Ceres API
             p = np.concatenate(parameters)
             if jacobians is None:
-                return _observe_track(p, self.offsets, self.thetas, self.uv, residuals,
-                                      _DUMMY2, False)
+                ok = _observe_track(p, self.offsets, self.thetas, self.uv, residuals,
+                                    _DUMMY2, False)
+                if ok and not self.unit:
+                    residuals[:] = residuals * self.w
+                return ok
             jac = np.zeros((len(residuals), self.n))
             if not _observe_track(p, self.offsets, self.thetas, self.uv, residuals, jac, True):
                 return False
+            if not self.unit:
+                residuals[:] = residuals * self.w
+                jac *= self.w[:, None]
             st = self.starts
             for j, jb in enumerate(jacobians):
                 if jb is not None:
@@ -217,55 +225,6 @@ def _make_pose_prior_cost():
     return PosePriorCost
 
 
-def _make_surface_cost(kind: str):
-    import pyceres
-
-    class SurfaceCost(pyceres.CostFunction):
-        """A printed point lies on the plate: ``w (z - h)`` (its top, a plane normal to the
-        axis) or ``w (sqrt(x^2 + y^2) - rho)`` (its rim, a cylinder about the axis)."""
-
-        def __init__(self, weight: float):
-            super().__init__()
-            self.w = float(weight)
-            self.set_num_residuals(1)
-            self.set_parameter_block_sizes([3, 1])
-
-        def Evaluate(self, parameters, residuals, jacobians):  # noqa: N802 - Ceres API
-            x, h = parameters[0], parameters[1]
-            if kind == "plane":
-                residuals[0] = self.w * (x[2] - h[0])
-                d = (0.0, 0.0, self.w)
-            else:
-                r = math.hypot(x[0], x[1])
-                if r < 1e-9:
-                    return False
-                residuals[0] = self.w * (r - h[0])
-                d = (self.w * x[0] / r, self.w * x[1] / r, 0.0)
-            if jacobians is not None:
-                if jacobians[0] is not None:
-                    jacobians[0][:] = d
-                if jacobians[1] is not None:
-                    jacobians[1][0] = -self.w
-            return True
-
-    return SurfaceCost
-
-
-@dataclass
-class PlateSurfaces:
-    """Tracks printed on the plate's top (a plane normal to the axis) and its rim (a
-    cylinder about it), with the plane's height and the rim's radius as unknowns.
-
-    ``weight``: residual per unit of distance off the surface (px per model unit).
-    """
-
-    top_tracks: np.ndarray
-    rim_tracks: np.ndarray
-    height: np.ndarray     # (1,) model units
-    radius: np.ndarray     # (1,) model units
-    weight: float
-
-
 @dataclass
 class TurntableState:
     """Parameter blocks of the turntable model (arrays Ceres optimises in place)."""
@@ -279,7 +238,6 @@ class TurntableState:
     reference: tuple[str, int] = ("", 0)
     pose_priors: dict[tuple[str, int], tuple[np.ndarray, np.ndarray]] = field(
         default_factory=dict)
-    plate: PlateSurfaces | None = None
 
     def model(self, camera: str) -> CameraModel:
         f, cu, cv, d1, d2, aspect = (float(x) for x in self.intrinsics[camera])
@@ -304,7 +262,7 @@ class TurntableState:
                               {k: v.copy() for k, v in self.poses.items()},
                               {k: v.copy() for k, v in self.stops.items()},
                               self.scale.copy(), self.points.copy(), dict(self.image_sizes),
-                              self.reference, dict(self.pose_priors), self.plate)
+                              self.reference, dict(self.pose_priors))
 
 
 def stop_key(v: SfmView) -> tuple[int, float]:
@@ -330,18 +288,21 @@ def residuals(state: TurntableState, views: list[SfmView], tracks: Tracks) -> np
     """(M, 2) reprojection residuals of every observation, px (NaN behind a camera)."""
     out = np.full((len(tracks.view), 2), np.nan)
     by_view = defaultdict(list)
-    for k, i in enumerate(tracks.view):
-        by_view[int(i)].append(k)
-    for i, ks in by_view.items():
+    for k, (i, fixed) in enumerate(zip(tracks.view, tracks.lab_of(), strict=True)):
+        by_view[(int(i), bool(fixed))].append(k)
+    for (i, fixed), ks in by_view.items():
         v = views[i]
         ks = np.array(ks)
         p = state.poses[v.group]
+        # a lab-fixed point is seen at turntable angle 0 in every photo
+        theta, stop = (0.0, np.zeros(1)) if fixed else (v.view.angle_deg,
+                                                        state.stops[stop_key(v)])
         uv = project_mats(state.intrinsics[v.view.camera][None], rotmats(p[:3]), p[None, 3:6],
                           np.eye(3)[None], np.zeros((1, 3)),
-                          turn_deg(v.view.angle_deg, state.scale, state.stops[stop_key(v)]),
+                          turn_deg(theta, state.scale, stop),
                           state.points[tracks.track[ks]])[0]
         # project_mats has no cheirality test: points behind the camera are invalid.
-        rz = np.radians(v.view.angle_deg * state.scale[0] + state.stops[stop_key(v)][0])
+        rz = np.radians(theta * state.scale[0] + stop[0])
         c, s = math.cos(rz), math.sin(rz)
         x = state.points[tracks.track[ks]]
         xw = np.stack([c * x[:, 0] - s * x[:, 1], s * x[:, 0] + c * x[:, 1], x[:, 2]], 1)
@@ -369,8 +330,16 @@ class BundleOptions:
     pose_prior_mm, pose_prior_deg : float
         Standard deviation of the (camera, tilt) pose priors, when any.
     fixed_focal : list of camera names whose focal length is held (given by the lab).
+    principal_point_sigma_px : float or None
+        A Gaussian prior holding the free principal point near the image centre (its
+        standard deviation; None: no prior).  One orbit leaves the principal point and
+        the camera's pitch nearly interchangeable (a rotation about the camera's centre
+        moves the image almost as a shift does); the prior keeps that valley bounded.
     max_iterations : int
     threads : int
+    solver : str
+        ``lm`` (the compiled Schur-complement Levenberg-Marquardt) or ``ceres`` (pyceres,
+        one Python cost per track: the plain reference, ~100x slower).
     """
 
     angle_sigma_deg: float | None = 0.5
@@ -379,11 +348,13 @@ class BundleOptions:
     fix_distortion: bool = False
     cauchy_scale_px: float = 1.0
     outlier_px: float = 1.5
-    prior_noise_px: float = 0.5
+    prior_noise_px: float = 0.1
+    principal_point_sigma_px: float | None = None
     pose_prior_mm: float = 10.0
     pose_prior_deg: float = 5.0
     max_iterations: int = 50
     threads: int = 2
+    solver: str = "lm"
     fixed_focal: list[str] = field(default_factory=list)
 
 
@@ -420,6 +391,7 @@ def _build(state: TurntableState, views: list[SfmView], tracks: Tracks, keep: np
     loss = pyceres.CauchyLoss(opt.cauchy_scale_px) if robust else None
     # Ceres keeps pointers: each point block is a row view of state.points, moved in place.
     point_blocks = {}
+    inv_noise = 1.0 / tracks.noise_of()
     idx = np.flatnonzero(keep)
     bounds = np.flatnonzero(np.diff(tracks.track[idx])) + 1
     for obs in np.split(idx, bounds):
@@ -438,14 +410,21 @@ def _build(state: TurntableState, views: list[SfmView], tracks: Tracks, keep: np
                           layout.slot(("s", sk), state.stops[sk]),
                           layout.slot(("c",), state.scale), 0)
             thetas[o] = v.view.angle_deg
-        problem.add_residual_block(track_cost(tracks.uv[obs], thetas, offsets, layout.sizes),
-                                   loss, layout.blocks)
+        problem.add_residual_block(track_cost(tracks.uv[obs], thetas, offsets, layout.sizes,
+                                              inv_noise[obs]), loss, layout.blocks)
     fixed = ([1, 2] if opt.fix_principal_point else []) + \
         ([3, 4] if opt.fix_distortion else []) + [5]
+    centre_prior = _make_prior_cost(6)
     for cam, arr in state.intrinsics.items():
         if problem.has_parameter_block(arr):
             held = sorted(set(fixed) | ({0} if cam in opt.fixed_focal else set()))
             problem.set_manifold(arr, pyceres.SubsetManifold(6, held))
+            if opt.principal_point_sigma_px and not opt.fix_principal_point:
+                w, h = state.image_sizes[cam]
+                mean = np.array([0.0, (w - 1) / 2, (h - 1) / 2, 0.0, 0.0, 0.0])
+                wt = opt.prior_noise_px / opt.principal_point_sigma_px
+                problem.add_residual_block(
+                    centre_prior(mean, np.array([0.0, wt, wt, 0.0, 0.0, 0.0])), None, [arr])
     ref = state.poses[state.reference]
     problem.set_manifold(ref, pyceres.SubsetManifold(6, [3, 4, 5]))
     if not opt.fit_angle_scale:
@@ -459,15 +438,6 @@ def _build(state: TurntableState, views: list[SfmView], tracks: Tracks, keep: np
         else:
             problem.add_residual_block(
                 prior(np.zeros(1), opt.prior_noise_px / opt.angle_sigma_deg), None, [arr])
-    if state.plate is not None:
-        pl = state.plate
-        for kind, ids, arr in (("plane", pl.top_tracks, pl.height),
-                               ("cylinder", pl.rim_tracks, pl.radius)):
-            cost = _make_surface_cost(kind)
-            for t in ids:
-                if int(t) in point_blocks:
-                    problem.add_residual_block(cost(pl.weight), None,
-                                               [point_blocks[int(t)], arr])
     pose_prior = _make_pose_prior_cost()
     for g, (r, c) in state.pose_priors.items():
         if g in state.poses and problem.has_parameter_block(state.poses[g]) \
@@ -504,16 +474,22 @@ def adjust(state: TurntableState, views: list[SfmView], tracks: Tracks, opt: Bun
     Returns the kept observations (M,) bool and the report.
     """
     t0 = time.perf_counter()
+    if opt.solver == "ceres" and tracks.lab_of().any():
+        raise ValueError("the Ceres reference solve has no lab-fixed points; use solver 'lm'")
     keep = np.isfinite(state.points[tracks.track, 0]) if keep is None else keep.copy()
     # A point behind a camera has no projection: Ceres would refuse the whole problem.
     keep &= np.isfinite(residuals(state, views, tracks)).all(axis=1)
     solves = []
     robust = True
     for _ in range(rounds + 1):
-        problem, blocks = _build(state, views, tracks, keep, opt, robust)
-        solves.append(_solve(problem, opt))
-        del blocks  # views into state.points: Ceres moved the points in place
-        r = np.linalg.norm(residuals(state, views, tracks), axis=1)
+        if opt.solver == "ceres":
+            problem, blocks = _build(state, views, tracks, keep, opt, robust)
+            solves.append(_solve(problem, opt))
+            del blocks  # views into state.points: Ceres moved the points in place
+        else:
+            solves.append(solve_lm(state, views, tracks, keep, opt, robust))
+        # residuals in units of each observation's own noise (markers are noisier)
+        r = np.linalg.norm(residuals(state, views, tracks), axis=1) / tracks.noise_of()
         ok = np.isfinite(r)
         sigma = float(np.median(r[keep & ok])) / 1.1774 if (keep & ok).any() else 1.0
         new = keep & ok & (r <= max(opt.outlier_px, 4.0 * sigma))
@@ -528,3 +504,555 @@ def adjust(state: TurntableState, views: list[SfmView], tracks: Tracks, opt: Bun
     return keep, BundleReport(solves, int(keep.sum()), int((~keep).sum()),
                               time.perf_counter() - t0)
 
+
+
+INTRINSIC_NAMES = ("f", "cu", "cv", "d1", "d2")
+
+
+def parameter_sigma(state: TurntableState, views: list[SfmView], tracks: Tracks,
+                    keep: np.ndarray, opt: BundleOptions) -> dict[str, Any]:
+    """1-sigma of the rig's parameters at the solution, from the Jacobian.
+
+    The reduced camera system of the solve (every point eliminated: the Schur
+    complement of the normal equations), priors included and undamped, is inverted
+    with its columns scaled to unit norm; the residual variance (in units of each
+    observation's noise) scales the result.  Parameters held by the options or the
+    gauge get no sigma.  Centres are in the state's units.
+
+    Returns ``models`` (camera -> sigma of f, cu, cv, d1, d2), ``poses``
+    (group -> ``rotation_deg``, ``centre_units``), ``stop_angle_deg``,
+    ``residual_sigma_px`` and the ``covariance`` with its ``index`` (block -> row).
+    """
+    lay = layout_of(state, views, tracks, opt)
+    keep = keep.copy()
+    counts = np.bincount(tracks.track[keep], minlength=tracks.n_tracks)
+    keep &= (counts[tracks.track] >= 2) & np.isfinite(state.points[tracks.track, 0])
+    prob = _Problem(lay, tracks.track, np.searchsorted(tracks.track,
+                                                       np.arange(tracks.n_tracks + 1)),
+                    tracks.uv, 1.0 / tracks.noise_of(), keep, None,
+                    _prior_terms(state, lay, opt))
+    cam, points = pack(state, lay), np.nan_to_num(state.points)
+    lin = _linearised(prob, cam, points)
+    s_mat = _system(prob, lin, cam, 0.0)[0]
+    live = np.flatnonzero(lay.free & (np.diag(s_mat) > 0))
+    sub = s_mat[np.ix_(live, live)]
+    d = np.sqrt(np.diag(sub))
+    u, sv, vt = np.linalg.svd(sub / np.outer(d, d))
+    out: dict[str, Any] = {}
+    if sv[-1] < 1e-12 * sv[0]:
+        out["warning"] = f"information rank-deficient (condition {sv[0] / sv[-1]:.3g})"
+    cov_live = (vt.T / np.maximum(sv, 1e-12 * sv[0])) @ u.T / np.outer(d, d)
+    n_res = 2 * int(keep.sum())
+    n_points = int(np.sum(np.bincount(tracks.track[keep], minlength=tracks.n_tracks) >= 2))
+    sigma2 = float(np.sum(lin.res[keep] ** 2)) / max(n_res - len(live) - 3 * n_points, 1)
+    cov = np.zeros((lay.size, lay.size))
+    cov[np.ix_(live, live)] = cov_live * sigma2
+    var = np.diag(cov)
+    out.update({"residual_sigma_px": math.sqrt(sigma2), "models": {}, "poses": {}})
+    for c in state.intrinsics:
+        i = lay.index[("i", c)]
+        out["models"][c] = {nm: float(math.sqrt(max(var[i + k], 0.0)))
+                            for k, nm in enumerate(INTRINSIC_NAMES) if lay.free[i + k]}
+    for g in state.poses:
+        i = lay.index[("p", g)]
+        out["poses"][g] = {
+            "rotation_deg": math.degrees(math.sqrt(max(var[i:i + 3].sum(), 0.0))),
+            "centre_units": math.sqrt(max(var[i + 3:i + 6].sum(), 0.0))}
+    angles = [math.sqrt(max(var[lay.index[("s", k)]], 0.0)) for k in state.stops
+              if lay.free[lay.index[("s", k)]]]
+    if angles:
+        out["stop_angle_deg"] = {"median": float(np.median(angles)), "max": float(max(angles))}
+    out["covariance"], out["index"] = cov, lay.index
+    return out
+
+
+# --------------------------------------------------------------------------- LM solver
+# Levenberg-Marquardt with the points eliminated (Schur complement), compiled: the
+# Ceres problem above calls one Python cost per track per evaluation, which spent
+# ~1 s per iteration on 30k observations (benchmarks/sfm.py); here one compiled
+# pass linearises every observation and builds the reduced camera system.  The Ceres
+# solve stays as the plain reference it is tested against (tests/sfm).
+
+N_LOCAL = 14  # camera parameters one observation touches: intrinsics 6, pose 6, stop, scale
+
+
+@dataclass
+class Layout:
+    """Where each parameter block sits in the camera vector, and each observation's."""
+
+    index: dict                # block key -> first entry in the camera vector
+    size: int
+    obs_blocks: np.ndarray     # (M, 4) int64: intrinsics, pose, stop, scale entries
+    theta: np.ndarray          # (M,) commanded angle, deg
+    free: np.ndarray           # (size,) bool
+
+
+def layout_of(state: TurntableState, views: list[SfmView], tracks: Tracks,
+              opt: BundleOptions) -> Layout:
+    cams, groups, stops = sorted(state.intrinsics), sorted(state.poses), sorted(state.stops)
+    index: dict = {}
+    n = 0
+    for key, size in ([(("i", c), 6) for c in cams] + [(("p", g), 6) for g in groups]
+                      + [(("s", k), 1) for k in stops] + [(("c",), 1), (("lab",), 1)]):
+        index[key] = n
+        n += size
+    # photos of cameras this state does not hold (an orbit solved alone) are never seen
+    per_view = np.array([[index.get(("i", v.view.camera), -1), index.get(("p", v.group), -1),
+                          index.get(("s", stop_key(v)), -1), index[("c",)]] for v in views],
+                        np.int64)
+    free = np.ones(n, bool)
+    for c in cams:
+        i = index[("i", c)]
+        free[i + 5] = False
+        if opt.fix_principal_point:
+            free[i + 1:i + 3] = False
+        if opt.fix_distortion:
+            free[i + 3:i + 5] = False
+        if c in opt.fixed_focal:
+            free[i] = False
+    ref = index[("p", state.reference)]
+    free[ref + 3:ref + 6] = False
+    if not opt.fit_angle_scale:
+        free[index[("c",)]] = False
+    if opt.angle_sigma_deg is None:
+        for k in stops:
+            free[index[("s", k)]] = False
+    free[index[("lab",)]] = False
+    theta = np.array([v.view.angle_deg for v in views])[tracks.view]
+    blocks = per_view[tracks.view]
+    # a lab-fixed point: angle 0 and no stop error (the held zero entry "lab")
+    lab = tracks.lab_of()
+    theta[lab] = 0.0
+    blocks[lab, 2] = index[("lab",)]
+    return Layout(index, n, blocks, theta, free)
+
+
+def pack(state: TurntableState, lay: Layout) -> np.ndarray:
+    cam = np.zeros(lay.size)
+    for key, i in lay.index.items():
+        if key[0] == "lab":
+            continue
+        arr = (state.intrinsics[key[1]] if key[0] == "i" else state.poses[key[1]]
+               if key[0] == "p" else state.stops[key[1]] if key[0] == "s" else state.scale)
+        cam[i:i + len(arr)] = arr
+    return cam
+
+
+def unpack(cam: np.ndarray, state: TurntableState, lay: Layout) -> None:
+    for key, i in lay.index.items():
+        if key[0] == "lab":
+            continue
+        arr = (state.intrinsics[key[1]] if key[0] == "i" else state.poses[key[1]]
+               if key[0] == "p" else state.stops[key[1]] if key[0] == "s" else state.scale)
+        arr[:] = cam[i:i + len(arr)]
+
+
+@_jit
+def _project_obs(cam, blocks, x, theta, out):
+    i, p, s, c = blocks[0], blocks[1], blocks[2], blocks[3]
+    return _project(cam[i:i + 6], cam[p:p + 6], cam[s], cam[c], x, theta, out)
+
+
+@_jit
+def _residuals_lm(cam, points, obs_blocks, track, theta, uv, inv_noise, keep, res):
+    """Weighted residuals (M, 2) of the kept observations; False if one is behind."""
+    out = np.empty(2)
+    for o in range(len(track)):
+        if not keep[o]:
+            res[o, 0] = 0.0
+            res[o, 1] = 0.0
+            continue
+        if not _project_obs(cam, obs_blocks[o], points[track[o]], theta[o], out):
+            return False
+        res[o, 0] = (out[0] - uv[o, 0]) * inv_noise[o]
+        res[o, 1] = (out[1] - uv[o, 1]) * inv_noise[o]
+    return True
+
+
+def _rotation_and_jacobian(rv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """R = exp([rv]x) and the left Jacobian of SO(3) at ``rv`` (d(R x)/d rv = -[R x]x J)."""
+    th = float(np.linalg.norm(rv))
+    k = np.array([[0.0, -rv[2], rv[1]], [rv[2], 0.0, -rv[0]], [-rv[1], rv[0], 0.0]])
+    kk = k @ k
+    if th < 1e-8:
+        return np.eye(3) + k + 0.5 * kk, np.eye(3) + 0.5 * k + kk / 6.0
+    s1, c1 = math.sin(th), math.cos(th)
+    return (np.eye(3) + (s1 / th) * k + ((1.0 - c1) / th ** 2) * kk,
+            np.eye(3) + ((1.0 - c1) / th ** 2) * k + ((th - s1) / th ** 3) * kk)
+
+
+@_jit
+def _project_jac(intr, pose, rot, jl, stop_deg, scale, x, theta_deg, uv, jc, jp):
+    """Pixel ``uv`` (2,) of point ``x`` and its analytic Jacobians: ``jc`` (2, 14) wrt
+    [f, cu, cv, d1, d2, aspect, rotvec 3, C 3, stop, scale] and ``jp`` (2, 3) wrt ``x``;
+    ``rot``, ``jl``: the pose's rotation and its left Jacobian (``_rotation_and_jacobian``).
+    The same model as ``_project`` (its closed form is the reference in the tests)."""
+    deg = math.pi / 180.0
+    a = (theta_deg * scale + stop_deg) * deg
+    ca, sa = math.cos(a), math.sin(a)
+    x0, x1, x2 = x[0], x[1], x[2]
+    w0, w1, w2 = ca * x0 - sa * x1 - pose[3], sa * x0 + ca * x1 - pose[4], x2 - pose[5]
+    da0, da1 = -sa * x0 - ca * x1, ca * x0 - sa * x1          # d (Rz(a) x) / d a
+    c0 = rot[0, 0] * w0 + rot[0, 1] * w1 + rot[0, 2] * w2
+    c1 = rot[1, 0] * w0 + rot[1, 1] * w1 + rot[1, 2] * w2
+    c2 = rot[2, 0] * w0 + rot[2, 1] * w1 + rot[2, 2] * w2
+    if c2 <= 1e-9:
+        return False
+    iz = 1.0 / c2
+    px, py = c0 * iz, c1 * iz
+    r2 = px * px + py * py
+    f, asp, d1, d2 = intr[0], intr[5], intr[3], intr[4]
+    dist = 1.0 + d1 * r2 + d2 * r2 * r2
+    uv[0] = f * px * dist + intr[1]
+    uv[1] = f * asp * py * dist + intr[2]
+    dd = d1 + 2.0 * d2 * r2
+    a00 = f * (dist + 2.0 * px * px * dd)
+    a01 = f * 2.0 * px * py * dd
+    a10 = f * asp * 2.0 * px * py * dd
+    a11 = f * asp * (dist + 2.0 * py * py * dd)
+    # d uv / d c (2, 3)
+    e00, e01, e02 = a00 * iz, a01 * iz, -(a00 * px + a01 * py) * iz
+    e10, e11, e12 = a10 * iz, a11 * iz, -(a10 * px + a11 * py) * iz
+    jc[0, 0], jc[1, 0] = px * dist, asp * py * dist
+    jc[0, 1], jc[1, 1] = 1.0, 0.0
+    jc[0, 2], jc[1, 2] = 0.0, 1.0
+    jc[0, 3], jc[1, 3] = f * px * r2, f * asp * py * r2
+    jc[0, 4], jc[1, 4] = f * px * r2 * r2, f * asp * py * r2 * r2
+    jc[0, 5], jc[1, 5] = 0.0, f * py * dist
+    # d c / d rotvec = -[c]x J_l  ->  row k of -[c]x: (0, c2, -c1), (-c2, 0, c0), (c1, -c0, 0)
+    for j in range(3):
+        g0 = c2 * jl[1, j] - c1 * jl[2, j]
+        g1 = -c2 * jl[0, j] + c0 * jl[2, j]
+        g2 = c1 * jl[0, j] - c0 * jl[1, j]
+        jc[0, 6 + j] = e00 * g0 + e01 * g1 + e02 * g2
+        jc[1, 6 + j] = e10 * g0 + e11 * g1 + e12 * g2
+        # d c / d C = -R ; d c / d x = R Rz(a)
+        jc[0, 9 + j] = -(e00 * rot[0, j] + e01 * rot[1, j] + e02 * rot[2, j])
+        jc[1, 9 + j] = -(e10 * rot[0, j] + e11 * rot[1, j] + e12 * rot[2, j])
+    q0 = rot[0, 0] * da0 + rot[0, 1] * da1
+    q1 = rot[1, 0] * da0 + rot[1, 1] * da1
+    q2 = rot[2, 0] * da0 + rot[2, 1] * da1
+    g0 = (e00 * q0 + e01 * q1 + e02 * q2) * deg
+    g1 = (e10 * q0 + e11 * q1 + e12 * q2) * deg
+    jc[0, 12], jc[1, 12] = g0, g1
+    jc[0, 13], jc[1, 13] = g0 * theta_deg, g1 * theta_deg
+    for j in range(3):
+        # column j of R Rz(a): Rz(a) column j is (ca, sa, 0), (-sa, ca, 0), (0, 0, 1)
+        if j == 0:
+            m0, m1, m2 = ca, sa, 0.0
+        elif j == 1:
+            m0, m1, m2 = -sa, ca, 0.0
+        else:
+            m0, m1, m2 = 0.0, 0.0, 1.0
+        k0 = rot[0, 0] * m0 + rot[0, 1] * m1 + rot[0, 2] * m2
+        k1 = rot[1, 0] * m0 + rot[1, 1] * m1 + rot[1, 2] * m2
+        k2 = rot[2, 0] * m0 + rot[2, 1] * m1 + rot[2, 2] * m2
+        jp[0, j] = e00 * k0 + e01 * k1 + e02 * k2
+        jp[1, j] = e10 * k0 + e11 * k1 + e12 * k2
+    return True
+
+
+@_jit
+def _linearise(cam, rots, jls, points, obs_blocks, track, theta, uv, inv_noise, keep, res,
+               jc, jp):
+    """Weighted residuals (M, 2) and Jacobians wrt the observation's 14 camera entries
+    (M, 2, 14) and its point (M, 2, 3), analytic (``_project_jac``); ``rots``, ``jls``
+    (n_cam, 3, 3): rotation and left Jacobian of the pose whose block starts there."""
+    out = np.empty(2)
+    j1 = np.empty((2, N_LOCAL))
+    j2 = np.empty((2, 3))
+    for o in range(len(track)):
+        if not keep[o]:
+            continue
+        i, p, s, c = obs_blocks[o, 0], obs_blocks[o, 1], obs_blocks[o, 2], obs_blocks[o, 3]
+        if not _project_jac(cam[i:i + 6], cam[p:p + 6], rots[p], jls[p], cam[s], cam[c],
+                            points[track[o]], theta[o], out, j1, j2):
+            return False
+        w = inv_noise[o]
+        res[o, 0] = (out[0] - uv[o, 0]) * w
+        res[o, 1] = (out[1] - uv[o, 1]) * w
+        for r in range(2):
+            for k in range(N_LOCAL):
+                jc[o, r, k] = j1[r, k] * w
+            for k in range(3):
+                jp[o, r, k] = j2[r, k] * w
+    return True
+
+
+@_jit
+def _local_entries(b, out):
+    for k in range(N_LOCAL):
+        out[k] = b[0] + k if k < 6 else b[1] + k - 6 if k < 12 else b[2] if k == 12 else b[3]
+
+
+@_jit
+def _reduced_system(n_cam, track_start, obs_blocks, keep, robust_w, res, jc, jp, lam,
+                    s_mat, b_vec, u_diag, v_inv, g_p):
+    """The reduced camera system ``S dc = -b`` with every point eliminated.
+
+    ``robust_w`` (M,) are the IRLS weights of the robust loss; ``lam`` damps the
+    points' 3 x 3 blocks (LM).  Fills ``s_mat`` (n_cam, n_cam), ``b_vec``, the camera
+    block's diagonal ``u_diag`` (for its damping), the damped inverse point blocks
+    ``v_inv`` (T, 3, 3) and the point gradients ``g_p``; a track with fewer than two
+    kept observations is left out (its ``v_inv`` is zero).
+    """
+    ent = np.empty(N_LOCAL, np.int64)
+    pos = -np.ones(n_cam, np.int64)
+    loc = np.empty(n_cam, np.int64)
+    for t in range(len(track_start) - 1):
+        a0, a1 = track_start[t], track_start[t + 1]
+        v = np.zeros((3, 3))
+        g = np.zeros(3)
+        n_loc = 0
+        n_kept = 0
+        for o in range(a0, a1):
+            n_kept += keep[o]
+        v_inv[t] = 0.0
+        g_p[t] = 0.0
+        if n_kept < 2:
+            continue
+        for o in range(a0, a1):
+            if not keep[o]:
+                continue
+            _local_entries(obs_blocks[o], ent)
+            for k in range(N_LOCAL):
+                if pos[ent[k]] < 0:
+                    pos[ent[k]] = n_loc
+                    loc[n_loc] = ent[k]
+                    n_loc += 1
+        wmat = np.zeros((n_loc, 3))
+        for o in range(a0, a1):
+            if not keep[o]:
+                continue
+            rw = robust_w[o]
+            _local_entries(obs_blocks[o], ent)
+            for r in range(2):
+                for i in range(3):
+                    g[i] += rw * jp[o, r, i] * res[o, r]
+                    for j in range(3):
+                        v[i, j] += rw * jp[o, r, i] * jp[o, r, j]
+                for k in range(N_LOCAL):
+                    gk = ent[k]
+                    b_vec[gk] += rw * jc[o, r, k] * res[o, r]
+                    u_diag[gk] += rw * jc[o, r, k] * jc[o, r, k]
+                    for m in range(N_LOCAL):
+                        s_mat[gk, ent[m]] += rw * jc[o, r, k] * jc[o, r, m]
+                    for i in range(3):
+                        wmat[pos[gk], i] += rw * jc[o, r, k] * jp[o, r, i]
+        for i in range(3):
+            v[i, i] += lam * v[i, i] + 1e-12
+        vi = np.linalg.inv(v)
+        v_inv[t] = vi
+        g_p[t] = g
+        wv = wmat @ vi
+        for a in range(n_loc):
+            ga = loc[a]
+            for i in range(3):
+                b_vec[ga] -= wv[a, i] * g[i]
+            for c in range(n_loc):
+                acc = 0.0
+                for i in range(3):
+                    acc += wv[a, i] * wmat[c, i]
+                s_mat[ga, loc[c]] -= acc
+        for a in range(n_loc):
+            pos[loc[a]] = -1
+
+
+@_jit
+def _point_steps(n_cam, track_start, obs_blocks, keep, robust_w, jc, jp, v_inv, g_p, dc,
+                 dx):
+    """Point steps ``dx`` (T, 3) = -V^-1 (g_p + W' dc) for camera step ``dc``."""
+    ent = np.empty(N_LOCAL, np.int64)
+    for t in range(len(track_start) - 1):
+        wdc = np.zeros(3)
+        dx[t] = 0.0
+        if v_inv[t, 0, 0] == 0.0 and v_inv[t, 1, 1] == 0.0:
+            continue
+        for o in range(track_start[t], track_start[t + 1]):
+            if not keep[o]:
+                continue
+            rw = robust_w[o]
+            _local_entries(obs_blocks[o], ent)
+            for r in range(2):
+                jd = 0.0
+                for k in range(N_LOCAL):
+                    jd += jc[o, r, k] * dc[ent[k]]
+                for i in range(3):
+                    wdc[i] += rw * jp[o, r, i] * jd
+        rhs = g_p[t] + wdc
+        for i in range(3):
+            dx[t, i] = -(v_inv[t, i, 0] * rhs[0] + v_inv[t, i, 1] * rhs[1]
+                         + v_inv[t, i, 2] * rhs[2])
+
+
+@dataclass
+class _Problem:
+    """One LM solve's fixed inputs (the observations) and its layout."""
+
+    lay: Layout
+    track: np.ndarray
+    track_start: np.ndarray
+    uv: np.ndarray
+    inv_noise: np.ndarray
+    keep: np.ndarray
+    robust_scale: float | None
+    priors: list            # (entries (k,), residual function of cam -> (r,)) pairs
+
+
+def _prior_terms(state: TurntableState, lay: Layout, opt: BundleOptions) -> list:
+    """Gaussian priors on camera entries as (entries, residual function) pairs, each
+    weighted as the solve weighs a keypoint of ``prior_noise_px``."""
+    terms = []
+    if opt.angle_sigma_deg is not None:
+        w = opt.prior_noise_px / opt.angle_sigma_deg
+        for k in state.stops:
+            i = lay.index[("s", k)]
+            terms.append((np.array([i]), lambda c, i=i, w=w: w * c[i:i + 1]))
+    if opt.principal_point_sigma_px and not opt.fix_principal_point:
+        w = opt.prior_noise_px / opt.principal_point_sigma_px
+        for cam, (wd, ht) in state.image_sizes.items():
+            if ("i", cam) not in lay.index:
+                continue
+            i = lay.index[("i", cam)] + 1
+            mean = np.array([(wd - 1) / 2, (ht - 1) / 2])
+            terms.append((np.array([i, i + 1]),
+                          lambda c, i=i, m=mean, w=w: w * (c[i:i + 2] - m)))
+    for g, (r0, c0) in state.pose_priors.items():
+        if g == state.reference or ("p", g) not in lay.index:
+            continue
+        i = lay.index[("p", g)]
+        wr = opt.prior_noise_px / math.radians(opt.pose_prior_deg)
+        wc = opt.prior_noise_px / opt.pose_prior_mm
+
+        def pose_res(c, i=i, r0=r0, c0=c0, wr=wr, wc=wc):
+            dr = rotvec(rotmats(c[i:i + 3])[0] @ np.asarray(r0).T)
+            return np.concatenate([wr * dr, wc * (c[i + 3:i + 6] - np.asarray(c0))])
+
+        terms.append((np.arange(i, i + 6), pose_res))
+    return terms
+
+
+def _cost(prob: _Problem, cam: np.ndarray, points: np.ndarray) -> tuple[float, np.ndarray]:
+    """Robust cost and the residuals (M, 2); inf when a point falls behind a camera."""
+    res = np.zeros((len(prob.track), 2))
+    if not _residuals_lm(cam, points, prob.lay.obs_blocks, prob.track, prob.lay.theta, prob.uv,
+                         prob.inv_noise, prob.keep, res):
+        return math.inf, res
+    sq = res[:, 0] ** 2 + res[:, 1] ** 2
+    if prob.robust_scale:
+        b2 = prob.robust_scale ** 2
+        cost = float(np.sum(b2 * np.log1p(sq / b2)))
+    else:
+        cost = float(np.sum(sq))
+    for _, fn in prob.priors:
+        r = fn(cam)
+        cost += float(r @ r)
+    return cost, res
+
+
+@dataclass
+class _Linear:
+    """The problem linearised at one point: weighted residuals, Jacobians, IRLS weights."""
+
+    res: np.ndarray
+    jc: np.ndarray
+    jp: np.ndarray
+    robust_w: np.ndarray
+
+
+def _linearised(prob: _Problem, cam: np.ndarray, points: np.ndarray) -> _Linear:
+    m = len(prob.track)
+    res = np.zeros((m, 2))
+    jc = np.zeros((m, 2, N_LOCAL))
+    jp = np.zeros((m, 2, 3))
+    rots = np.zeros((prob.lay.size, 3, 3))
+    jls = np.zeros((prob.lay.size, 3, 3))
+    for key, i in prob.lay.index.items():
+        if key[0] == "p":
+            rots[i], jls[i] = _rotation_and_jacobian(cam[i:i + 3])
+    if not _linearise(cam, rots, jls, points, prob.lay.obs_blocks, prob.track,
+                      prob.lay.theta, prob.uv, prob.inv_noise, prob.keep, res, jc, jp):
+        raise FloatingPointError("a point fell behind a camera")
+    sq = res[:, 0] ** 2 + res[:, 1] ** 2
+    robust_w = 1.0 / (1.0 + sq / prob.robust_scale ** 2) if prob.robust_scale else \
+        np.ones(m)
+    return _Linear(res, jc, jp, robust_w)
+
+
+def _system(prob: _Problem, lin: _Linear, cam: np.ndarray, lam: float):
+    """The reduced camera system at damping ``lam`` (points eliminated), priors added:
+    ``s_mat``, ``b_vec``, the camera diagonal ``u_diag``, and ``v_inv, g_p`` for the
+    point step."""
+    n = prob.lay.size
+    n_t = len(prob.track_start) - 1
+    s_mat, b_vec, u_diag = np.zeros((n, n)), np.zeros(n), np.zeros(n)
+    v_inv, g_p = np.zeros((n_t, 3, 3)), np.zeros((n_t, 3))
+    _reduced_system(n, prob.track_start, prob.lay.obs_blocks, prob.keep, lin.robust_w,
+                    lin.res, lin.jc, lin.jp, lam, s_mat, b_vec, u_diag, v_inv, g_p)
+    for entries, fn in prob.priors:
+        r0 = fn(cam)
+        jac = np.zeros((len(r0), len(entries)))
+        for k, e in enumerate(entries):
+            q = cam.copy()
+            q[e] += 1e-7
+            jac[:, k] = (fn(q) - r0) / 1e-7
+        s_mat[np.ix_(entries, entries)] += jac.T @ jac
+        u_diag[entries] += np.sum(jac ** 2, axis=0)
+        b_vec[entries] += jac.T @ r0
+    return s_mat, b_vec, u_diag, v_inv, g_p
+
+
+def _free_solve(s_mat: np.ndarray, b_vec: np.ndarray, free: np.ndarray) -> np.ndarray:
+    dc = np.zeros(len(b_vec))
+    f = np.flatnonzero(free)
+    sub = s_mat[np.ix_(f, f)]
+    d = np.sqrt(np.maximum(np.diag(sub), 1e-300))
+    dc[f] = -np.linalg.lstsq(sub / np.outer(d, d), b_vec[f] / d, rcond=1e-14)[0] / d
+    return dc
+
+
+def solve_lm(state: TurntableState, views: list[SfmView], tracks: Tracks, keep: np.ndarray,
+             opt: BundleOptions, robust: bool) -> dict[str, Any]:
+    """Levenberg-Marquardt on the turntable model, ``state`` moved in place."""
+    t0 = time.perf_counter()
+    lay = layout_of(state, views, tracks, opt)
+    keep = keep.copy()
+    counts = np.bincount(tracks.track[keep], minlength=tracks.n_tracks)
+    keep &= counts[tracks.track] >= 2
+    prob = _Problem(lay, tracks.track, np.searchsorted(tracks.track,
+                                                       np.arange(tracks.n_tracks + 1)),
+                    tracks.uv, 1.0 / tracks.noise_of(), keep,
+                    opt.cauchy_scale_px if robust else None, _prior_terms(state, lay, opt))
+    cam, points = pack(state, lay), state.points.copy()
+    points[~np.isfinite(points)] = 0.0
+    cost, _ = _cost(prob, cam, points)
+    initial, lam, it, termination = cost, 1e-3, 0, "NO_CONVERGENCE"
+    while it < opt.max_iterations:
+        lin = _linearised(prob, cam, points)
+        while True:
+            it += 1
+            s_mat, b_vec, u_diag, v_inv, g_p = _system(prob, lin, cam, lam)
+            dc = _free_solve(s_mat + np.diag(lam * np.maximum(u_diag, 1e-12)), b_vec,
+                             lay.free)
+            dx = np.zeros((len(prob.track_start) - 1, 3))
+            _point_steps(lay.size, prob.track_start, lay.obs_blocks, keep, lin.robust_w,
+                         lin.jc, lin.jp, v_inv, g_p, dc, dx)
+            new_cost, _ = _cost(prob, cam + dc, points + dx)
+            if new_cost < cost or lam > 1e10 or it >= opt.max_iterations:
+                break
+            lam *= 4.0
+        if not new_cost < cost:
+            termination = "CONVERGENCE" if lam > 1e10 else termination
+            break
+        decrease = (cost - new_cost) / max(cost, 1e-300)
+        cam, points, cost = cam + dc, points + dx, new_cost
+        lam = max(lam / 3.0, 1e-9)
+        if decrease < 1e-10:
+            termination = "CONVERGENCE"
+            break
+    unpack(cam, state, lay)
+    finite = np.isfinite(state.points[:, 0])
+    state.points[finite] = points[finite]
+    return {"termination": termination, "iterations": it,
+            "seconds": time.perf_counter() - t0, "initial_cost": initial,
+            "final_cost": cost, "usable": bool(np.isfinite(cost))}

@@ -53,18 +53,19 @@ class SfmSettings:
     plate_top_mm: float = 0.0
     angle_sigma_deg: float | None = 0.5
     fit_angle_scale: bool = False
-    fix_principal_point: bool = True
+    fix_principal_point: bool = False
     fix_distortion: bool = False
     min_tracks: int = 200
     min_view_observations: int = 15
     max_rms_px: float = 1.5
     threads: int = 2
-    max_observations: int = 30_000
+    max_observations: int = 200_000
     focal_px: dict[str, float] | None = None
     fit_focal: bool = False
-    plate_surfaces: bool = False
-    plate_flatness_mm: float = 0.3
-    plate_surface_tolerance_mm: float = 3.0
+    principal_point_prior: float | None = 0.015
+    markers: str | None = "DICT_4X4_250"
+    marker_mm: float | None = None
+    refine_dots: bool = True
     prior_poses: dict[tuple[str, int], Pose] | None = None
     prior_focal: dict[str, float] | None = None
     workspace: Path | None = None
@@ -130,7 +131,46 @@ def match_scan(scan, views: list[ViewRecord], settings: SfmSettings, work: Path
     t["matching_s"] = time.perf_counter() - t0
     tracks = features.read_tracks(db, sviews)
     tracks.stats["pairs_matched"] = len(pairs)
+    if settings.refine_dots or settings.markers:
+        t0 = time.perf_counter()
+        tracks = refine_and_mark(scan, sviews, tracks, settings)
+        t["dots_and_markers_s"] = time.perf_counter() - t0
     return sviews, db, tracks
+
+
+def refine_and_mark(scan, views: list[SfmView], tracks: Tracks, settings: SfmSettings
+                    ) -> Tracks:
+    """Keypoints moved to their dots' centroids, and the printed markers' corners added
+    as tracks of their own (``plantscan_sfm.markers``)."""
+    from plantscan_sfm import markers
+
+    uv = tracks.uv.copy()
+    snapped = 0
+    grays = []
+    by_view = np.argsort(tracks.view, kind="stable")
+    starts = np.searchsorted(tracks.view[by_view], np.arange(len(views) + 1))
+    for i, v in enumerate(views):
+        gray = markers.read_gray(scan.path_of(v.view))
+        if settings.refine_dots:
+            obs = by_view[starts[i]:starts[i + 1]]
+            labels, centres = markers.dot_centroids(gray)
+            uv[obs], moved = markers.snap_to_dots(uv[obs], labels, centres)
+            snapped += int(moved.sum())
+        if settings.markers:
+            grays.append(gray)
+    out = Tracks(tracks.view, tracks.track, uv, dict(tracks.stats), tracks.noise,
+                 tracks.marker)
+    out.stats["keypoints_on_dots"] = snapped
+    if settings.markers:
+        corners = markers.detect_markers(grays, settings.markers)
+        turning, lab = markers.split_static(corners, views)
+        mt = turning.tracks()
+        out = Tracks.concat([out, mt, lab])
+        out.stats.update({"marker_detections": int(len(corners.view) // 4),
+                          "marker_corner_tracks": mt.n_tracks,
+                          "lab_marker_corner_tracks": lab.n_tracks,
+                          "markers_per_photo": float(len(corners.view) / 4 / len(views))})
+    return out
 
 
 def _calibrate(scan, views: list[ViewRecord], sizes: dict[str, tuple[int, int]],
@@ -166,39 +206,44 @@ def solve_tracks(views: list[SfmView], tracks: Tracks, sizes: dict[str, tuple[in
     t["initialisation_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     held_focal = sorted(settings.focal_px or {}) if not settings.fit_focal else []
+    width = max(w for w, _ in sizes.values())
     opt = bundle.BundleOptions(angle_sigma_deg=settings.angle_sigma_deg, fixed_focal=held_focal,
                                fit_angle_scale=settings.fit_angle_scale,
                                fix_principal_point=settings.fix_principal_point,
-                               fix_distortion=settings.fix_distortion, threads=settings.threads)
+                               fix_distortion=settings.fix_distortion, threads=settings.threads,
+                               principal_point_sigma_px=settings.principal_point_prior * width
+                               if settings.principal_point_prior else None)
     # First with the principal point, distortion and angles held (a far start), then all.
     first = bundle.BundleOptions(**{**opt.__dict__, "fix_distortion": True,
                                     "fix_principal_point": True, "angle_sigma_deg": None,
                                     "outlier_px": 4.0})
     keep, rep1 = bundle.adjust(state, views, tracks, first, rounds=1)
-    _retriangulate(state, views, tracks, keep)
-    if settings.scale == "plate" and settings.plate_surfaces:
-        state.plate = plate_surfaces(state, tracks, keep, settings)
-    keep, rep2 = bundle.adjust(state, views, tracks, opt, rounds=2)
+    keep = _clean_tracks(state, views, tracks, keep, CLEAN_PX)
+    keep, rep2 = bundle.adjust(state, views, tracks, opt, keep=keep, rounds=2)
     t["bundle_s"] = time.perf_counter() - t0
     res = bundle.residuals(state, views, tracks)
     err = np.linalg.norm(res, axis=1)
     quality = _quality(state, views, tracks, keep, err, settings)
     quality["initialisation"] = init_info
     quality["solver"] = {"solves": rep1.solves + rep2.solves}
-    if state.plate is not None:
-        quality["plate_surfaces"] = {"top_points": len(state.plate.top_tracks),
-                                     "rim_points": len(state.plate.rim_tracks)}
     final = rep2.solves[-1]
     if not final["usable"]:
         raise SfmError(f"the turntable bundle adjustment failed ({final['termination']})")
+    t0 = time.perf_counter()
+    sigma = bundle.parameter_sigma(state, views, tracks, keep, opt)
+    t["sigma_s"] = time.perf_counter() - t0
+    _check_focal(state, sigma, init_info, settings)
     # Metric scale and height.
     counts = np.bincount(tracks.track[keep], minlength=tracks.n_tracks)
     solid = counts >= 3
     ref_c = state.poses[state.reference][3:6]
     s, z0, sinfo = metric_frame(state.points[solid], float(np.hypot(ref_c[0], ref_c[1])),
                                 settings.scale, settings.plate_diameter_mm,
-                                settings.camera_distance_mm)
+                                settings.camera_distance_mm,
+                                marker_edges=marker_edges(state, tracks, solid),
+                                marker_mm=settings.marker_mm)
     quality["scale"] = sinfo
+    quality["sigma"] = _sigma_report(sigma, s)
     for p in state.poses.values():
         p[3:6] = s * p[3:6] + np.array([0.0, 0.0, settings.plate_top_mm - s * z0])
     state.points[:] = s * state.points + np.array([0.0, 0.0, settings.plate_top_mm - s * z0])
@@ -225,43 +270,79 @@ def solve_tracks(views: list[SfmView], tracks: Tracks, sizes: dict[str, tuple[in
                        float(state.scale[0]), tilt_axis, quality, view_angles)
 
 
-def plate_surfaces(state: bundle.TurntableState, tracks: Tracks, keep: np.ndarray,
-                   settings: SfmSettings) -> bundle.PlateSurfaces | None:
-    """Which tracks are printed on the plate's top and rim (see ``bundle.PlateSurfaces``).
+def marker_edges(state: bundle.TurntableState, tracks: Tracks, solid: np.ndarray
+                 ) -> np.ndarray:
+    """Lengths (state units) of the printed markers' vertical edges (corners 0-3, 1-2)
+    whose both ends are well triangulated: a marker's side, whatever the surface's
+    curvature round the axis."""
+    if tracks.marker is None:
+        return np.zeros(0)
+    key_of = np.full(tracks.n_tracks, -1, np.int64)
+    m = tracks.marker >= 0
+    key_of[tracks.track[m]] = tracks.marker[m]
+    ok = solid & (key_of >= 0) & np.isfinite(state.points[:, 0])
+    where = {int(k): int(t) for t, k in enumerate(key_of) if ok[t]}
+    out = []
+    for k, t in where.items():
+        marker, corner = divmod(k, 4)
+        if corner in (0, 1):
+            other = where.get(marker * 4 + (3 if corner == 0 else 2))
+            if other is not None:
+                out.append(float(np.linalg.norm(state.points[t] - state.points[other])))
+    return np.array(out)
 
-    A plate is flat and turns about its own normal, and its rim is a cylinder about
-    the axis: on points that lie there these two facts fix what the photos of one
-    orbit leave loose (focal length, principal point and elevation trade off when
-    most features lie on one plane turning about its normal).
-    """
-    from plantscan_sfm.scale import metric_frame
 
-    counts = np.bincount(tracks.track[keep], minlength=tracks.n_tracks)
-    solid = (counts >= 3) & np.isfinite(state.points[:, 0])
-    try:
-        s, z0, info = metric_frame(state.points[solid], 1.0, "plate",
-                                   settings.plate_diameter_mm, None)
-    except SfmError:
-        return None
-    radius = 0.5 * settings.plate_diameter_mm / s
-    x = state.points
-    r = np.hypot(x[:, 0], x[:, 1])
-    tol = settings.plate_surface_tolerance_mm / s
-    top = solid & (np.abs(x[:, 2] - z0) < tol) & (r < radius - tol)
-    rim = solid & (np.abs(r - radius) < tol) & (x[:, 2] < z0 - tol) & (x[:, 2] > z0 - 0.5 * radius)
-    return bundle.PlateSurfaces(np.flatnonzero(top), np.flatnonzero(rim), np.array([z0]),
-                                np.array([radius]),
-                                0.5 / (settings.plate_flatness_mm / s))
+def _check_focal(state: bundle.TurntableState, sigma: dict, init_info: dict,
+                 settings: SfmSettings) -> None:
+    """A focal length the photos leave loose is a named error, never a calibration."""
+    for cam, sd in sigma["models"].items():
+        f = float(state.intrinsics[cam][0])
+        if "f" in sd and sd["f"] > FOCAL_MAX_SIGMA * f:
+            starts = {k: v for k, v in init_info.items() if k.startswith(f"pose_{cam}/")}
+            raise SfmError(
+                f"camera {cam}: the photos do not fix the focal length (f = {f:.0f} px "
+                f"+- {sd['f']:.0f} px, 1 sigma{'; orbit starts: ' + str(starts) if starts else ''}"
+                f"); give the lens's focal length (calibrate.params.focal_px.{cam}: focal "
+                "length / pixel pitch), print the marker rows (docs/sfm.md, 'what to print') "
+                "so that the cameras share points, or print texture at other depths")
+
+
+# After the first solve (principal point, distortion and angles held) an observation
+# this far (in its own noise units: px for a dot) from its retriangulated point is a
+# wrong match; at the truth, 10 % of cam0's keypoints on the virtual paper-72 print are
+# 16-80 px off (one dot of the print matched for another), its good ones within 1 px.
+CLEAN_PX = 2.0
+
+
+# The joint solve's 1-sigma of a focal length above 2 %: undetermined.  A determined
+# virtual paper-72 orbit pair gives 0.1-0.3 %; a shallow one several tens of %.
+FOCAL_MAX_SIGMA = 0.05
+
+
+def _sigma_report(sigma: dict, mm_per_unit: float) -> dict[str, Any]:
+    """The 1-sigma of ``bundle.parameter_sigma`` for the quality report, centres in mm."""
+    out: dict[str, Any] = {"residual_sigma_px": sigma["residual_sigma_px"],
+                           "models": sigma["models"], "poses": {}}
+    for (cam, tilt), sd in sigma["poses"].items():
+        out["poses"][f"{cam}/t{tilt}"] = {"rotation_deg": sd["rotation_deg"],
+                                          "centre_mm": sd["centre_units"] * mm_per_unit}
+    if "stop_angle_deg" in sigma:
+        out["stop_angle_deg"] = sigma["stop_angle_deg"]
+    if "warning" in sigma:
+        out["warning"] = sigma["warning"]
+    return out
 
 
 def _cap_observations(tracks: Tracks, cap: int) -> Tracks:
     """At most about ``cap`` observations, shared evenly between the photos: in each
-    photo those of the longest tracks (they constrain most) are kept."""
+    photo those of the longest tracks (they constrain most) are kept, and every marker
+    corner."""
     n_views = int(tracks.view.max()) + 1 if len(tracks.view) else 1
     if len(tracks.view) <= cap:
         return tracks
     per_view = max(cap // n_views, 20)
     length = np.bincount(tracks.track)[tracks.track]
+    length[tracks.marker_of() >= 0] = len(tracks.view)   # markers first
     order = np.lexsort((-length, tracks.view))       # by photo, longest tracks first
     rank = np.empty(len(order), np.int64)
     starts = np.searchsorted(tracks.view[order], np.arange(n_views))
@@ -295,13 +376,14 @@ def _initial_state(views: list[SfmView], tracks: Tracks, sizes: dict[str, tuple[
         info["source"] = "approximate poses given with the scan"
     else:
         motions = initialise.orbit_pairs(views, tracks)
+        shared = initialise.groups_sharing_tracks(tracks, views)
         own, focal = {}, defaultdict(list)
         for g in groups:
             if not motions.get(g):
                 raise SfmError(f"camera {g[0]} tilt {g[1]}: no two photos a few turntable stops "
                                f"apart share enough features. {ADVICE_TEXTURE}")
             f, own[g], info[f"pose_{g[0]}/t{g[1]}"] = _orbit_start(
-                views, tracks, motions[g], g, sizes[g[0]], settings)
+                views, tracks, motions[g], g, sizes[g[0]], settings, g in shared)
             focal[g[0]].append(f)
         models = {c: CameraModel(float(np.median(focal[c])), (w - 1) / 2, (h - 1) / 2, 0, 0, w,
                                  h) for c, (w, h) in sizes.items()}
@@ -333,14 +415,12 @@ def merge_tracks(tracks: Tracks, pairs: np.ndarray) -> Tracks:
     n = tracks.n_tracks
     g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
     _, label = connected_components(g, directed=False)
-    t = label[tracks.track]
-    order = np.argsort(t, kind="stable")
-    _, t = np.unique(t[order], return_inverse=True)
-    return Tracks(tracks.view[order], t, tracks.uv[order], dict(tracks.stats))
+    _, t = np.unique(label[tracks.track], return_inverse=True)
+    return tracks.reordered(np.arange(len(tracks.view)), t)
 
 
 def _orbit_start(views: list[SfmView], tracks: Tracks, motions, group: tuple[str, int],
-                 size: tuple[int, int], settings: SfmSettings
+                 size: tuple[int, int], settings: SfmSettings, shared: bool = False
                  ) -> tuple[float, GroupPose, dict[str, Any]]:
     """Focal length and pose of one (camera, tilt) from its own orbit, multi-start.
 
@@ -348,7 +428,10 @@ def _orbit_start(views: list[SfmView], tracks: Tracks, motions, group: tuple[str
     length itself when most features lie on the plate (a plane turning about its
     normal: the degenerate case of plane-based calibration).  So a short bundle
     adjustment of this orbit alone (the angles held, no distortion) starts from
-    each of several focal lengths, and the lowest cost wins.
+    each of several focal lengths, and the lowest cost wins.  When rival focal lengths
+    fit about equally well the photos of this orbit do not decide: an error unless
+    ``shared`` (the orbit shares tracks with another camera or tilt, whose joint solve
+    may fix it; its sigma is checked afterwards).
 
     Nor does it fix the axis's tilt towards the camera well when most points lie on the
     plate: on the virtual 640 x 427 printed plate the median axis of the essential
@@ -416,14 +499,15 @@ def _orbit_start(views: list[SfmView], tracks: Tracks, motions, group: tuple[str
     # trade off); a calibration from them would look fine and be wrong.
     rivals = [t for t in tried if abs(t["f_px"] / best[1] - 1.0) > FOCAL_RIVAL_GAP
               and t["cost_per_obs"] < (1.0 + FOCAL_RIVAL_COST) * best[0]]
-    if rivals:
+    if rivals and not shared:
         raise SfmError(
             f"camera {group[0]} tilt {group[1]}: the photos do not fix the focal length "
             f"(f = {best[1]:.0f} px and f = {rivals[0]['f_px']:.0f} px fit them equally "
             f"well: {best[0]:.3g} and {rivals[0]['cost_per_obs']:.3g} per observation); give "
             f"the lens's focal length (calibrate.params.focal_px.{group[0]}: focal length / "
             "pixel pitch) or print texture at other depths (the plate's rim, the pot carrier)")
-    return best[1], best[2], {"starts": tried, "f_px": best[1]}
+    return best[1], best[2], {"starts": tried, "f_px": best[1],
+                              "rival_focal_px": [t["f_px"] for t in rivals]}
 
 
 def rotation_x(deg: float) -> np.ndarray:
@@ -457,15 +541,25 @@ def _normalise(poses: dict[tuple[str, int], GroupPose], ref: tuple[str, int],
             for g, p in poses.items()}
 
 
-def _retriangulate(state: bundle.TurntableState, views: list[SfmView], tracks: Tracks,
-                   keep: np.ndarray) -> None:
-    """Points of every track again from the refined cameras (dropped tracks come back)."""
+def _clean_tracks(state: bundle.TurntableState, views: list[SfmView], tracks: Tracks,
+                  keep: np.ndarray, max_px: float, passes: int = 2) -> np.ndarray:
+    """Points again from the refined cameras and the kept observations, then every
+    observation within ``max_px`` of its point kept (one dropped earlier comes back
+    when it fits), twice.  A wrong match joins two dots of a repeated print into one
+    track; its minority observations fall out here.  Returns the kept observations."""
     models = {c: state.model(c) for c in state.intrinsics}
     poses = {g: state.group_pose(g) for g in state.poses}
-    pts, spread = initialise.triangulate(tracks, views, models, poses, state.view_angles(views))
-    pts[~(spread > 1.0)] = np.nan
-    state.points[:] = pts
-    del keep
+    angles = state.view_angles(views)
+    for _ in range(passes):
+        pts, spread = initialise.triangulate(tracks, views, models, poses, angles, obs=keep)
+        pts[~(spread > 1.0)] = np.nan
+        state.points[:] = pts
+        err = np.linalg.norm(bundle.residuals(state, views, tracks), axis=1) \
+            / tracks.noise_of()
+        keep = np.isfinite(err) & (err <= max_px)
+        counts = np.bincount(tracks.track[keep], minlength=tracks.n_tracks)
+        keep &= counts[tracks.track] >= 2
+    return keep
 
 
 def _quality(state: bundle.TurntableState, views: list[SfmView], tracks: Tracks,

@@ -65,12 +65,44 @@ class Tracks:
         Track of each observation, 0..n_tracks-1; observations sorted by track.
     uv : (M, 2) float64 array, px
         Keypoint position (plantscan's convention: the top-left pixel's centre at 0, 0).
+    noise : (M,) float64 array or None
+        Each observation's noise relative to a refined dot's (1): the bundle weighs its
+        residual by 1 / noise (None: all 1).
+    marker : (M,) int64 array or None
+        ``marker_id * 4 + corner`` of an observation of a printed marker's corner, -1
+        for a feature (None: no markers).
+    lab : (M,) bool array or None
+        The observation is of a point fixed in the lab (a marker on the backdrop), not
+        of one turning with the plate (None: none is).
     """
 
     view: np.ndarray
     track: np.ndarray
     uv: np.ndarray
     stats: dict = field(default_factory=dict)
+    noise: np.ndarray | None = None
+    marker: np.ndarray | None = None
+    lab: np.ndarray | None = None
+
+    def lab_of(self) -> np.ndarray:
+        """(M,) bool: observations of lab-fixed points."""
+        return np.zeros(len(self.view), bool) if self.lab is None else self.lab
+
+    def marker_of(self) -> np.ndarray:
+        """(M,) marker corner of every observation, -1 for features."""
+        return np.full(len(self.view), -1, np.int64) if self.marker is None else self.marker
+
+    def reordered(self, keep: np.ndarray, track: np.ndarray) -> Tracks:
+        """Observations ``keep`` (indices or bool) with new track ids ``track``, sorted."""
+        order = np.argsort(track, kind="stable")
+        def pick(a):
+            return None if a is None else a[keep][order]
+        return Tracks(self.view[keep][order], np.asarray(track)[order], self.uv[keep][order],
+                      dict(self.stats), pick(self.noise), pick(self.marker), pick(self.lab))
+
+    def noise_of(self) -> np.ndarray:
+        """(M,) relative noise of every observation."""
+        return np.ones(len(self.view)) if self.noise is None else self.noise
 
     @property
     def n_tracks(self) -> int:
@@ -78,13 +110,32 @@ class Tracks:
 
     def subset(self, keep_obs: np.ndarray) -> Tracks:
         """The observations ``keep_obs`` (bool (M,)), tracks renumbered, singletons dropped."""
-        v, t, uv = self.view[keep_obs], self.track[keep_obs], self.uv[keep_obs]
+        keep = np.flatnonzero(keep_obs) if np.asarray(keep_obs).dtype == bool \
+            else np.asarray(keep_obs)
+        t = self.track[keep]
         counts = np.bincount(t, minlength=self.n_tracks)
-        ok = counts[t] >= 2
-        v, t, uv = v[ok], t[ok], uv[ok]
-        _, t = np.unique(t, return_inverse=True)
-        order = np.argsort(t, kind="stable")
-        return Tracks(v[order], t[order], uv[order], dict(self.stats))
+        keep = keep[counts[t] >= 2]
+        _, t = np.unique(self.track[keep], return_inverse=True)
+        return self.reordered(keep, t)
+
+    @staticmethod
+    def concat(parts: list[Tracks]) -> Tracks:
+        """The tracks of ``parts`` side by side (track ids renumbered, stats of the first)."""
+        parts = [p for p in parts if len(p.view)]
+        if not parts:
+            return Tracks(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)))
+        offsets = np.cumsum([0] + [p.n_tracks for p in parts[:-1]])
+        noise = marker = lab = None
+        if any(p.noise is not None for p in parts):
+            noise = np.concatenate([p.noise_of() for p in parts])
+        if any(p.marker is not None for p in parts):
+            marker = np.concatenate([p.marker_of() for p in parts])
+        if any(p.lab is not None for p in parts):
+            lab = np.concatenate([p.lab_of() for p in parts])
+        return Tracks(np.concatenate([p.view for p in parts]),
+                      np.concatenate([p.track + o for p, o in zip(parts, offsets, strict=True)]),
+                      np.concatenate([p.uv for p in parts]), dict(parts[0].stats), noise,
+                      marker, lab)
 
 
 def workspace_views(scan, views: list[ViewRecord], work_dir: Path) -> list[SfmView]:

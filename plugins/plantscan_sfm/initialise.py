@@ -113,6 +113,19 @@ def orbit_pairs(views: list[SfmView], tracks: Tracks, max_stops: int = 2,
     return out
 
 
+def groups_sharing_tracks(tracks: Tracks, views: list[SfmView], min_tracks: int = 8
+                          ) -> set[tuple[str, int]]:
+    """The (camera, tilt) groups sharing at least ``min_tracks`` tracks with another."""
+    gid = {g: k for k, g in enumerate(sorted({v.group for v in views}))}
+    obs_g = np.array([gid[views[i].group] for i in tracks.view], np.int64)
+    n_g = len(gid)
+    seen = np.zeros((tracks.n_tracks, n_g), bool)
+    seen[tracks.track, obs_g] = True
+    multi = seen[seen.sum(axis=1) >= 2]
+    counts = multi.sum(axis=0)
+    return {g for g, k in gid.items() if counts[k] >= min_tracks}
+
+
 def focal_from_turns(motions: list[PairMotion], size: tuple[int, int],
                      threshold_px: float = 1.5) -> tuple[float, dict]:
     """Focal length (px) whose essential matrices turn by the commanded angles.
@@ -197,8 +210,9 @@ def triangulate(tracks: Tracks, views: list[SfmView], models: dict[str, CameraMo
                 obs: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Mid-point triangulation of every track (world frame at turntable angle 0).
 
-    ``angles_deg`` (n_views,) is the turntable angle of each photo; ``obs``
-    (M,) bool the observations to use (default: those of posed groups).
+    ``angles_deg`` (n_views,) is the turntable angle of each photo (a lab-fixed
+    point, ``tracks.lab``, is seen at angle 0 in all); ``obs`` (M,) bool the
+    observations to use (default: those of posed groups).
 
     Returns points ``(n_tracks, 3)`` and the largest angle between two of a
     track's rays ``(n_tracks,)``, deg (NaN where fewer than two rays).
@@ -209,17 +223,20 @@ def triangulate(tracks: Tracks, views: list[SfmView], models: dict[str, CameraMo
     use = posed[v] if obs is None else (obs & posed[v])
     centres = np.zeros((len(v), 3))
     dirs = np.zeros((len(v), 3))
+    lab = tracks.lab_of()
     for i, sv in enumerate(views):
         if not posed[i]:
             continue
-        sel = np.flatnonzero((v == i) & use)
-        if not len(sel):
-            continue
         pose = poses[sv.group]
-        rz = rotation_z(-angles_deg[i])
-        rays = models[sv.view.camera].unproject(tracks.uv[sel])
-        dirs[sel] = rays @ (rz @ pose.R.T).T
-        centres[sel] = rz @ pose.C
+        for fixed in (False, True):
+            sel = np.flatnonzero((v == i) & use & (lab == fixed))
+            if not len(sel):
+                continue
+            # a lab-fixed point is where it is at turntable angle 0 in every photo
+            rz = rotation_z(0.0 if fixed else -angles_deg[i])
+            rays = models[sv.view.camera].unproject(tracks.uv[sel])
+            dirs[sel] = rays @ (rz @ pose.R.T).T
+            centres[sel] = rz @ pose.C
     a = np.zeros((n, 3, 3))
     b = np.zeros((n, 3))
     proj = np.eye(3)[None] - dirs[:, :, None] * dirs[:, None, :]

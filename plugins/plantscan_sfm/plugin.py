@@ -30,8 +30,17 @@ class SfmCalibrator(Calibrator):
     class Params(StageParams):
         role: Literal["plant", "calibration", "background"] = Field(
             "plant", description="which photos to calibrate from")
-        scale: Literal["plate", "camera-distance"] = Field(
+        scale: Literal["plate", "markers", "camera-distance"] = Field(
             "plate", description="where the metric scale comes from")
+        marker_mm: float | None = Field(None, gt=0, description="side of the printed ArUco "
+                                        "markers, their black border included (scale: markers)")
+        markers: Literal["DICT_4X4_50", "DICT_4X4_100", "DICT_4X4_250", "DICT_5X5_100",
+                         "DICT_5X5_250", "DICT_6X6_250"] | None = Field(
+            "DICT_4X4_250", description="ArUco dictionary of the printed markers (their "
+            "corners are points every camera identifies; on the plate they turn with it, on "
+            "the backdrop they are found fixed); null: no markers")
+        refine_dots: bool = Field(True, description="move keypoints on printed dots to the "
+                                  "dots' centroids")
         plate_diameter_mm: float | None = Field(None, gt=0, description="turntable plate "
                                                 "diameter (scale: plate)")
         camera_distance_mm: float | None = Field(
@@ -56,18 +65,18 @@ class SfmCalibrator(Calibrator):
             "None holds them exact")
         fit_angle_scale: bool = False
         fix_principal_point: bool = Field(
-            True, description="hold (cu, cv) at the image centre: one orbit of a mostly flat "
-            "scene does not fix the principal point (freed, it wandered 70 px on the virtual "
-            "paper-72 scan); the bias is the lens's offset / f (5 px / 1880 px: 0.17 deg)")
-        plate_surfaces: bool = Field(
-            False, description="hold points on the plate's top to a plane normal to the axis "
-            "and its rim to a cylinder (measured worse on the virtual paper-72: off)")
+            False, description="hold (cu, cv) at the image centre (held 5 px off on the "
+            "virtual paper-72 rig, the hull's reprojection error grew to 6-8 px: the solve "
+            "bends the rest of the model to fit)")
+        principal_point_prior: float | None = Field(
+            0.015, ge=0, description="standard deviation of a prior holding the free "
+            "principal point near the image centre, as a fraction of the image width")
         fix_distortion: bool = False
         min_tracks: int = Field(200, ge=10, description="fewer feature tracks: the scene is "
                                 "too plain to calibrate from")
         min_view_observations: int = Field(15, ge=1)
         max_rms_px: float = Field(1.5, gt=0)
-        max_observations: int = Field(30_000, ge=1000, description="longest tracks kept up "
+        max_observations: int = Field(200_000, ge=1000, description="longest tracks kept up "
                                       "to this many observations (bounds the solve's time)")
         threads: int = Field(2, ge=1)
         focal_px: dict[str, float] | None = Field(
@@ -86,8 +95,20 @@ class SfmCalibrator(Calibrator):
             "cross_window_deg", "exhaustive_below", "ransac_px", "scale", "plate_diameter_mm",
             "camera_distance_mm", "plate_top_mm", "angle_sigma_deg", "fit_angle_scale",
             "fix_principal_point", "fix_distortion", "min_tracks", "min_view_observations",
-            "plate_surfaces", "focal_px", "fit_focal",
-            "max_rms_px", "threads", "max_observations")})
+            "focal_px", "fit_focal", "marker_mm", "markers", "refine_dots",
+            "principal_point_prior", "max_rms_px", "threads", "max_observations")})
+
+    def input_roles(self, scan) -> list[str]:
+        """The photos it calibrates from: new plant photos redo the calibration."""
+        return [self.params.role]
+
+    def input_files(self, scan) -> list[Path]:
+        """The approximate poses, when the scan has them."""
+        from plantscan_sfm.priors import PRIOR_POSES_FILE
+
+        path = Path(self.params.prior_poses or PRIOR_POSES_FILE)
+        path = path if path.is_absolute() else Path(scan.root) / path
+        return [path] if path.exists() else []
 
     def calibrate(self, scan) -> Calibration:
         from plantscan_sfm.priors import PRIOR_POSES_FILE, read_prior_poses

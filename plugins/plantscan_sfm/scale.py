@@ -7,6 +7,9 @@ Both come from what the recipe knows:
   holding the most points (a printed plate is covered in them); its radius is
   where the points of its rim (just below the top) concentrate, or else the
   outer edge of the top's points.  The world origin goes to the plate's top.
+* ``markers``: the side of the printed ArUco markers (``marker_mm``), from the
+  length of their vertical edges (a straight line even on a curved rim); the
+  height as for ``plate`` when a plate top is found.
 * ``camera-distance``: the distance of the reference camera's centre from the
   axis (a gantry's travel, a tape measure); the height stays that of the
   reference camera (``z = 0``) unless a plate top is found.
@@ -61,11 +64,13 @@ def plate_radius(points: np.ndarray, z0: float, extent: float) -> tuple[float, d
 
 def metric_frame(points: np.ndarray, ref_distance: float, how: str,
                  plate_diameter_mm: float | None, camera_distance_mm: float | None,
+                 marker_edges: np.ndarray | None = None, marker_mm: float | None = None,
                  ) -> tuple[float, float, dict]:
     """Scale factor (mm per unit) and the height (units) that becomes ``z = 0``.
 
     ``points`` (N, 3) are well-triangulated points in the solved frame,
-    ``ref_distance`` the reference camera's distance from the axis in it.
+    ``ref_distance`` the reference camera's distance from the axis in it;
+    ``marker_edges`` the lengths of printed markers' sides in it (``scale: markers``).
     """
     good = np.isfinite(points).all(axis=1)
     pts = points[good]
@@ -82,6 +87,24 @@ def metric_frame(points: np.ndarray, ref_distance: float, how: str,
         s = 0.5 * plate_diameter_mm / radius
         info["mm_per_unit"] = s
         return s, z0, info
+    if how == "markers":
+        if marker_mm is None:
+            raise SfmError("calibrate.params.marker_mm is needed for scale: markers")
+        edges = np.asarray(marker_edges if marker_edges is not None else [], float)
+        if len(edges) < MIN_MARKER_EDGES:
+            raise SfmError(f"only {len(edges)} marker sides were reconstructed (need "
+                           f"{MIN_MARKER_EDGES}); the markers cannot give the scale: print "
+                           "the marker rows (docs/sfm.md) or use scale: plate")
+        med = float(np.median(edges))
+        s = marker_mm / med
+        info.update({"marker_sides": int(len(edges)), "mm_per_unit": s,
+                     "marker_side_spread": float(np.median(np.abs(edges - med)) / med)})
+        try:
+            z0, pinfo = plate_plane(pts, extent)
+            info.update(pinfo)
+        except (ValueError, IndexError):
+            z0 = 0.0
+        return s, z0, info
     if how == "camera-distance":
         if camera_distance_mm is None:
             raise SfmError("calibrate.params.camera_distance_mm is needed for "
@@ -89,4 +112,8 @@ def metric_frame(points: np.ndarray, ref_distance: float, how: str,
         s = camera_distance_mm / ref_distance
         info["mm_per_unit"] = s
         return s, 0.0, info
-    raise ValueError(f"unknown scale source {how!r}; valid: plate, camera-distance")
+    raise ValueError(f"unknown scale source {how!r}; valid: plate, markers, camera-distance")
+
+
+# Fewer reconstructed marker sides than this give no dependable scale.
+MIN_MARKER_EDGES = 8
