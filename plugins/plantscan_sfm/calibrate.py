@@ -53,7 +53,7 @@ class SfmSettings:
     plate_top_mm: float = 0.0
     angle_sigma_deg: float | None = 0.5
     fit_angle_scale: bool = False
-    fix_principal_point: bool = False
+    fix_principal_point: bool = True
     fix_distortion: bool = False
     min_tracks: int = 200
     min_view_observations: int = 15
