@@ -94,6 +94,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     rows = []
     load0 = os.getloadavg()[0]
+    if args.keep:
+        Path(args.keep).mkdir(parents=True, exist_ok=True)
     with (contextlib.nullcontext(tempfile.mkdtemp(prefix="first-run-", dir=args.keep))
           if args.keep else tempfile.TemporaryDirectory(prefix="plantscan-first-run-")) as tmp:
         work = Path(tmp)
