@@ -75,22 +75,27 @@ class StepProgress:
             self._display._advanced(self)
 
     def left_s(self) -> float | None:
-        """Seconds left: from the rate so far, else from the estimate; None when unknown."""
+        """Seconds left: from the rate so far, else from the estimate while it lasts; None
+        when unknown (nothing done yet and the estimate already spent)."""
         elapsed = time.monotonic() - self.started
         if self.total and self.done:
             return elapsed / self.done * (self.total - self.done)
-        if self.estimate_s is not None:
-            return max(self.estimate_s - elapsed, 0.0)
+        if self.estimate_s is not None and elapsed < self.estimate_s:
+            return self.estimate_s - elapsed
         return None
 
     def status(self) -> str:
         parts = []
         if self.total:
             parts.append(f"{self.done}/{self.total}{f' {self.unit}' if self.unit else ''}")
-        parts.append(_clock(time.monotonic() - self.started))
+        elapsed = time.monotonic() - self.started
+        parts.append(_clock(elapsed))
         left = self.left_s()
-        if left is not None and (not self.total or self.done < self.total):
-            parts.append(f"~{_clock(left)} left")
+        if not self.total or self.done < self.total:
+            if left is not None:
+                parts.append(f"~{_clock(left)} left")
+            elif self.estimate_s:  # a busy machine: say it is over, not "<1 s left"
+                parts.append(f"over the estimate of {_clock(self.estimate_s)}")
         return ", ".join(parts)
 
 

@@ -56,6 +56,29 @@ def test_plain_display_speaks_while_a_step_runs(monkeypatch):
     assert beats[0] == "segment: 10/72 views, 5 s, ~31 s left"
 
 
+def test_a_spent_estimate_is_said_not_counted_down_below_zero(monkeypatch):
+    # A scan on a busy machine: its first image took longer than the whole estimate.  The
+    # line said "0/36 images, 17 s, ~<1 s left" for half a minute; now it says so.
+    out = io.StringIO()
+    d = Display("plain", stream=out)
+    now = [1000.0]
+    monkeypatch.setattr(progress.time, "monotonic", lambda: now[0])
+    with d.step("scan calibration", 36, "images", estimate_s=12.0) as step:
+        for _ in range(4):
+            now[0] += 5.0
+            d.beat()
+        step.advance(2)
+        now[0] += 5.0
+        d.beat()
+    d.close()
+    lines = out.getvalue().splitlines()
+    assert lines[1] == "scan calibration: 0/36 images, 5 s, ~7 s left"
+    assert lines[2] == "scan calibration: 0/36 images, 10 s, ~2 s left"
+    assert lines[3] == "scan calibration: 0/36 images, 15 s, over the estimate of 12 s"
+    assert not any("<1 s left" in ln for ln in lines)
+    assert lines[5] == "scan calibration: 2/36 images, 25 s, ~7:05 left"  # from the rate
+
+
 def test_live_display_updates_its_line_every_beat(monkeypatch):
     # In a terminal the line of a running step changes every second (the display's thread
     # beats each second, rich redraws 5 times a second): never 2 s without a change.
