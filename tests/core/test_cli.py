@@ -54,3 +54,12 @@ def test_profile_counts_each_stage_s_warnings():
     rows = {line.split()[0]: line.split()[1:] for line in profile_table(info).splitlines()}
     assert rows["segment"] == ["1.00", "1.50", "100", "yes"]
     assert rows["measure"] == ["2.00", "2.00", "120", "2"]
+
+
+def test_profile_names_exporters_by_their_plugin():
+    # `--profile` listed export.0 ... export.5: which was the slow one?
+    info = {"timings_s": {"export.0": 0.5, "export.1": 2.0, "total": 2.5},
+            "stages": {"export.0": {"plugin": "csv"}, "export.1": {"plugin": "html-report"}}}
+    labels = [line.split()[:2] for line in profile_table(info).splitlines()[1:-1]]
+    assert labels == [["export", "csv"], ["export", "html-report"]]
+    assert "export.0" not in profile_table(info)
