@@ -118,11 +118,15 @@ def main(argv: list[str] | None = None) -> int:
         "# First run: the numba compile wait (`benchmarks/first_run.py`)",
         "",
         "`plantscan demo` (the shipped plastic-dicot recipe: 640×427 px, 2 cameras, 36",
-        "angles, 110 images) in child processes sharing one fresh numba cache",
-        "(`NUMBA_CACHE_DIR`), so the first demo of a case is the first on a new install.",
+        "angles, 110 images), each case on an empty numba cache"
+        + (" (the clean clone's own, `__pycache__` beside its source), so its first demo"
+           " is the first of a new user." if args.clone_only else
+           " (`NUMBA_CACHE_DIR`; the clean clone's own `__pycache__`), so the first demo of"
+           " a case is the first on a new install."),
         "Cells: wall seconds (CPU seconds in brackets). \"demo\" is the whole command",
         "(Python start-up, the virtual scan, processing, evaluation); \"processing\" and",
-        "\"hull\" come from the run's `run.json`.",
+        "\"hull\" come from the run's `run.json`. On a shared machine compare the CPU",
+        "seconds: the wall seconds follow the other users' load.",
         f"Machine: {platform.machine()}, {os.cpu_count()} cores, load {load0:.1f}–{load1:.1f}"
         f" (shared); {when}.",
         "",
