@@ -116,14 +116,6 @@ def _table(header: list[str], rows: list[list[str]], left: int = 1) -> str:
     return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
 
 
-def _fmt(value: Any, digits: int = 4) -> str:
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
-        return _esc(value)
-    if isinstance(value, (int, np.integer)):
-        return str(int(value))
-    return "nan" if not math.isfinite(float(value)) else f"{float(value):.{digits}g}"
-
-
 # --------------------------------------------------------------------------- sections
 def cluster_vertices(vertices: np.ndarray, faces: np.ndarray, groups: np.ndarray,
                      cell: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -413,8 +405,9 @@ def _calibration_section(run: RunResult, figs: _Figures) -> str:
     if cal is None:
         return ""
     level, text = trust.calibration_line(cal.quality)
-    model_rows = [[_esc(name), _fmt(m.f, 6), _fmt(m.cu, 6), _fmt(m.cv, 6), _fmt(m.d1),
-                   _fmt(m.d2), f"{m.width} × {m.height}"] for name, m in sorted(cal.models.items())]
+    px, k = (lambda v: trust.format_number(v, 2)), (lambda v: trust.format_number(v, 5))
+    model_rows = [[_esc(name), px(m.f), px(m.cu), px(m.cv), k(m.d1), k(m.d2),
+                   f"{m.width} × {m.height}"] for name, m in sorted(cal.models.items())]
     details = [_table(["camera", "f (px)", "cu (px)", "cv (px)", "d1", "d2", "image (px)"],
                       model_rows),
                f'<p class="note">{len(cal.poses)} calibrated (camera, tilt) poses; tilts '
@@ -566,7 +559,9 @@ def _truth_section(run: RunResult, figs: _Figures) -> str:
         measured = run.traits.plant.get(key)
         if _is_num(value) and _is_num(measured) and float(value) != 0:
             rel = (float(measured) - float(value)) / abs(float(value))
-            plant_rows.append([_esc(key), _fmt(value), _fmt(measured), f"{100 * rel:+.1f}%"])
+            name, truth_text = _plant_row(key, value)
+            plant_rows.append([name, truth_text, _plant_row(key, measured)[1],
+                               f"{100 * rel:+.1f}%"])
     if plant_rows:
         out.append(_table(["plant trait", "truth", "measured", "error"], plant_rows))
     out.append("</section>")

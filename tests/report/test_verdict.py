@@ -163,3 +163,27 @@ def test_header_gives_the_scan_date_and_the_recipe_as_run(synthetic_run):
     plain = re.search(r"<header>.*?</header>", render_report(synthetic_run, thumbnails=0),
                       re.S).group(0)
     assert "--set" not in plain
+
+
+def test_no_number_on_the_page_is_in_scientific_notation(synthetic_run):
+    # The demo's truth table read "1.74e+05" beside "1.7e+05" (total leaf area), and a
+    # small lens coefficient would have read "1.2e-05": every table has fixed decimals.
+    import json
+
+    truth_file = synthetic_run.scan.ground_truth_dir / "plant_traits.json"
+    truth = json.loads(truth_file.read_text())
+    truth["total_leaf_area_mm2"] = 174_012.3
+    truth_file.write_text(json.dumps(truth))
+    synthetic_run.traits.plant["total_leaf_area_mm2"] = 170_003.9
+    import dataclasses
+
+    models = synthetic_run.calibration.models
+    for name, model in models.items():
+        models[name] = dataclasses.replace(model, d2=1.2e-5)
+    html = render_report(synthetic_run, thumbnails=0)
+    text = re.sub(r"<script.*?</script>|data:[^\"']*", "", html, flags=re.S)
+    assert not re.findall(r"\d[eE][+-]\d", text)
+    truth_table = re.search(r'<section id="truth">.*?</section>', html, re.S).group(0)
+    cells = re.sub(r' class="[^"]*"', "", truth_table)
+    assert "<td>total leaf area</td><td>174\u2009012 mm²</td><td>170\u2009004 mm²</td>" in cells
+    assert "<td>0.00001</td>" in re.sub(r' class="[^"]*"', "", html)  # d2, 5 decimals
