@@ -168,6 +168,14 @@ def _stop(proc: subprocess.Popen) -> None:
             proc.wait(5)
 
 
+def _read_json(path: Path) -> dict | None:
+    """``path``'s JSON, or None while it is missing or not yet completely written."""
+    try:
+        return json.loads(path.read_text())
+    except (FileNotFoundError, json.JSONDecodeError):
+        return None
+
+
 @pytest.mark.slow
 def test_batch_through_a_real_dask_scheduler_and_worker(tmp_path: Path, batch_inputs):
     from distributed import Client
@@ -185,11 +193,13 @@ def test_batch_through_a_real_dask_scheduler_and_worker(tmp_path: Path, batch_in
     worker = None
     try:
         deadline = time.monotonic() + 60
-        while not sched_file.exists():
+        # The scheduler creates its file, then writes it: wait for a whole JSON document (an
+        # empty file was read once on a loaded machine, a JSONDecodeError).
+        while (info := _read_json(sched_file)) is None:
             assert scheduler.poll() is None, (tmp_path / "scheduler.log").read_text()
             assert time.monotonic() < deadline, "dask scheduler did not start within 60 s"
             time.sleep(0.2)
-        address = json.loads(sched_file.read_text())["address"]
+        address = info["address"]
         assert address.startswith("tcp://127.0.0.1:")
         worker = _start([dask, "worker", address, "--nthreads", "1", "--nworkers", "1",
                          "--host", "127.0.0.1", "--no-dashboard", "--name", "plantscan-test"],
