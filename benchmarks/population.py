@@ -214,8 +214,10 @@ def session_calibration(family: str, protocol: str = "paper-72",
 
 # --------------------------------------------------------------------------- process
 def process_plant(scan: Path, recipe: Path, run_dir: Path, calibration: Path | None = None,
-                  overrides: Sequence[str] = ()) -> dict[str, Any]:
-    """Process ``scan`` with ``recipe`` (+ ``overrides``) into a fresh ``run_dir``.
+                  overrides: Sequence[str] = (), fresh: bool = True) -> dict[str, Any]:
+    """Process ``scan`` with ``recipe`` (+ ``overrides``) into a fresh ``run_dir`` (or, without
+    ``fresh``, into the run folder as it is: the stages whose inputs, code and parameters did
+    not change are taken from its cache, e.g. the hull when only leaf parameters changed).
 
     Returns ``{"wall_s", "cpu_s", "stages_s"}`` of ``process()`` itself (in this
     process: the compiled kernels are warm after the first plant).
@@ -227,7 +229,7 @@ def process_plant(scan: Path, recipe: Path, run_dir: Path, calibration: Path | N
     manager = get_manager()
     raw = apply_overrides(read_recipe_file(recipe), list(overrides))
     rec = validate_recipe(raw, manager.registry, str(recipe))
-    if run_dir.exists():
+    if fresh and run_dir.exists():
         shutil.rmtree(run_dir)
     t0, c0 = time.perf_counter(), time.process_time()
     result = process(scan, rec, run_dir, manager, raw_recipe=raw, overrides=list(overrides),
@@ -362,13 +364,16 @@ def run_population(families: Sequence[str], seeds: Sequence[int] | dict[str, Seq
                    size: tuple[int, int] = DEFAULT_SIZE, *, resolution: int | None = None,
                    recipe_dir: Path | None = None, runs: Path, cache: Path = DEFAULT_CACHE,
                    calibrate_each: bool = False, overrides: Sequence[str] = (),
-                   reuse_runs: bool = False, log=print) -> tuple[list[dict], list[dict]]:
+                   reuse_runs: bool = False, reuse_hulls: bool = False,
+                   log=print) -> tuple[list[dict], list[dict]]:
     """Scan (cached), process and evaluate every (family, seed); (plant rows, leaf rows).
 
     A plant whose processing fails is a row with ``error`` set and every truth
     leaf missed (it counts against recall); the run goes on.  ``reuse_runs``
     takes a plant's finished run folder as it is (its evaluation.json and
-    run.json timings) instead of processing it again: to re-tabulate.  ``seeds``
+    run.json timings) instead of processing it again: to re-tabulate; ``reuse_hulls``
+    processes it again in place, recomputing only the stages that changed (new leaf
+    parameters: the mesh segmentation and what follows, not the hull).  ``seeds``
     may be a dict family -> seeds (fewer plants for a family whose renders cost more).
     """
     plants, leaves = [], []
@@ -400,7 +405,8 @@ def run_population(families: Sequence[str], seeds: Sequence[int] | dict[str, Seq
                 leaves += leaf_rows(key, evaluation)
                 continue
             try:
-                timing = process_plant(scan, recipe, run_dir, calibration, extra)
+                timing = process_plant(scan, recipe, run_dir, calibration, extra,
+                                       fresh=not reuse_hulls)
                 evaluation = evaluate_plant(run_dir, truth_dir)
                 (run_dir / "evaluation.json").write_text(json.dumps(evaluation, indent=1,
                                                                     sort_keys=True))
@@ -565,6 +571,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="render the board with every plant and calibrate per plant")
     ap.add_argument("--reuse-runs", action="store_true",
                     help="take finished run folders as they are (re-tabulate)")
+    ap.add_argument("--reuse-hulls", action="store_true",
+                    help="process into the existing run folders, recomputing only the stages "
+                         "that changed (leaf parameters: not the hull); times then count only "
+                         "those stages")
     ap.add_argument("--title", default="", help="heading of this run's section")
     args = ap.parse_args(argv)
 
@@ -587,6 +597,7 @@ def main(argv: list[str] | None = None) -> int:
                                     runs=runs, cache=args.cache,
                                     calibrate_each=args.calibrate_each,
                                     overrides=args.overrides, reuse_runs=args.reuse_runs,
+                                    reuse_hulls=args.reuse_hulls,
                                     log=lambda m: print(m, flush=True))
     table = tabulate(plants, leaves)
     csv_path = args.out.with_suffix(".csv")

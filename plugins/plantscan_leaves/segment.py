@@ -61,7 +61,22 @@ TIP_GAP_EDGES = 6.0  # a broken-off blade tip within this many mean mesh edges o
 
 
 class CurvatureRegionsParams(StageParams):
-    """Parameters of ``curvature-regions`` (defaults: broad dicot leaves, 0.3–1 mm voxels)."""
+    """Parameters of ``curvature-regions`` (defaults: broad dicot leaves, 0.3–1 mm voxels).
+
+    With ``reference_unit_mm`` set, every length, area and curvature below (and every
+    module constant in mm) is relative to the voxel size: the ``_mm`` values hold on a
+    mesh whose unit (``geometry.mesh_unit``, the median edge, about a voxel) is
+    ``reference_unit_mm``, and a mesh of another unit is segmented as if scaled to it
+    (docs/leaves.md, "Scale-free segmentation").
+    """
+
+    reference_unit_mm: float | None = Field(
+        None, gt=0,
+        description="the mesh unit (median edge, about a voxel), mm, at which the _mm "
+                    "parameters hold: a mesh of unit u is segmented scaled by this / u, so "
+                    "every length is in voxels (times this), areas in voxels², curvatures "
+                    "per voxel; the same plant in centimetres, or scaled with its voxel "
+                    "size, gets the same labels; None: absolute millimetres")
 
     smoothing_mm: float = Field(1.5, gt=0, description="scale of the curvature estimate, mm")
     concave_curvature_per_mm: float = Field(
@@ -492,6 +507,16 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
     """
     p = params or CurvatureRegionsParams()
     report = StageReport()
+    if not mesh.is_empty and p.reference_unit_mm is not None:
+        unit = geo.mesh_unit(mesh.vertices, mesh.faces)
+        scale = p.reference_unit_mm / unit
+        # scaling the surface, not each parameter, makes every length, area and curvature
+        # that decides a label (parameters and module constants alike) relative to the voxel
+        # at once; labels are per face, so they carry back to the mesh as it was
+        scaled, report = segment_leaves(Mesh(mesh.vertices * scale, mesh.faces),
+                                        p.model_copy(update={"reference_unit_mm": None}))
+        report.figures.update(mesh_unit_mm=round(unit, 6), scale_to_reference_unit=round(scale, 6))
+        return LabelledMesh(mesh, scaled.face_labels, scaled.kinds, scaled.evidence), report
     if mesh.is_empty:
         msg = "mesh is empty: no leaf to segment"
         log.warning(msg)

@@ -468,3 +468,43 @@ def test_blade_bases_off_culms_take_only_blade_faces_on_intact_blades():
         t = min(truth, key=lambda x: abs(x - b))
         # no blade moves away from its length (B, C: 116-118 -> 118 of 120 mm)
         assert abs(a - t) <= abs(b - t) + 1e-9
+
+
+@pytest.mark.parametrize("scale", [0.1, 0.2, 3.0])
+def test_labels_are_relative_to_the_voxel_with_a_reference_unit(mock_plant, scale):
+    # the mock plant (0.8 mm voxels) in centimetres (x 0.1), and scaled x 0.2 and x 3 with
+    # its voxel size: with reference_unit_mm every length, area and curvature is in voxels,
+    # so the labels are those of the plant in millimetres, face for face
+    plant, mesh, part = mock_plant
+    p = CurvatureRegionsParams(reference_unit_mm=geo.mesh_unit(mesh.vertices, mesh.faces))
+    mm, info = segment_leaves(mesh, p)
+    assert info.figures["scale_to_reference_unit"] == pytest.approx(1.0)
+    m = match_leaves(mm, mesh.vertices, mesh.faces, part)
+    assert len(m["pairs"]) == len(plant.leaves) and not m["merged"]
+    scaled_mesh = Mesh(mesh.vertices * scale, mesh.faces)
+    scaled, info = segment_leaves(scaled_mesh, p)
+    assert info.figures["scale_to_reference_unit"] == pytest.approx(1.0 / scale)
+    assert np.array_equal(scaled.face_labels, mm.face_labels)
+    assert scaled.kinds == mm.kinds
+    # and the measurer's lengths are in mesh units: the same traits, scaled (to 1e-4: points
+    # binned into cells in floating point fall on the other side of a cell border now and
+    # then; 2e-5 measured)
+    a, _, _ = measure_plant(mm)
+    b, _, _ = measure_plant(scaled)
+    for la, lb in zip(a.leaves, b.leaves, strict=True):
+        assert lb.length_mm == pytest.approx(scale * la.length_mm, rel=1e-4)
+        assert lb.area_mm2 == pytest.approx(scale ** 2 * la.area_mm2, rel=1e-4)
+
+
+def test_absolute_millimetres_lose_a_small_plant():
+    # why the family recipes set reference_unit_mm: the mock plant at a fifth of its size
+    # (12-18 mm leaves, a seedling's, at 0.16 mm voxels) has no leaf above 500 mm² in
+    # absolute millimetres, and all its leaves relative to the voxel
+    plant = ph.mock_plant(5, thickness=2.0, petiole_mm=20.0)
+    mesh = plant.mesh(voxel_mm=0.8)
+    small = Mesh(mesh.vertices * 0.2, mesh.faces)
+    absolute, _ = segment_leaves(small)
+    assert not absolute.leaf_labels
+    relative, _ = segment_leaves(small, CurvatureRegionsParams(
+        reference_unit_mm=geo.mesh_unit(mesh.vertices, mesh.faces)))
+    assert len(relative.leaf_labels) == len(plant.leaves)
