@@ -31,7 +31,7 @@ try:  # numba is optional: the numpy path is complete without it
     import numba
     from numba import njit, prange, types
     from numba.core import cgutils
-    from numba.extending import intrinsic
+    from numba.extending import intrinsic, overload
 
     # Debian's libtbb is older than numba wants; numba then uses OpenMP or its own
     # work queue by itself.  The warning says nothing a user can act on.
@@ -498,26 +498,6 @@ if HAVE_NUMBA:
             decision[i] = _decide(n_out, n_in, n_off, na, n_on_amb, max_off, cc)
         return count
 
-    # The parallel kernels steal work: each of ``workers`` threads takes the next chunk
-    # of ``chunk`` points or parents (``_take``) until none is left, so both cores stay
-    # busy to the end of a level however unevenly the work lies (a static split into
-    # halves leaves one core idle while the other finishes the leafy half).  Each chunk
-    # writes its own outputs and test count: the same field and counts in any order.
-
-    @njit(cache=True, parallel=True)
-    def _classify_tree(centres, parent, tree, cc, packed, out, chunk, workers):
-        m_all = centres.shape[0]
-        nchunks = (m_all + chunk - 1) // chunk
-        tests = np.zeros(nchunks, dtype=np.int64)
-        counter = np.zeros(1, np.int64)
-        for _ in prange(workers):
-            c = _take(counter)
-            while c < nchunks:
-                tests[c] = _tree_range(c * chunk, min(m_all, (c + 1) * chunk), centres, parent,
-                                       tree, cc, packed, out)
-                c = _take(counter)
-        return tests.sum()
-
     @njit(cache=True)  # serial: cheap, and parallel compiles slowly
     def _gather_lists(sel, counts, out_start):
         # The lists of the cells ``sel``: the first n_amb entries of each one's scratch.
@@ -851,7 +831,7 @@ if HAVE_NUMBA:
 
     @njit(cache=True)
     def _classify_range(lo, hi, centres, valid, tree, cc, packed, out):
-        # Serial body of ``_classify_group`` for parents lo..hi, view-major: for each
+        # Serial body of ``_steal`` for sibling groups: parents lo..hi, view-major: for each
         # view (lists are in the global view order) the children of the parents whose
         # list holds it are projected and decided in vectorised passes, then counted.
         params, tables = packed.params, packed.tables
@@ -875,22 +855,6 @@ if HAVE_NUMBA:
             _count_outcomes(ns, block, tree, sib, buf, cc.k, max_off)
         _write_cells(block, valid, tree, sib, max_off, cc, out)
         return count
-
-    @njit(cache=True, parallel=True)
-    def _classify_group(centres, valid, tree, cc, packed, out, chunk, workers):
-        # centres: (P, 3) parents' centres; children have half-side ``cc.half_size``;
-        # their counts and decisions go to ``out`` (``cell_counts`` of P * 8 cells).
-        n_par = centres.shape[0]
-        nchunks = (n_par + chunk - 1) // chunk
-        tests = np.zeros(nchunks, dtype=np.int64)
-        counter = np.zeros(1, np.int64)
-        for _ in prange(workers):
-            c = _take(counter)
-            while c < nchunks:
-                tests[c] = _classify_range(c * chunk, min(n_par, (c + 1) * chunk), centres,
-                                           valid, tree, cc, packed, out)
-                c = _take(counter)
-        return tests.sum()
 
     # ------------------------------------------------------------------ fine voxels, in passes
     # Each voxel keeps its k+1 smallest values sorted in kept[p, :, ch] (kept[p, k, ch] is
@@ -1022,7 +986,7 @@ if HAVE_NUMBA:
 
     @njit(cache=True, error_model="numpy")
     def _voxel_range(lo, hi, centres, valid, tree, cc, packed, out):
-        # Serial body of ``_voxel_group`` for parents lo..hi, view-major as
+        # Serial body of ``_steal`` for the fine voxels: parents lo..hi, view-major as
         # ``_classify_range``; a parent whose voxels are all dead is skipped.
         params, tables, k = packed.params, packed.tables, cc.k
         block = _block(lo, hi, tree)
@@ -1052,22 +1016,44 @@ if HAVE_NUMBA:
                     out[i * 8 + ch] = _final_value(kept[i - lo, k, ch], seen[i - lo, ch], min_seen)
         return count
 
+    # ------------------------------------------------------------------ work stealing
+    # The parallel kernels steal work: each of ``workers`` threads takes the next chunk
+    # of ``chunk`` points or parents (``_take``) until none is left, so both cores stay
+    # busy to the end of a level however unevenly the work lies (a static split into
+    # halves leaves one core idle while the other finishes the leafy half).  Each chunk
+    # writes its own outputs and test count: the same field and counts in any order.
+    # The loop is written once (``_steal``); its serial body is picked by the types of
+    # the arguments when it is compiled (``_chunk``), as the three bodies share one
+    # argument list.  A body passed as an argument, or closed over by a factory, would
+    # be recompiled in every process (numba keys its cache on the dispatcher object).
+
+    def _chunk(lo, hi, centres, sel, tree, cc, packed, out):  # pragma: no cover - typing only
+        raise NotImplementedError("compiled only: the body of ``_steal`` (overloaded)")
+
+    @overload(_chunk, jit_options={"cache": True})
+    def _chunk_body(lo, hi, centres, sel, tree, cc, packed, out):
+        if isinstance(out, types.Array):  # (P * 8,) float32 voxel values
+            return lambda lo, hi, centres, sel, tree, cc, packed, out: _voxel_range(
+                lo, hi, centres, sel, tree, cc, packed, out)
+        if isinstance(sel.dtype, types.Boolean):  # ``valid`` children of split parents
+            return lambda lo, hi, centres, sel, tree, cc, packed, out: _classify_range(
+                lo, hi, centres, sel, tree, cc, packed, out)
+        return lambda lo, hi, centres, sel, tree, cc, packed, out: _tree_range(  # ``parent``
+            lo, hi, centres, sel, tree, cc, packed, out)
+
     @njit(cache=True, parallel=True)
-    def _voxel_group(centres, valid, tree, cc, packed, chunk, workers):
-        # centres: (P, 3) centres of split 2-voxel cells; out: (P * 8,) voxel values.
-        n_par = centres.shape[0]
-        nchunks = (n_par + chunk - 1) // chunk
-        out = np.full(n_par * 8, np.float32(-1.0))
+    def _steal(n, chunk, workers, centres, sel, tree, cc, packed, out):
+        # ``_chunk`` on lo..hi for every chunk of the n cells or parents; total tests.
+        nchunks = (n + chunk - 1) // chunk
         tests = np.zeros(nchunks, dtype=np.int64)
         counter = np.zeros(1, np.int64)
         for _ in prange(workers):
             c = _take(counter)
             while c < nchunks:
-                tests[c] = _voxel_range(c * chunk, min(n_par, (c + 1) * chunk), centres,
-                                        valid, tree, cc, packed, out)
+                tests[c] = _chunk(c * chunk, min(n, (c + 1) * chunk), centres, sel, tree, cc,
+                                  packed, out)
                 c = _take(counter)
-        return out, tests.sum()
-
+        return tests.sum()
 
     # ------------------------------------------------------------------ mesh topology
     @njit(cache=True)
@@ -1235,8 +1221,8 @@ def classify_tree(packed: Packed, tree: Tree, parent: np.ndarray, centres: np.nd
     split (in the order of ``np.flatnonzero(decision == SPLIT)``).
     """
     counts = cell_counts(len(centres), _offsets(np.diff(tree.start)[parent]))
-    tests = _classify_tree(np.ascontiguousarray(centres, dtype=np.float64), parent, tree,
-                           consts, packed, counts, CHUNK, threads())
+    tests = _steal(len(centres), CHUNK, threads(), np.ascontiguousarray(centres, dtype=np.float64),
+                   parent, tree, consts, packed, counts)
     if stats is not None:
         stats.cell_view_tests += int(tests)
     return counts.decision, _split_tree(counts)
@@ -1258,8 +1244,8 @@ def classify_group(packed: Packed, tree: Tree, centres: np.ndarray, valid: np.nd
         b1 = min(n_par, b0 + GROUP_BATCH)
         sub = _sub_tree(tree, b0, b1)
         counts = cell_counts(8 * (b1 - b0), _offsets(np.repeat(np.diff(sub.start), 8)))
-        tests = _classify_group(centres[b0:b1], valid[8 * b0:8 * b1], sub, consts, packed,
-                                counts, GROUP_CHUNK, threads())
+        tests = _steal(b1 - b0, GROUP_CHUNK, threads(), centres[b0:b1], valid[8 * b0:8 * b1],
+                       sub, consts, packed, counts)
         decision[8 * b0:8 * b1] = counts.decision
         parts.append(_split_tree(counts))
         if stats is not None:
@@ -1295,8 +1281,10 @@ def _concat_trees(parts: list[Tree]) -> Tree:
 def voxel_group(packed: Packed, tree: Tree, centres: np.ndarray, valid: np.ndarray,
                 consts: CarveConsts, stats=None) -> np.ndarray:
     """Clamped field of the 8 voxels of every split 2-voxel cell (``centres``: the cells')."""
-    out, tests = _voxel_group(np.ascontiguousarray(centres, dtype=np.float64), valid, tree,
-                              consts, packed, GROUP_CHUNK, threads())
+    out = minus_ones((len(centres) * 8,))  # voxels of invalid children stay -1
+    tests = _steal(len(centres), GROUP_CHUNK, threads(),
+                   np.ascontiguousarray(centres, dtype=np.float64), valid, tree, consts, packed,
+                   out)
     if stats is not None:
         stats.voxel_view_tests += int(tests)
     return out

@@ -64,8 +64,8 @@ def test_warm_up_compiles_what_a_scan_and_the_hull_stages_use(tmp_path):
     plugins = {name for name, _ in result["warm"]}
     assert {"hull", "sim"} <= plugins, result["warm"]
     assert not any(said.startswith("failed") for _, said in result["warm"]), result["warm"]
-    # The hull's sibling-group kernels and the renderer's raster kernels ran at all ...
-    assert "plantscan_hull.kernels._classify_group" in result["used"]
+    # The hull's work-stealing kernel and the renderer's raster kernels ran at all ...
+    assert "plantscan_hull.kernels._steal" in result["used"]
     assert "plantscan_sim.render._raster_triangles" in result["used"]
     # ... and none of them, nor any other, needed a signature the warm-up had not compiled.
     assert result["new"] == {}
