@@ -1055,6 +1055,21 @@ if HAVE_NUMBA:
                 c = _take(counter)
         return tests.sum()
 
+    # ------------------------------------------------------------------ distance tables
+    @njit(cache=True, nogil=True)
+    def _distance_table(d_in, d_out, m, out):
+        # ``views.signed_distance_table``'s combination in one pass, the float32
+        # operations of OpenCV's ``subtract`` then ``addWeighted`` (32-bit working
+        # type: 32 a and 32 b are exact and one of them is 0, so one rounding of
+        # 32 a - 32 b + 16; then round half to even and saturate, as ``saturate_cast``).
+        h, w = out.shape
+        for i in range(h):
+            for j in range(w):
+                a = d_in[i, j] - np.float32(m[i, j])
+                y = (a * np.float32(32.0) + d_out[i, j] * np.float32(-32.0)) + np.float32(16.0)
+                out[i, j] = np.int16(min(max(np.rint(y), np.float32(-32768.0)),
+                                         np.float32(32767.0)))
+
     # ------------------------------------------------------------------ mesh topology
     @njit(cache=True)
     def _nonmanifold_vertices(faces, n_vertices):
@@ -1175,6 +1190,15 @@ def voxel_field(packed: Packed, points: np.ndarray, consts: CarveConsts,
     if stats is not None:
         stats.voxel_view_tests += int(tests)
     return out
+
+
+def distance_table(d_in: np.ndarray, d_out: np.ndarray, m: np.ndarray, out: np.ndarray) -> bool:
+    """Compiled combination of ``views.signed_distance_table`` into ``out``; False
+    (nothing written) without numba or when ``SD_STEP`` is not the kernel's 1/32 px."""
+    if not HAVE_NUMBA or SD_STEP != 1.0 / 32.0 or SD_DTYPE != np.int16:
+        return False
+    _distance_table(d_in, d_out, m, out)
+    return True
 
 
 def minus_ones(shape: tuple[int, ...]) -> np.ndarray:

@@ -108,7 +108,7 @@ def _scratch_buffers(shape: tuple[int, int]) -> tuple[np.ndarray, ...]:
 def _chamfer(mask: np.ndarray, reuse: bool = False, at: tuple[int, int] | None = None,
              shape: tuple[int, int] | None = None
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(d_in - m, d_out, m)``: OpenCV's 5x5 chamfer distances of the mask and its inverse.
+    """``(d_in, d_out, m)``: OpenCV's 5x5 chamfer distances of the mask and its inverse.
 
     With ``reuse`` the results live in this thread's scratch buffers (valid
     until its next call); then ``mask`` may also be a crop placed at row,
@@ -132,7 +132,6 @@ def _chamfer(mask: np.ndarray, reuse: bool = False, at: tuple[int, int] | None =
         # OpenCV writes into ``dst`` (contiguous float32 of the right shape) and returns it.
         d_in = cv2.distanceTransform(m, cv2.DIST_L2, cv2.DIST_MASK_5, dst=d_in)
         d_out = cv2.distanceTransform(inv, cv2.DIST_L2, cv2.DIST_MASK_5, dst=d_out)
-    cv2.subtract(d_in, m, dst=d_in, dtype=cv2.CV_32F)
     return d_in, d_out, m
 
 
@@ -153,7 +152,8 @@ def signed_distance(mask: np.ndarray) -> np.ndarray:
     """
     # d_in = 0 outside and d_out = 0 inside: d_in - d_out + 0.5 - m is
     # d_in - 0.5 inside and 0.5 - d_out outside, in three passes without temporaries.
-    d_in, d_out, _ = _chamfer(mask)
+    d_in, d_out, m = _chamfer(mask)
+    cv2.subtract(d_in, m, dst=d_in, dtype=cv2.CV_32F)
     cv2.subtract(d_in, d_out, dst=d_in)
     d_in += 0.5
     return d_in
@@ -176,14 +176,20 @@ def signed_distance_table(mask: np.ndarray, out: np.ndarray | None = None,
     -------
     (H, W) int16 array, units of ``SD_STEP`` px: ``out`` itself when given.
     Half the memory of the float32 distances, from the same two transforms:
-    one fused pass (``cv2.addWeighted``, round to nearest, saturate) does the
-    combination, the scaling and the conversion.
+    one pass does the combination, the scaling and the conversion (round half
+    to even, saturate): compiled (``kernels.distance_table``), or without numba
+    OpenCV's ``subtract`` and ``addWeighted``, which give the same table.
     """
     if at is not None and out is None:
         raise ValueError("signed_distance_table: a crop position needs out (its shape)")
-    d_in, d_out, _ = _chamfer(mask, reuse=True, at=at, shape=None if at is None else out.shape)
+    from plantscan_hull import kernels
+
+    d_in, d_out, m = _chamfer(mask, reuse=True, at=at, shape=None if at is None else out.shape)
     if out is None:
         out = np.empty(d_in.shape, dtype=SD_DTYPE)
+    if kernels.distance_table(d_in, d_out, m, out):  # the same table in one pass
+        return out
+    cv2.subtract(d_in, m, dst=d_in, dtype=cv2.CV_32F)
     res = cv2.addWeighted(d_in, 1.0 / SD_STEP, d_out, -1.0 / SD_STEP, 0.5 / SD_STEP, dst=out,
                           dtype=cv2.CV_16S)
     if res is not out and not np.shares_memory(res, out):  # OpenCV reallocated: copy back

@@ -287,6 +287,31 @@ def test_distance_table_saturates_towards_zero():
     assert table.min() == pytest.approx(-1024.0, abs=SD_STEP)
 
 
+@pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="the compiled combination needs numba")
+def test_compiled_distance_table_equals_the_opencv_combination(monkeypatch):
+    # The compiled one-pass combination against OpenCV's subtract + addWeighted (the
+    # path without numba), to the bit: random masks, a placed crop, values beyond the
+    # int16 range and a mask touching the image edges.
+    from plantscan_hull.views import signed_distance_table
+
+    rng = np.random.default_rng(11)
+    masks = [rng.random((90, 120)) < p for p in (0.05, 0.3, 0.7)]
+    far = np.zeros((8, 2400), bool)
+    far[2:6, :4] = True
+    edge = np.zeros((50, 60), bool)
+    edge[:, :3] = edge[0, :] = True
+    cases = [(m, None) for m in (*masks, far, edge)] + [(masks[1][10:50, 20:70], (5, 9))]
+    for mask, at in cases:
+        shape = (70, 90) if at is not None else mask.shape
+        compiled = signed_distance_table(mask, np.empty(shape, np.int16), at=at)
+        with monkeypatch.context() as mp:
+            mp.setattr(kernels, "distance_table", lambda *a: False)
+            plain = signed_distance_table(mask, np.empty(shape, np.int16), at=at)
+        assert np.array_equal(compiled, plain)
+        if mask is far:
+            assert plain.min() == -32768  # saturated (the far end is ~2400 px out)
+
+
 def test_tables_in_one_buffer_never_copied(rig, sphere_sils):
     # Memory: every view's table is a slice of one int16 buffer of exactly the regions
     # of interest, and the compiled carve reads that buffer as it is (no second copy,
