@@ -1042,8 +1042,9 @@ if HAVE_NUMBA:
             lo, hi, centres, sel, tree, cc, packed, out)
 
     @njit(cache=True, parallel=True)
-    def _steal(n, chunk, workers, centres, sel, tree, cc, packed, out):
-        # ``_chunk`` on lo..hi for every chunk of the n cells or parents; total tests.
+    def _steal(chunk, workers, centres, sel, tree, cc, packed, out):
+        # ``_chunk`` on lo..hi for every chunk of the cells or parents ``centres``; total tests.
+        n = centres.shape[0]
         nchunks = (n + chunk - 1) // chunk
         tests = np.zeros(nchunks, dtype=np.int64)
         counter = np.zeros(1, np.int64)
@@ -1245,7 +1246,7 @@ def classify_tree(packed: Packed, tree: Tree, parent: np.ndarray, centres: np.nd
     split (in the order of ``np.flatnonzero(decision == SPLIT)``).
     """
     counts = cell_counts(len(centres), _offsets(np.diff(tree.start)[parent]))
-    tests = _steal(len(centres), CHUNK, threads(), np.ascontiguousarray(centres, dtype=np.float64),
+    tests = _steal(CHUNK, threads(), np.ascontiguousarray(centres, dtype=np.float64),
                    parent, tree, consts, packed, counts)
     if stats is not None:
         stats.cell_view_tests += int(tests)
@@ -1268,7 +1269,7 @@ def classify_group(packed: Packed, tree: Tree, centres: np.ndarray, valid: np.nd
         b1 = min(n_par, b0 + GROUP_BATCH)
         sub = _sub_tree(tree, b0, b1)
         counts = cell_counts(8 * (b1 - b0), _offsets(np.repeat(np.diff(sub.start), 8)))
-        tests = _steal(b1 - b0, GROUP_CHUNK, threads(), centres[b0:b1], valid[8 * b0:8 * b1],
+        tests = _steal(GROUP_CHUNK, threads(), centres[b0:b1], valid[8 * b0:8 * b1],
                        sub, consts, packed, counts)
         decision[8 * b0:8 * b1] = counts.decision
         parts.append(_split_tree(counts))
@@ -1306,7 +1307,7 @@ def voxel_group(packed: Packed, tree: Tree, centres: np.ndarray, valid: np.ndarr
                 consts: CarveConsts, stats=None) -> np.ndarray:
     """Clamped field of the 8 voxels of every split 2-voxel cell (``centres``: the cells')."""
     out = minus_ones((len(centres) * 8,))  # voxels of invalid children stay -1
-    tests = _steal(len(centres), GROUP_CHUNK, threads(),
+    tests = _steal(GROUP_CHUNK, threads(),
                    np.ascontiguousarray(centres, dtype=np.float64), valid, tree, consts, packed,
                    out)
     if stats is not None:
