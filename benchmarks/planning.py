@@ -348,11 +348,20 @@ def run_plant(family: str, seed: int, runs: Path, args) -> list[dict[str, Any]]:
 def hull_volume_mm3(run_dir: Path) -> float | None:
     """Volume of the run's carved hull (occupied voxels; phantom volume is what a better
     view set removes from it)."""
+    from plantscan_core.data import BlockField, Volume
+
     path = run_dir / "volume.npz"
     if not path.exists():
         return None
-    with np.load(path) as z:
-        return float(np.count_nonzero(z["field"] > 0) * float(z["voxel_size"]) ** 3)
+    vol = Volume.load(path)
+    blocks = vol.blocks
+    if blocks is None:
+        n = int(np.count_nonzero(vol.field > 0))
+    else:  # without the dense grid: mixed blocks' positive voxels + whole inside blocks
+        inside = np.argwhere(blocks.index == BlockField.INSIDE)
+        extent = np.minimum(blocks.block, np.asarray(blocks.shape) - inside * blocks.block)
+        n = int(np.count_nonzero(blocks.values > 0) + np.prod(extent, axis=1).sum())
+    return float(n * vol.voxel_size ** 3)
 
 
 # --------------------------------------------------------------------------- tables
