@@ -10,6 +10,15 @@ disc stays filled (leaves hanging over the rim spoil the disc test of the
 slice, not the fill of the fitted disc).  Removal is a field operation,
 ``field = min(field, -inside_distance)``, before meshing, so the mesh stays
 watertight and the stem is cut flat at the rim.
+
+Over the pot's opening the hull holds a cone no camera carves (the cap,
+:func:`fit_cap`): a camera looking down at depression ``e`` sees a point
+``h`` above the opening against the soil or the pot (both in the masks) while
+``h / tan(e)`` is less than its distance to the far rim, so every view keeps
+the cone of height ``r_rim tan(e_min)`` over the opening.  It is found from the
+hull's own slices (full discs on the pot's axis shrinking upwards, the stem at
+their centre) and removed with the pot: anything inside it, stem or leaf, is
+nothing the silhouettes say (every view sees it inside the pot's image).
 """
 
 from __future__ import annotations
@@ -47,6 +56,15 @@ MIN_POT_RADIUS_VOXELS = 3.0
 # (it was cut away from the soil to the lowest leaf on an 18 MP 5-tilt scan).  Pots on
 # carriers stay within ~0.5-2x of each other; stems are < 0.25 of their pot's radius.
 STEM_RADIUS_FRACTION = 0.25
+# The cap's edge in a slice: the first ring (a voxel wide, about the pot's axis) less than
+# half occupied; the hull's outline crosses its ring about half way.
+CAP_RING_FILL = 0.5
+# A cap starts at the rim as a disc at least this fraction of the rim's radius wide (a
+# narrower first slice is the stem and leaves, not a cone over the whole opening) ...
+CAP_BASE_FRACTION = 0.5
+# ... and is followed up while its disc is wider than a stem (STEM_RADIUS_FRACTION of the
+# rim's radius); at least CAP_MIN_SLICES slices, shrinking, make a cone.
+CAP_MIN_SLICES = 3
 
 
 class TaperedCylinder(CheckedModel):
@@ -217,6 +235,86 @@ def fit_pot(volume: Volume) -> list[TaperedCylinder]:
             r_top_mm=float(max(slope * z_top + intercept, s)),
             centre_xy_mm=(float(centre[0]), float(centre[1]))))
     return cylinders
+
+
+def _full_radius(field, origin: np.ndarray, s: float, k: int, centre: np.ndarray,
+                 r_max: float) -> float:
+    """Radius (mm) of the solid disc about ``centre`` in z-slice ``k``: up to the first ring
+    (a voxel wide) less than ``CAP_RING_FILL`` occupied, holes filled; 0 if the centre is
+    empty.  Only the slice's box of half-side ``r_max`` is read."""
+    nx, ny = field.shape[:2]
+    i_lo = max(0, int(np.floor((centre[0] - r_max - origin[0]) / s)))
+    i_hi = min(nx, int(np.ceil((centre[0] + r_max - origin[0]) / s)) + 1)
+    j_lo = max(0, int(np.floor((centre[1] - r_max - origin[1]) / s)))
+    j_hi = min(ny, int(np.ceil((centre[1] + r_max - origin[1]) / s)) + 1)
+    if i_hi <= i_lo or j_hi <= j_lo:
+        return 0.0
+    occ = filled_slice(read_box(field, (i_lo, j_lo, k), (i_hi, j_hi, k + 1))[:, :, 0] > 0)
+    xs = origin[0] + np.arange(i_lo, i_hi) * s - centre[0]
+    ys = origin[1] + np.arange(j_lo, j_hi) * s - centre[1]
+    ring = np.floor(np.hypot(xs[:, None], ys[None, :]) / s).astype(np.int64).ravel()
+    n_ring = np.bincount(ring)
+    full = np.bincount(ring, weights=occ.ravel(), minlength=n_ring.size)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        fill = full / n_ring
+    n = int(r_max / s)
+    low = np.flatnonzero(~(fill[:n] >= CAP_RING_FILL))  # an empty ring (n 0) counts as low
+    first_low = int(low[0]) if low.size else n
+    return first_low * s
+
+
+def fit_cap(volume: Volume, pot: TaperedCylinder) -> TaperedCylinder | None:
+    """The cone of hull over ``pot``'s opening that no view carves; None if there is none.
+
+    Walking up from the rim, each slice's solid disc about the pot's axis
+    (:func:`_full_radius`) is followed while it is wider than a stem; when it
+    starts at the rim at least ``CAP_BASE_FRACTION`` of the rim's radius wide
+    and shrinks over at least ``CAP_MIN_SLICES`` slices, a straight taper
+    fitted to it is the cap, from the rim up to where the taper closes (its
+    apex: the stem inside the cone is not told apart from it).  A rig with a
+    camera level with the rim carves no cone, and none is found.
+
+    Parameters
+    ----------
+    volume : Volume
+        The hull (field > 0 inside), turntable frame.
+    pot : TaperedCylinder
+        The top piece of :func:`fit_pot` (its rim and axis).
+
+    Returns
+    -------
+    TaperedCylinder or None
+        The cap, mm, turntable frame: ``r_bottom_mm`` at the rim, ``r_top_mm`` a
+        voxel at the apex.
+    """
+    field = volume.blocks if volume.blocks is not None else volume.field
+    s = float(volume.voxel_size)
+    origin = np.asarray(volume.origin, dtype=float)
+    nz = field.shape[2]
+    centre = np.asarray(pot.centre_xy_mm, dtype=float)
+    r_rim = pot.r_top_mm
+    k = int(np.floor((pot.z_top_mm - origin[2]) / s + 0.5))  # the first slice above the rim
+    zs, radii = [], []
+    while 0 <= k < nz:
+        r = _full_radius(field, origin, s, k, centre, r_rim + 2 * s)
+        if r <= STEM_RADIUS_FRACTION * r_rim or (radii and r > radii[-1] + s):
+            break  # the stem (or a leaf widening the disc again: above the cone)
+        zs.append(origin[2] + k * s)
+        radii.append(r)
+        k += 1
+    if len(radii) < CAP_MIN_SLICES or radii[0] < CAP_BASE_FRACTION * r_rim:
+        return None
+    slope, intercept = np.polyfit(zs, radii, 1)
+    if slope >= 0:
+        return None  # not shrinking: no cone
+    # The walk ends at a stem's width, most of the way up: the apex is not much further
+    # (a third of the walked height on a straight cone); a flat taper ends where it was seen.
+    walked = zs[-1] - zs[0] + s
+    z_top = min(max(-intercept / slope, zs[-1] + s / 2), zs[-1] + walked / 2)
+    return TaperedCylinder(
+        z_bottom_mm=float(pot.z_top_mm), z_top_mm=float(z_top),
+        r_bottom_mm=float(min(slope * pot.z_top_mm + intercept, r_rim)),
+        r_top_mm=float(s), centre_xy_mm=(float(centre[0]), float(centre[1])))
 
 
 def remove_cylinders(volume: Volume, cylinders: list[TaperedCylinder],

@@ -24,7 +24,7 @@ from plantscan_hull.meshing import (
     postprocess,
     topology_report,
 )
-from plantscan_hull.pot import TaperedCylinder, fit_pot, remove_cylinders
+from plantscan_hull.pot import TaperedCylinder, fit_cap, fit_pot, remove_cylinders
 from plantscan_hull.views import prepare_views
 
 log = logging.getLogger(__name__)
@@ -242,6 +242,10 @@ class MarchingCubesMesher(Mesher):
         pot: Literal["auto", "none"] | list[TaperedCylinder] = Field(
             "auto", description="'auto' (fit from the hull), 'none', or the tapered cylinders "
                                 "(pot, carrier) to remove, mm")
+        pot_cap: bool = Field(
+            True, description="also remove the hull's cone over the pot's opening that no "
+                              "view carves (every camera sees it against the soil or the pot; "
+                              "docs/reconstruction.md)")
         pot_margin_mm: float = Field(
             1.5, ge=0, description="removed beyond the pot surface, plus one voxel (the hull's "
                                    "rim is known to a voxel)")
@@ -264,6 +268,9 @@ class MarchingCubesMesher(Mesher):
             cylinders = []
         else:
             cylinders = list(p.pot)
+        cap = None
+        if p.pot_cap and cylinders:
+            cap = fit_cap(volume, max(cylinders, key=lambda c: c.z_top_mm))
         margin = p.pot_margin_mm + float(volume.voxel_size)
         # Pot and specks are removed in the volume's own field and put back afterwards (the
         # volume is the caller's): a copy of the grid is 411 MB of fresh pages at 512^3.
@@ -273,6 +280,12 @@ class MarchingCubesMesher(Mesher):
             and own.flags.writeable and own.flags.c_contiguous)) else None
         try:
             field, removed = remove_cylinders(volume, cylinders, margin, undo=undo)
+            cap_removed = 0
+            if cap is not None:
+                # in place: ``field`` is the recorded own field (undo) or already a copy
+                field, cap_removed = remove_cylinders(
+                    Volume(field, volume.origin, volume.voxel_size), [cap], margin,
+                    undo=undo if undo is not None else [])
             field, dropped = drop_small_components(
                 field, p.min_component_voxels, in_place=undo is not None or field is not own,
                 undo=undo)
@@ -285,6 +298,8 @@ class MarchingCubesMesher(Mesher):
         report = {"pot": [c.model_dump() for c in cylinders], "pot_mode": p.pot
                   if isinstance(p.pot, str) else "given", "pot_margin_mm": margin,
                   "pot_voxels_removed": removed,
+                  "cap": None if cap is None else cap.model_dump(),
+                  "cap_voxels_removed": cap_removed,
                   "components_dropped": dropped, "topology": topology_report(mesh)}
         self.report.note(report)
         run_dir = self.context.run_dir

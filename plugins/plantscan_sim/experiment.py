@@ -55,7 +55,7 @@ class PlannedScan:
 
 
 def growth_design(genotypes: Mapping[str, str], days: int = 5, replicates: int = 3,
-                  first_age: float = 14.0) -> list[PlannedScan]:
+                  first_age: float = 14.0, seed0: int = VALIDATION_SEED0) -> list[PlannedScan]:
     """Every scan of the experiment, plant by plant and day by day.
 
     Parameters
@@ -64,10 +64,13 @@ def growth_design(genotypes: Mapping[str, str], days: int = 5, replicates: int =
     days : int
         Daily scans per plant.
     replicates : int
-        Plants per genotype and treatment (seeds ``1000 + 100 i + 1 ...`` for the
+        Plants per genotype and treatment (seeds ``seed0 + 100 i + 1 ...`` for the
         ``i``-th genotype; the same seeds under both treatments).
     first_age : float
         Age (days after emergence) of a control plant on day 0.
+    seed0 : int
+        First seed: validation (>= 1000) by default; below 1000 a development
+        design (for tuning a stage on the same kind of plants).
     """
     if days < 1 or replicates < 1:
         raise ValueError(f"days ({days}) and replicates ({replicates}) must be >= 1")
@@ -76,7 +79,7 @@ def growth_design(genotypes: Mapping[str, str], days: int = 5, replicates: int =
     for gi, (genotype, family) in enumerate(genotypes.items()):
         for treatment, pace in TREATMENTS.items():
             for rep in range(1, replicates + 1):
-                seed = VALIDATION_SEED0 + SEEDS_PER_GENOTYPE * gi + rep
+                seed = seed0 + SEEDS_PER_GENOTYPE * gi + rep
                 for day in range(days):
                     age = round((first_age + day) * pace, 3) if family in FAMILIES else None
                     out.append(PlannedScan(f"{genotype}-{treatment}-r{rep}", genotype, family,

@@ -379,6 +379,45 @@ def test_given_pot_is_removed(potted_volume):
                 & (rho > 5)).any()
 
 
+def test_the_cone_no_view_carves_over_the_pot_is_removed():
+    # Cameras 10 and 45 deg above the aim point, 400 mm away: the lower ones look down on the
+    # rim, so every view sees a point over the opening lower than
+    # r_rim (h_cam - z_rim) / (d_cam + r_rim) = 7.5 mm against the pot (the masks are pot +
+    # plant): the carved hull keeps that cone (the virtual scanner's rigs: 13 mm over the
+    # dicot's pot, 17 mm over the branched family's).  The mesher cuts it; the leaf over the
+    # rim and the stem above the cone stay.
+    elevations = (10.0, 45.0)
+    pot = Cylinder(-70.0, -30.0, 26.0, 32.0)
+    stem = Box((0.0, 0.0, -10.0), np.eye(3), (2.0, 2.0, 20.0))  # from the soil to z = 10
+    leaf = Box((26.0, 0.0, -16.0), np.eye(3), (24.0, 8.0, 1.2))  # 14 mm over the rim
+    cal = ring_calibration(elevations=elevations)
+    sils = render(cal, views(12, elevations), [pot, stem, leaf])
+    volume = OctreeHull(OctreeHull.Params(resolution=96, floor_z_mm=None)).reconstruct(sils, cal)
+    s = volume.voxel_size
+    e = np.radians(elevations[0])
+    height = pot.r1 * (400.0 * np.sin(e) - pot.z1) / (400.0 * np.cos(e) + pot.r1)
+
+    def inside_cone(v):  # the geometric cone, less a fifth of its radius (its outline's voxels)
+        h = v[:, 2] - pot.z1
+        return (h > 0) & (np.hypot(v[:, 0], v[:, 1]) < 0.8 * pot.r1 * (1.0 - h / height))
+
+    mesher = MarchingCubesMesher(MarchingCubesMesher.Params())
+    v = mesher.mesh(volume).vertices
+    cap = mesher.report.figures["cap"]
+    # Apex from the hull's own slices: the geometric height, plus up to 3 voxels (the fitted
+    # rim is up to 1.5 voxels high, and with k = 3 a point needs 4 of the 12 low views to
+    # see it outside: the hull's cone is a little taller than the geometric one).
+    assert pot.z1 + height - s < cap["z_top_mm"] < pot.z1 + height + 3 * s, (cap, height)
+    assert not inside_cone(v).any()
+    on_leaf = (v[:, 2] > -18.0) & (v[:, 2] < -14.0) & (v[:, 0] > 10.0)
+    assert v[on_leaf, 0].max() == pytest.approx(50.0, abs=1.5 * s)  # the leaf's tip stays
+    stem_above = (np.hypot(v[:, 0], v[:, 1]) < 4.0) & (v[:, 2] > -12.0) & (v[:, 2] < 8.0)
+    assert stem_above.sum() > 20
+    # Without the cap the cone is meshed (what the virtual experiment measured as a leaf).
+    plain = MarchingCubesMesher(MarchingCubesMesher.Params(pot_cap=False)).mesh(volume)
+    assert inside_cone(plain.vertices).sum() > 100
+
+
 def test_no_pot_found_on_a_plant_without_pot(rig):
     cal, vl = rig
     sils = render(cal, vl, [Sphere((0.0, 0.0, 0.0), 5.0),

@@ -6,7 +6,7 @@ import functools
 
 import numpy as np
 import pytest
-from plantscan_hull.pot import fit_pot, remove_cylinders
+from plantscan_hull.pot import fit_cap, fit_pot, remove_cylinders
 
 from plantscan_core.data import Volume
 
@@ -108,3 +108,28 @@ def test_fit_finds_the_pot_over_a_cone_with_disc_slices_of_its_own():
     assert cyl[0].z_top_mm == pytest.approx(POT[1], abs=1.5 * VOXEL)
     assert cyl[0].r_top_mm == pytest.approx(POT[3], abs=1.5 * VOXEL)
     assert cyl[0].z_bottom_mm <= zs[k_pot - 2]  # the cone's slices go with the pot
+
+
+def test_the_cap_of_an_analytic_cone_over_the_rim_is_fitted(potted_plant):
+    # The potted plant with a cone 14 mm tall standing on the whole rim (what the virtual
+    # dicot's rig leaves: 13.3 mm, docs/reconstruction.md): the cap is the cone, the stem
+    # through it does not stop the walk (4.7 mm < a quarter of the rim's radius).
+    xs = np.arange(-80.0, 80.0 + VOXEL, VOXEL)
+    zs = potted_plant.origin[2] + np.arange(potted_plant.shape[2]) * VOXEL
+    rho = np.hypot(xs[:, None], xs[None, :])[:, :, None]
+    height = 14.0
+    cone = np.minimum(POT[3] * (1.0 - (zs[None, None, :] - POT[1]) / height) - rho,
+                      zs[None, None, :] - POT[1] + 0.5)
+    field = np.maximum(potted_plant.field, np.clip(cone / VOXEL, -1, 1).astype(np.float32))
+    volume = Volume(field, potted_plant.origin, VOXEL)
+    pot = fit_pot(volume)[-1]
+    assert pot.z_top_mm == pytest.approx(POT[1], abs=1.5 * VOXEL)  # the cone is not the pot
+    cap = fit_cap(volume, pot)
+    assert cap is not None
+    # Apex, and the radius at the fitted rim (half a voxel over the cone's base), within 1.5
+    # voxels: each slice's disc is read to whole rings of a voxel.
+    assert cap.z_top_mm == pytest.approx(POT[1] + height, abs=1.5 * VOXEL)
+    r_cone = POT[3] * (1.0 - (cap.z_bottom_mm - POT[1]) / height)
+    assert cap.r_bottom_mm == pytest.approx(r_cone, abs=1.5 * VOXEL)
+    # Without the cone there is no cap: the stem alone is a run of narrow discs.
+    assert fit_cap(potted_plant, fit_pot(potted_plant)[-1]) is None

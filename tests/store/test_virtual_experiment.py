@@ -195,3 +195,17 @@ def test_leaves_keep_their_track_on_the_growing_families(experiment):
     # no shape to fix its turn by the next day (1 link).  Any further break fails.
     links, kept, joins = figures["G2"]
     assert links == 222 and links - kept <= 3 and joins <= 3, figures
+
+
+def test_a_development_design_draws_no_validation_seed():
+    # Tuning on the experiment (benchmarks/experiment.py --seed0 0) must not see a validation
+    # plant (seeds >= 1000); the design is otherwise the same plants, days and ages.
+    from plantscan_sim.experiment import VALIDATION_SEED0, growth_design
+
+    genotypes = {"G1": "dicot", "G2": "branched"}
+    validation = growth_design(genotypes)
+    development = growth_design(genotypes, seed0=0)
+    assert min(s.seed for s in validation) > VALIDATION_SEED0
+    assert max(s.seed for s in development) < VALIDATION_SEED0
+    assert [(s.plant_id, s.day, s.age) for s in development] == [
+        (s.plant_id, s.day, s.age) for s in validation]
