@@ -1,24 +1,35 @@
-"""Turntable-constrained bundle adjustment of feature tracks (pyceres).
+"""Turntable-constrained bundle adjustment of feature tracks.
 
 The model is the chessboard calibrator's (``plantscan_calib.model``) with the
 board corners replaced by free 3D points: a point ``X`` (turntable frame at
 angle 0) seen from camera ``c`` at tilt ``t`` and turntable stop ``k`` projects
-as ``CameraModel(R_ct (Rz(theta_k * s + e_k) X - C_ct))``.  Unknowns: per camera
-``[f, cu, cv, d1, d2]``, per (camera, tilt) ``R_ct, C_ct``, per stop the angle
-error ``e_k`` (a zero-mean Gaussian prior of ``angle_sigma_deg``: the commanded
-angles, with the turntable's backlash as their uncertainty), optionally the
-angle scale ``s``, and every point.  There are no per-photo poses: 72 photos of
-two cameras have 12 pose unknowns, not 432.
+as ``CameraModel(R_ct (Rz(theta_k * s + e_k) X - C_ct))``; a point fixed in the
+lab (a backdrop marker) is seen at angle 0 in every photo.  Unknowns: per camera
+``[f, cu, cv, d1, d2]`` (the aspect held), per (camera, tilt) ``R_ct, C_ct``, per
+stop the angle error ``e_k`` (a zero-mean Gaussian prior of ``angle_sigma_deg``:
+the commanded angles, with the turntable's backlash as their uncertainty),
+optionally the angle scale ``s``, and every point.  There are no per-photo poses:
+72 photos of two cameras have 12 pose unknowns, not 432.  Optional Gaussian
+priors: the principal point about the image centre, approximate (camera, tilt)
+poses.
 
-Gauge: the reference camera's centre is held at ``(0, -D, 0)``; this fixes
+Gauge: the reference camera's centre is held; with the stop priors this fixes
 the world's turn about the axis, its height and its scale, which are set
 afterwards (``scale``).
 
-One Ceres residual block per track (a Python cost per observation spent most
-of the solve in the Python call); its projections and Jacobian (central
-differences of the closed-form projection, in one compiled call) are computed
-by ``_observe_track``, whose plain reference is
-``plantscan_calib.model.project_mats``.
+Solvers (``BundleOptions.solver``):
+
+* ``lm`` (default): Levenberg-Marquardt compiled with numba, the points
+  eliminated (Schur complement: the reduced camera system is dense and small),
+  analytic Jacobians (``_project_jac``, tested against central differences of
+  ``_project``), Cauchy loss by iteratively reweighted least squares.
+* ``ceres``: pyceres, one residual block per track with central-difference
+  Jacobians; ~100x slower, kept as the plain reference the compiled solve is
+  tested against (tests/sfm/test_sfm_solver.py).  It has no lab-fixed points.
+
+``adjust`` runs a robust solve, drops observations beyond
+max(``outlier_px``, 4 robust sigma) and solves again; ``parameter_sigma`` gives
+every parameter's 1-sigma from the reduced normal equations.
 """
 
 from __future__ import annotations
@@ -323,8 +334,13 @@ class BundleOptions:
     fit_angle_scale : bool
     fix_principal_point, fix_distortion : bool
     cauchy_scale_px : float
+        Scale of the Cauchy loss (in units of each observation's noise: px for a dot).
     outlier_px : float
         Observations beyond max(this, 4 robust sigma) are dropped after the robust solve.
+        Both are tight because wrong matches of a repeated print pull a shallow view's
+        focal length: on the virtual paper-72 dicot, started at the truth (principal point
+        the truth's), 1.0 and 1.5 px left cam0 (8 deg of elevation) at f -3.6 % with 187
+        kept observations > 2 px from the truth; 0.5 and 1.0 px: f -0.7 %.
     prior_noise_px : float
         Keypoint noise assumed when weighing the priors against the observations.
     pose_prior_mm, pose_prior_deg : float
@@ -346,8 +362,8 @@ class BundleOptions:
     fit_angle_scale: bool = False
     fix_principal_point: bool = False
     fix_distortion: bool = False
-    cauchy_scale_px: float = 1.0
-    outlier_px: float = 1.5
+    cauchy_scale_px: float = 0.5
+    outlier_px: float = 1.0
     prior_noise_px: float = 0.1
     principal_point_sigma_px: float | None = None
     pose_prior_mm: float = 10.0

@@ -65,10 +65,13 @@ class SfmCalibrator(Calibrator):
             "None holds them exact")
         fit_angle_scale: bool = False
         fix_principal_point: bool = Field(
-            True, description="hold (cu, cv) at the image centre (virtual paper-72 dicot "
-            "with ArUco rows and backdrop, lens 5.2 px off centre: held, centres 17-21 mm, "
-            "0.18-0.21 deg, f -2.5 / -1.4 %; free with the prior, cv wandered 25-50 px and "
-            "centres 32-39 mm, 0.6-1.5 deg, f -3.0 / -3.2 %; docs/sfm.md)")
+            True, description="hold (cu, cv) at principal_point_px, else at the image centre "
+            "(a turntable orbit leaves the principal point loose: 1-sigma 17-38 px on the "
+            "virtual paper-72 dicot; freed, it wandered 35-54 px; docs/sfm.md)")
+        principal_point_px: dict[str, tuple[float, float]] | None = Field(
+            None, description="principal point (cu, cv) per camera, px, from a calibration of "
+            "the lens (top-left pixel's centre at 0, 0); held unless fix_principal_point is "
+            "false")
         principal_point_prior: float | None = Field(
             0.015, ge=0, description="standard deviation of a prior holding the free "
             "principal point near the image centre, as a fraction of the image width")
@@ -77,8 +80,9 @@ class SfmCalibrator(Calibrator):
                                 "too plain to calibrate from")
         min_view_observations: int = Field(15, ge=1)
         max_rms_px: float = Field(1.5, gt=0)
-        max_observations: int = Field(200_000, ge=1000, description="longest tracks kept up "
-                                      "to this many observations (bounds the solve's time)")
+        max_observations: int = Field(200_000, ge=1000, description="feature tracks drawn "
+                                      "at random (seeded) up to this many observations, every "
+                                      "marker corner kept (bounds the solve's time)")
         threads: int = Field(2, ge=1)
         focal_px: dict[str, float] | None = Field(
             None, description="focal length per camera, px (lens focal length / pixel "
@@ -96,7 +100,7 @@ class SfmCalibrator(Calibrator):
             "cross_window_deg", "exhaustive_below", "ransac_px", "scale", "plate_diameter_mm",
             "camera_distance_mm", "plate_top_mm", "angle_sigma_deg", "fit_angle_scale",
             "fix_principal_point", "fix_distortion", "min_tracks", "min_view_observations",
-            "focal_px", "fit_focal", "marker_mm", "markers", "refine_dots",
+            "focal_px", "principal_point_px", "fit_focal", "marker_mm", "markers", "refine_dots",
             "principal_point_prior", "max_rms_px", "threads", "max_observations")})
 
     def input_roles(self, scan) -> list[str]:

@@ -206,3 +206,38 @@ def test_static_markers_become_lab_tracks():
     # one observation per camera and corner of marker 7, all of lab-fixed points
     assert lab.n_tracks == 4 and len(lab.view) == 8 and lab.lab.all()
     assert set((lab.marker // 4).tolist()) == {7}
+
+
+def test_a_backdrop_marker_hidden_in_a_few_photos_stays_fixed():
+    """The plant and its shadow turn across the backdrop: a fixed marker whose corners are
+    pulled 1-12 px in a few photos (partly hidden) is still fixed; those photos are
+    dropped from its lab observation, which stays the median of the clean ones.  (Called
+    turning, it sat 360 px from the truth on the virtual paper-72 dicot.)"""
+    from plantscan_sfm.features import SfmView
+    from plantscan_sfm.markers import MarkerCorners, split_static
+
+    from plantscan_core.data import ViewRecord
+
+    views = [SfmView(ViewRecord(i, "plant", "cam0", 0, 0.0, i, 10.0 * i, None, f"{i}.png"),
+                     f"cam0/{i}") for i in range(10)]
+    rows = []
+    for i in range(10):
+        hidden = np.array([6.0, -4.0]) * (i in (2, 7))      # two photos of ten off by 7 px
+        for c in range(4):
+            rows.append((i, 9, c, np.array([300.0 + 40 * c, 100.0]) + hidden))
+            rows.append((i, 3, c, [200.0 + 15.0 * i + c, 80.0]))          # turning
+    corners = MarkerCorners(np.array([r[0] for r in rows]), np.array([r[1] for r in rows]),
+                            np.array([r[2] for r in rows]), np.array([r[3] for r in rows]))
+    cam1 = [SfmView(ViewRecord(10 + i, "plant", "cam1", 0, 0.0, i, 10.0 * i, None,
+                               f"b{i}.png"), f"cam1/{i}") for i in range(3)]
+    rows1 = [(10 + i, 9, c, [500.0 + 30 * c, 60.0]) for i in range(3) for c in range(4)]
+    both = MarkerCorners(*(np.concatenate([a, np.array(b)]) for a, b in zip(
+        (corners.view, corners.marker_id, corners.corner, corners.uv),
+        ([r[0] for r in rows1], [r[1] for r in rows1], [r[2] for r in rows1],
+         [r[3] for r in rows1]), strict=True)))
+    turning, lab = split_static(both, views + cam1)
+    assert set(turning.marker_id.tolist()) == {3}
+    assert lab.n_tracks == 4 and set((lab.marker // 4).tolist()) == {9}
+    cam0_obs = lab.uv[lab.view < 10]
+    assert np.allclose(np.sort(cam0_obs[:, 0]), [300.0, 340.0, 380.0, 420.0])
+    assert np.allclose(cam0_obs[:, 1], 100.0)
