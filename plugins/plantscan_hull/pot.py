@@ -284,8 +284,9 @@ def fit_cap(volume: Volume, pot: TaperedCylinder) -> TaperedCylinder | None:
     Returns
     -------
     TaperedCylinder or None
-        The cap, mm, turntable frame: ``r_bottom_mm`` at the rim, ``r_top_mm`` a
-        voxel at the apex.
+        The cap, mm, turntable frame: ``r_bottom_mm`` at the rim, ``r_top_mm`` the
+        stem's radius where the cone ends (a voxel when no stem is seen there);
+        the mesher keeps the stem's column through it (``keep_axis_mm``).
     """
     field = volume.blocks if volume.blocks is not None else volume.field
     s = float(volume.voxel_size)
@@ -295,10 +296,18 @@ def fit_cap(volume: Volume, pot: TaperedCylinder) -> TaperedCylinder | None:
     r_rim = pot.r_top_mm
     k = int(np.floor((pot.z_top_mm - origin[2]) / s + 0.5))  # the first slice above the rim
     zs, radii = [], []
+    stem = s  # the stem's radius where the cone ends (a voxel if none is seen)
     while 0 <= k < nz:
         r = _full_radius(field, origin, s, k, centre, r_rim + 2 * s)
-        if r <= STEM_RADIUS_FRACTION * r_rim or (radii and r > radii[-1] + s):
-            break  # the stem (or a leaf widening the disc again: above the cone)
+        if r <= STEM_RADIUS_FRACTION * r_rim:
+            # the stem rises from the cone: its radius where the disc stops shrinking (the
+            # first such slice may still be the cone's tip)
+            above = [_full_radius(field, origin, s, kk, centre, r_rim + 2 * s)
+                     for kk in range(k + 1, min(k + 1 + CAP_MIN_SLICES, nz))]
+            stem = max(min([r, *above]), s)
+            break
+        if radii and r > radii[-1] + s:
+            break  # a leaf widening the disc again: above the cone
         zs.append(origin[2] + k * s)
         radii.append(r)
         k += 1
@@ -314,12 +323,16 @@ def fit_cap(volume: Volume, pot: TaperedCylinder) -> TaperedCylinder | None:
     return TaperedCylinder(
         z_bottom_mm=float(pot.z_top_mm), z_top_mm=float(z_top),
         r_bottom_mm=float(min(slope * pot.z_top_mm + intercept, r_rim)),
-        r_top_mm=float(s), centre_xy_mm=(float(centre[0]), float(centre[1])))
+        r_top_mm=float(stem), centre_xy_mm=(float(centre[0]), float(centre[1])))
 
 
 def remove_cylinders(volume: Volume, cylinders: list[TaperedCylinder],
-                     margin_mm: float, undo: list | None = None) -> tuple[np.ndarray, int]:
+                     margin_mm: float, undo: list | None = None,
+                     keep_axis_mm: float = 0.0) -> tuple[np.ndarray, int]:
     """Field with ``cylinders`` (grown by ``margin_mm``) subtracted; and voxels removed.
+
+    ``keep_axis_mm`` > 0 keeps a column of that radius about each cylinder's axis
+    (the stem through the cap over the pot: the plant's height is the mesh's extent).
 
     ``margin_mm`` is the full margin; callers add a voxel to it because the
     hull's rim is only known to a voxel.  With ``undo`` (a list) the volume's
@@ -365,6 +378,8 @@ def remove_cylinders(volume: Volume, cylinders: list[TaperedCylinder],
         rho = np.hypot(xs[:, None], ys[None, :])[:, :, None]
         zs = (origin[2] + np.arange(k_lo, k_hi) * s).astype(np.float32)
         d_in = cyl.inside_distance(rho, zs, margin_mm).astype(np.float32) / np.float32(s)
+        if keep_axis_mm > 0:
+            d_in = np.minimum(d_in, (rho - np.float32(keep_axis_mm)) / np.float32(s))
         lo = (i_lo, j_lo, k_lo)
         sub = read_box(field, lo, (i_hi, j_hi, k_hi))
         cut = np.minimum(sub, -np.clip(d_in, -1.0, 1.0))

@@ -285,7 +285,8 @@ class MarchingCubesMesher(Mesher):
                 # in place: ``field`` is the recorded own field (undo) or already a copy
                 field, cap_removed = remove_cylinders(
                     Volume(field, volume.origin, volume.voxel_size), [cap], margin,
-                    undo=undo if undo is not None else [])
+                    undo=undo if undo is not None else [],
+                    keep_axis_mm=cap.r_top_mm + float(volume.voxel_size))
             field, dropped = drop_small_components(
                 field, p.min_component_voxels, in_place=undo is not None or field is not own,
                 undo=undo)

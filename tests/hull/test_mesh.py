@@ -397,9 +397,11 @@ def test_the_cone_no_view_carves_over_the_pot_is_removed():
     e = np.radians(elevations[0])
     height = pot.r1 * (400.0 * np.sin(e) - pot.z1) / (400.0 * np.cos(e) + pot.r1)
 
-    def inside_cone(v):  # the geometric cone, less a fifth of its radius (its outline's voxels)
+    def inside_cone(v):  # the geometric cone, less a fifth of its radius (its outline's
+        # voxels), outside the stem's column (2.8 mm to its corners, plus 2 voxels)
         h = v[:, 2] - pot.z1
-        return (h > 0) & (np.hypot(v[:, 0], v[:, 1]) < 0.8 * pot.r1 * (1.0 - h / height))
+        rho = np.hypot(v[:, 0], v[:, 1])
+        return (h > 0) & (rho < 0.8 * pot.r1 * (1.0 - h / height)) & (rho > 2.9 + 2 * s)
 
     mesher = MarchingCubesMesher(MarchingCubesMesher.Params())
     v = mesher.mesh(volume).vertices
@@ -413,6 +415,11 @@ def test_the_cone_no_view_carves_over_the_pot_is_removed():
     assert v[on_leaf, 0].max() == pytest.approx(50.0, abs=1.5 * s)  # the leaf's tip stays
     stem_above = (np.hypot(v[:, 0], v[:, 1]) < 4.0) & (v[:, 2] > -12.0) & (v[:, 2] < 8.0)
     assert stem_above.sum() > 20
+    # The stem's column is kept through the cap (the plant's height is the mesh's extent):
+    # the mesh still reaches down to the pot cut (rim + margin + a voxel, the fitted rim is
+    # up to 1.5 voxels high).
+    margin = mesher.report.figures["pot_margin_mm"]
+    assert v[:, 2].min() < pot.z1 + margin + 2.5 * s
     # Without the cap the cone is meshed (what the virtual experiment measured as a leaf).
     plain = MarchingCubesMesher(MarchingCubesMesher.Params(pot_cap=False)).mesh(volume)
     assert inside_cone(plain.vertices).sum() > 100

@@ -131,5 +131,7 @@ def test_the_cap_of_an_analytic_cone_over_the_rim_is_fitted(potted_plant):
     assert cap.z_top_mm == pytest.approx(POT[1] + height, abs=1.5 * VOXEL)
     r_cone = POT[3] * (1.0 - (cap.z_bottom_mm - POT[1]) / height)
     assert cap.r_bottom_mm == pytest.approx(r_cone, abs=1.5 * VOXEL)
+    # Its top radius is the stem's (kept through the cap by the mesher), to the same 1.5 voxels.
+    assert cap.r_top_mm == pytest.approx(STEM_R, abs=1.5 * VOXEL)
     # Without the cone there is no cap: the stem alone is a run of narrow discs.
     assert fit_cap(potted_plant, fit_pot(potted_plant)[-1]) is None
