@@ -82,6 +82,10 @@ def normalised_rgb(image: np.ndarray) -> list[np.ndarray]:
     (H, W, 3) is ~5x slower at 18 MP. The + 1 keeps black pixels from dividing
     by zero.
     """
+    if image.shape[0] * image.shape[1] == 1:
+        # OpenCV's Python binding reads a (1, 1) plane as a scalar (and answers with a
+        # (4, 1) one): compute the pixel twice and keep one, same float32 operations.
+        return [ch[:, :1] for ch in normalised_rgb(np.concatenate([image, image], axis=1))]
     f = cv2.split(image.astype(np.float32) + 1.0)
     inv = cv2.divide(1.0, cv2.add(cv2.add(f[0], f[1]), f[2]))
     return [cv2.multiply(ch, inv) for ch in f]

@@ -131,15 +131,16 @@ def test_reference_implementation_is_selectable(sim_scans):
 
 
 def test_chromaticity_on_candidate_boxes_of_any_shape():
-    # OpenCV's Python binding reads a (4, 1) float plane as a scalar: a 4 x 1 box of
-    # shadow candidates once crashed the chromaticity test.
+    # OpenCV's Python binding reads a (4, 1) or a (1, 1) float plane as a scalar: a 4 x 1
+    # box and a single candidate pixel once crashed the chromaticity test.
     from plantscan_segment.lab import _suppress_chromatic_candidates
 
     rng = np.random.default_rng(4)
     plate = rng.integers(50, 200, (6, 5, 3), dtype=np.uint8)
     image = (plate * 0.6).astype(np.uint8)  # plate in shadow: same chromaticity
     image[2, 3] = (40, 150, 40)             # a green pixel among the candidates
-    for box in [(slice(1, 5), slice(3, 4)), (slice(2, 3), slice(0, 4)), (slice(0, 6),) * 2]:
+    for box in [(slice(1, 5), slice(3, 4)), (slice(2, 3), slice(0, 4)), (slice(0, 6),) * 2,
+                (slice(2, 3), slice(3, 4)), (slice(4, 5), slice(1, 2))]:
         shadow = np.zeros((6, 5), bool)
         shadow[box] = True
         expected = shadow.copy()
