@@ -31,7 +31,9 @@ passes of ``PASSES``, in order, over one labels record (``_Labels``):
    are joined (``join_gap_mm``), small ones join their neighbour, the rest are
    leaves 1..n;
 10. *touching leaves split* (``split_curvature_per_mm``), 11. *broken blades
-    joined* (``join_gap_mm``), 12. *bases off culms* (``base_reach_mm``).
+    joined* (``join_gap_mm``), 12. *bases off culms* (``base_reach_mm``);
+13. *pieces judged* (``judge_pieces``): a learned judge calls every numbered leaf a
+    leaf, a fragment to join to its neighbour, or debris (``plantscan_leaves.pieces``).
 
 Every number that decides a label is a parameter above or a named module
 constant with its reason (``TUBE_AXIS_COS``, ``TIP_*``, ``JOIN_*``, ``CULM_*``...).
@@ -159,6 +161,15 @@ class CurvatureRegionsParams(StageParams):
                     "continuation, within its width at the cut + 1 mm and up to this many "
                     "mm from the cut, go back to the blade (grasses: 80); None: off (broad "
                     "leaves)")
+    judge_pieces: bool = Field(
+        False,
+        description="after the rules, a learned judge (plantscan_leaves.pieces, trained on "
+                    "the virtual scanner's truth) calls every numbered leaf a whole leaf, a "
+                    "fragment (joined to the leaf piece it borders most) or debris (phantom "
+                    "volume, crumbs: labelled debris, never counted as leaf)")
+    piece_model: str | None = Field(
+        None, description="path of another piece model (scripts/train_piece_model.py --out "
+                          "writes one); None: the model shipped in the package")
     ground_band_mm: float = Field(
         12.0, ge=0,
         description="leaf-like pieces lying entirely this close to the bottom of the mesh are "
@@ -252,6 +263,7 @@ class _Surface:
         self.normals, self.areas = geo.face_normals_areas(mesh.vertices, mesh.faces)
         self.centroids = geo.face_centroids(mesh.vertices, mesh.faces)
         self.curvature = face_curvature(mesh, topo, p.smoothing_mm)  # (F,) 1/mm, < 0 concave
+        self.piece_model = None  # the judge of judge_pieces when not the params' file
 
     @functools.cached_property
     def spread(self) -> np.ndarray:
@@ -281,6 +293,8 @@ class _Labels:
     small: np.ndarray | None = None
     out: np.ndarray | None = None
     n_leaves: int = 0
+    debris: bool = False
+    evidence: dict = dataclasses.field(default_factory=dict)
 
     def faces_from_regions(self) -> None:
         self.leaf_face, self.stem_face = self.leafy[self.regions], self.tube[self.regions]
@@ -475,6 +489,24 @@ def _bases_off_culms(s: _Surface, lab: _Labels) -> None:
     s.report.counts["base_faces_from_stem"] = n_claimed
 
 
+def _pieces_judged(s: _Surface, lab: _Labels) -> None:
+    """Every numbered leaf judged a leaf, a fragment to join, or debris (``judge_pieces``)."""
+    if not s.p.judge_pieces or not lab.n_leaves:
+        return
+    from plantscan_leaves import pieces
+
+    model = s.piece_model or pieces.load_model(s.p.piece_model)
+    surface = pieces.PieceSurface(s.mesh.vertices, s.mesh.faces, s.centroids, s.normals,
+                                  s.areas, s.pairs, s.curvature,
+                                  geo.mesh_unit(s.mesh.vertices, s.mesh.faces))
+    verdict, _, _ = pieces.judge(surface, lab.out, lab.n_leaves, model)
+    for k, name in enumerate(pieces.CLASS_NAMES):
+        s.report.counts[f"pieces_{name}"] = int(np.count_nonzero(verdict.verdict == k))
+    lab.out = verdict.labels.astype(np.int32)
+    lab.n_leaves, lab.debris = verdict.n_leaves, verdict.debris
+    lab.evidence = pieces.joined_evidence(verdict)
+
+
 PASSES = (
     ("seed regions", _seed_regions),
     ("region kinds", _region_kinds),
@@ -488,20 +520,24 @@ PASSES = (
     ("touching leaves split", _touching_leaves_split),
     ("broken blades joined", _broken_blades_joined),
     ("bases off culms", _bases_off_culms),
+    ("pieces judged", _pieces_judged),
 )
 """The passes of ``segment_leaves``, in order, each ``(name, fn(surface, labels))``."""
 
 
-def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
-                   ) -> tuple[LabelledMesh, StageReport]:
+def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None,
+                   piece_model=None) -> tuple[LabelledMesh, StageReport]:
     """Label every face of ``mesh`` as one leaf or the stem (``PASSES`` in turn).
+
+    ``piece_model``: the judge of ``judge_pieces`` (anything with ``probabilities(pieces)
+    -> (n, 3)``, ``plantscan_leaves.pieces``; None: the params' file or the shipped one).
 
     Returns
     -------
     labelled : LabelledMesh
         ``face_labels`` 0 = stem (kind ``"stem"``), 1..n = leaves
-        (kind ``"leaf"``), every face labelled.  An empty mesh gives an
-        empty labelled mesh.
+        (kind ``"leaf"``), n + 1 = debris (kind ``"debris"``, only from the piece
+        judge), every face labelled.  An empty mesh gives an empty labelled mesh.
     report : StageReport
         Work counts (``regions``, ``crease_faces``...) and warnings.
     """
@@ -514,7 +550,8 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
         # that decides a label (parameters and module constants alike) relative to the voxel
         # at once; labels are per face, so they carry back to the mesh as it was
         scaled, report = segment_leaves(Mesh(mesh.vertices * scale, mesh.faces),
-                                        p.model_copy(update={"reference_unit_mm": None}))
+                                        p.model_copy(update={"reference_unit_mm": None}),
+                                        piece_model)
         report.figures.update(mesh_unit_mm=round(unit, 6), scale_to_reference_unit=round(scale, 6))
         return LabelledMesh(mesh, scaled.face_labels, scaled.kinds, scaled.evidence), report
     if mesh.is_empty:
@@ -529,19 +566,22 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None
         log.warning(msg)
         report.warn("non-manifold", msg)
     surface = _Surface(mesh, topo, p, report)
+    surface.piece_model = piece_model
     lab = _Labels(regions=np.zeros(surface.nf, np.int64))
     for _name, run_pass in PASSES:
         run_pass(surface, lab)
     kinds: dict[int, str] = {new: "leaf" for new in range(1, lab.n_leaves + 1)}
     if (lab.out == STEM_LABEL).any() or not lab.n_leaves:
         kinds[STEM_LABEL] = "stem"
+    if lab.debris:
+        kinds[lab.n_leaves + 1] = "debris"
     if not lab.n_leaves:
         msg = "no leaf-like region found on the mesh (everything looks like stem or crumbs)"
         log.warning(msg)
         report.warn("no-leaf", msg)
     report.counts["leaves"] = lab.n_leaves
     report.counts["stem_pieces"] = int(lab.tube.sum())
-    return LabelledMesh(mesh, lab.out, kinds), report
+    return LabelledMesh(mesh, lab.out, kinds, lab.evidence), report
 
 
 def _petioles_to_stem(spread: np.ndarray, pairs: np.ndarray, leaf_face: np.ndarray,
