@@ -2,7 +2,8 @@
 COLMAP's own unconstrained incremental reconstruction, on the same features and matches.
 
     python benchmarks/sfm.py --scan /work/cache/sfm24/scans/dicot-72 --plate-diameter 400 \
-        [--chessboard] [--no-colmap] [--principal-point-from-truth] [--json out.json]
+        [--chessboard] [--no-colmap] [--principal-point-from-truth] [--compare-track-check] \
+        [--board-view] [--json out.json]
 
 Per scan: SIFT extraction and matching once (timed, shared by both), then
 
@@ -10,6 +11,9 @@ Per scan: SIFT extraction and matching once (timed, shared by both), then
   ``--principal-point-from-truth`` a second solve on the same tracks with the lens's
   principal point given (``principal_point_px``, as a lab would from a one-off lens
   calibration; the virtual scanner's, on a virtual scan);
+  with ``--compare-track-check`` each variant also without the per-track consistency
+  check (``reject_sigma`` None); with ``--board-view`` one more with one board photo per
+  camera (``board``: the scan's calibration photos, the recipe's board);
 * COLMAP: ``pycolmap.incremental_mapping`` on the same database (a pose per
   photo, a RADIAL camera per scanner camera), its registered photos and mean
   reprojection error;
@@ -58,7 +62,8 @@ def colmap_baseline(db: Path, images: Path, out: Path, threads: int) -> dict:
 
 
 def run_scan(scan_dir: Path, plate_mm: float, work: Path, threads: int, chessboard: bool,
-             colmap: bool = True, pp_from_truth: bool = False) -> dict:
+             colmap: bool = True, pp_from_truth: bool = False, compare_reject: bool = False,
+             board: bool = False) -> dict:
     from plantscan_calib.evaluate import compare_calibrations, plant_volume_points
     from plantscan_sfm.calibrate import (
         SfmError,
@@ -84,9 +89,26 @@ def run_scan(scan_dir: Path, plate_mm: float, work: Path, threads: int, chessboa
     truth = Calibration.load(truth_path) if truth_path.exists() else None
     pts = plant_volume_points(scan_dir / "ground_truth") if truth is not None else None
     variants = {"sfm": {}}
+    if compare_reject:
+        variants["sfm_no_track_check"] = {"reject_sigma": None}
     if pp_from_truth and truth is not None:
-        variants["sfm_principal_point_given"] = {"principal_point_px": {
-            c: (m.cu, m.cv) for c, m in truth.models.items()}}
+        pp = {c: (m.cu, m.cv) for c, m in truth.models.items()}
+        variants["sfm_principal_point_given"] = {"principal_point_px": pp}
+        if compare_reject:
+            variants["sfm_principal_point_given_no_track_check"] = {
+                "principal_point_px": pp, "reject_sigma": None}
+    if board and scan.views_by_role("calibration"):
+        from plantscan_sfm.calibrate import detect_board_views
+
+        p = scan.recipe_dict.get("calibrate", {}).get("params", {})
+        spec = {"kind": p.get("board", "chessboard"), "cols": p["cols"], "rows": p["rows"],
+                "square_mm": p["square_mm"]}
+        corners = detect_board_views(scan, SfmSettings(board=spec, threads=threads))
+        row["board_photos_found"] = {c: len(v) for c, v in corners.items()}
+        variants["sfm_one_board_view"] = {"board": spec, "board_corners": corners}
+        if compare_reject:
+            variants["sfm_one_board_view_no_track_check"] = {
+                "board": spec, "board_corners": corners, "reject_sigma": None}
     cal = None
     for name, extra in variants.items():
         sv_st = SfmSettings(plate_diameter_mm=plate_mm, threads=threads, workspace=work,
@@ -99,7 +121,13 @@ def run_scan(scan_dir: Path, plate_mm: float, work: Path, threads: int, chessboa
         q = c.quality
         row[name] = {**t_sfm, **sv_st.timings, "registered_views": q["registered_views"],
                      "rms_px": q["rms_px"], "observations": q["observations"],
-                     "tracks": q["tracks"], "scale": q["scale"]}
+                     "tracks": q["tracks"], "scale": q["scale"],
+                     "inconsistent_observations": q.get("inconsistent_observations"),
+                     "board_views": q.get("board_views"),
+                     "principal_point_px": {cm: (m.cu, m.cv) for cm, m in c.models.items()},
+                     "principal_point_sigma_px": {cm: {k: v for k, v in sd.items()
+                                                       if k in ("cu", "cv")}
+                                                  for cm, sd in q["sigma"]["models"].items()}}
         if truth is not None:
             row[name]["vs_truth"] = _summary(compare_calibrations(c, truth, pts), c, truth)
         cal = c if name == "sfm" else cal
@@ -139,6 +167,12 @@ def main(argv=None) -> int:
                     help="skip COLMAP's own mapper (31+ min on the paper-72 dicot)")
     ap.add_argument("--principal-point-from-truth", action="store_true",
                     help="also solve with the virtual lens's principal point given")
+    ap.add_argument("--compare-track-check", action="store_true",
+                    help="also solve each variant without the per-track consistency check "
+                    "(reject_sigma None: the behaviour before it)")
+    ap.add_argument("--board-view", action="store_true",
+                    help="also solve with one board photo per camera (the scan's calibration "
+                    "photos, the recipe's board; the most oblique one per camera)")
     ap.add_argument("--json", help="write the rows here")
     args = ap.parse_args(argv)
     rows = []
@@ -146,7 +180,8 @@ def main(argv=None) -> int:
         p = Path(s)
         rows.append(run_scan(p, args.plate_diameter, Path(args.work) / p.name, args.threads,
                              args.chessboard, not args.no_colmap,
-                             args.principal_point_from_truth))
+                             args.principal_point_from_truth, args.compare_track_check,
+                             args.board_view))
         print(json.dumps(rows[-1], indent=1, default=str), flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1, default=str))

@@ -237,6 +237,49 @@ def _make_pose_prior_cost():
 
 
 @dataclass
+class BoardView:
+    """One photo of a calibration board by one camera: its corners are known points up
+    to the board's rigid pose, which is free (``pose``: [rotvec, t], board frame mm to
+    camera frame).  They tie the camera's intrinsics -- the principal point above all,
+    which a turntable orbit leaves loose -- and nothing else: the board's pose is its
+    own, so neither its units nor where it stood matter.
+
+    Attributes
+    ----------
+    points : (N, 3) float64 array, mm, board frame
+    uv : (N, 2) float64 array, px (detected corners)
+    pose : (6,) float64 array
+    noise : float
+        The corners' noise relative to a refined dot's (the residual's weight is 1 / noise).
+    view_index : int
+        The photo's index in the scan.
+    tilt_deg : float
+        How far the board is turned from facing the camera, deg.
+    """
+
+    points: np.ndarray
+    uv: np.ndarray
+    pose: np.ndarray
+    noise: float = 1.0
+    view_index: int = -1
+    tilt_deg: float = float("nan")
+
+    def copy(self) -> BoardView:
+        return BoardView(self.points, self.uv, self.pose.copy(), self.noise, self.view_index,
+                         self.tilt_deg)
+
+
+def project_board(intr: np.ndarray, pose: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Pixels (N, 2) of board ``points`` (N, 3) under ``intr`` (6,) and the board's
+    ``pose`` [rotvec, t] (6,): the camera model of ``_project``."""
+    x = points @ rotmats(pose[:3])[0].T + pose[3:6]
+    px, py = x[:, 0] / x[:, 2], x[:, 1] / x[:, 2]
+    r2 = px * px + py * py
+    s = 1.0 + intr[3] * r2 + intr[4] * r2 * r2
+    return np.stack([intr[0] * px * s + intr[1], intr[0] * intr[5] * py * s + intr[2]], 1)
+
+
+@dataclass
 class TurntableState:
     """Parameter blocks of the turntable model (arrays Ceres optimises in place)."""
 
@@ -249,6 +292,7 @@ class TurntableState:
     reference: tuple[str, int] = ("", 0)
     pose_priors: dict[tuple[str, int], tuple[np.ndarray, np.ndarray]] = field(
         default_factory=dict)
+    boards: dict[str, BoardView] = field(default_factory=dict)
 
     def model(self, camera: str) -> CameraModel:
         f, cu, cv, d1, d2, aspect = (float(x) for x in self.intrinsics[camera])
@@ -273,7 +317,8 @@ class TurntableState:
                               {k: v.copy() for k, v in self.poses.items()},
                               {k: v.copy() for k, v in self.stops.items()},
                               self.scale.copy(), self.points.copy(), dict(self.image_sizes),
-                              self.reference, dict(self.pose_priors))
+                              self.reference, dict(self.pose_priors),
+                              {c: b.copy() for c, b in self.boards.items()})
 
 
 def stop_key(v: SfmView) -> tuple[int, float]:
@@ -608,8 +653,10 @@ def layout_of(state: TurntableState, views: list[SfmView], tracks: Tracks,
     cams, groups, stops = sorted(state.intrinsics), sorted(state.poses), sorted(state.stops)
     index: dict = {}
     n = 0
+    boards = [c for c in sorted(state.boards) if c in state.intrinsics]
     for key, size in ([(("i", c), 6) for c in cams] + [(("p", g), 6) for g in groups]
-                      + [(("s", k), 1) for k in stops] + [(("c",), 1), (("lab",), 1)]):
+                      + [(("s", k), 1) for k in stops] + [(("c",), 1), (("lab",), 1)]
+                      + [(("b", c), 6) for c in boards]):
         index[key] = n
         n += size
     # photos of cameras this state does not hold (an orbit solved alone) are never seen
@@ -643,13 +690,19 @@ def layout_of(state: TurntableState, views: list[SfmView], tracks: Tracks,
     return Layout(index, n, blocks, theta, free)
 
 
+def _block(state: TurntableState, key: tuple) -> np.ndarray:
+    kind = key[0]
+    return (state.intrinsics[key[1]] if kind == "i" else state.poses[key[1]] if kind == "p"
+            else state.stops[key[1]] if kind == "s" else state.boards[key[1]].pose
+            if kind == "b" else state.scale)
+
+
 def pack(state: TurntableState, lay: Layout) -> np.ndarray:
     cam = np.zeros(lay.size)
     for key, i in lay.index.items():
         if key[0] == "lab":
             continue
-        arr = (state.intrinsics[key[1]] if key[0] == "i" else state.poses[key[1]]
-               if key[0] == "p" else state.stops[key[1]] if key[0] == "s" else state.scale)
+        arr = _block(state, key)
         cam[i:i + len(arr)] = arr
     return cam
 
@@ -658,8 +711,7 @@ def unpack(cam: np.ndarray, state: TurntableState, lay: Layout) -> None:
     for key, i in lay.index.items():
         if key[0] == "lab":
             continue
-        arr = (state.intrinsics[key[1]] if key[0] == "i" else state.poses[key[1]]
-               if key[0] == "p" else state.stops[key[1]] if key[0] == "s" else state.scale)
+        arr = _block(state, key)
         arr[:] = cam[i:i + len(arr)]
 
 
@@ -945,6 +997,15 @@ def _prior_terms(state: TurntableState, lay: Layout, opt: BundleOptions) -> list
             return np.concatenate([wr * dr, wc * (c[i + 3:i + 6] - np.asarray(c0))])
 
         terms.append((np.arange(i, i + 6), pose_res))
+    for cam, board in state.boards.items():
+        if ("b", cam) not in lay.index or ("i", cam) not in lay.index:
+            continue
+        i, j = lay.index[("i", cam)], lay.index[("b", cam)]
+
+        def board_res(c, i=i, j=j, b=board):
+            return ((project_board(c[i:i + 6], c[j:j + 6], b.points) - b.uv) / b.noise).ravel()
+
+        terms.append((np.r_[np.arange(i, i + 6), np.arange(j, j + 6)], board_res))
     return terms
 
 
@@ -1072,3 +1133,134 @@ def solve_lm(state: TurntableState, views: list[SfmView], tracks: Tracks, keep: 
     return {"termination": termination, "iterations": it,
             "seconds": time.perf_counter() - t0, "initial_cost": initial,
             "final_cost": cost, "usable": bool(np.isfinite(cost))}
+
+
+# --------------------------------------------------------------- per-track consistency
+def _point_fit(prob: _Problem, cam: np.ndarray, points: np.ndarray
+               ) -> tuple[_Linear, np.ndarray, np.ndarray]:
+    """The problem linearised at ``points``, each track's normal matrix (T, 3, 3) and its
+    inverse (zero where a track has fewer than two kept observations)."""
+    lin = _linearised(prob, cam, points)
+    k = np.flatnonzero(prob.keep)
+    n_t = len(prob.track_start) - 1
+    normal = np.zeros((n_t, 3, 3))
+    np.add.at(normal, prob.track[k], np.einsum("mri,mrj->mij", lin.jp[k], lin.jp[k]))
+    counts = np.bincount(prob.track[k], minlength=n_t)
+    ok = (counts >= 2) & (np.abs(np.linalg.det(normal)) > 1e-300)
+    inv = np.zeros_like(normal)
+    inv[ok] = np.linalg.inv(normal[ok])
+    return lin, normal, inv
+
+
+def refine_points(state: TurntableState, views: list[SfmView], tracks: Tracks,
+                  keep: np.ndarray, opt: BundleOptions, iterations: int = 4) -> None:
+    """Every kept track's point moved to its least-squares position under the held
+    cameras (Gauss-Newton, a few steps), in place."""
+    lay = layout_of(state, views, tracks, opt)
+    prob = _Problem(lay, tracks.track, np.searchsorted(tracks.track,
+                                                       np.arange(tracks.n_tracks + 1)),
+                    tracks.uv, 1.0 / tracks.noise_of(), keep, None, [])
+    cam = pack(state, lay)
+    points = np.nan_to_num(state.points)
+    k = np.flatnonzero(keep)
+    for _ in range(iterations):
+        lin, _, inv = _point_fit(prob, cam, points)
+        grad = np.zeros((len(points), 3))
+        np.add.at(grad, tracks.track[k], np.einsum("mri,mr->mi", lin.jp[k], lin.res[k]))
+        step = -np.einsum("tij,tj->ti", inv, grad)
+        trial = points + step
+        if not np.isfinite(_cost(prob, cam, trial)[0]):
+            break
+        points = trial
+    live = np.isfinite(state.points[:, 0])
+    state.points[live] = points[live]
+
+
+def deleted_residuals(state: TurntableState, views: list[SfmView], tracks: Tracks,
+                      keep: np.ndarray, opt: BundleOptions) -> tuple[np.ndarray, np.ndarray]:
+    """Each kept observation's residual against its track's point triangulated from the
+    track's *other* observations (the leave-one-out residual, to first order), squared
+    and in units of the observation's noise, and its degrees of freedom (1 or 2).
+
+    The track's point is refitted without the observation: for the least-squares point
+    with Jacobian ``J`` and hat matrix ``H = J (J'J)^-1 J'``, the observation's deleted
+    residual is ``(I - H_ii)^-1 r_i`` with covariance ``sigma^2 (I - H_ii)^-1``, so
+    ``r_i' (I - H_ii)^+ r_i / sigma^2`` is chi-square with as many degrees of freedom as
+    ``I - H_ii`` has rank.  A wrong match that the joint fit half absorbs (a short track,
+    the point pulled towards it) stands out here; the cameras' own leverage (thousands
+    of observations each) is neglected.  ``state.points`` must be the least-squares
+    points (``refine_points`` or a solve).  Not kept: NaN, 0.
+    """
+    lay = layout_of(state, views, tracks, opt)
+    keep = keep & np.isfinite(state.points[tracks.track, 0])
+    counts = np.bincount(tracks.track[keep], minlength=tracks.n_tracks)
+    keep &= counts[tracks.track] >= 2
+    prob = _Problem(lay, tracks.track, np.searchsorted(tracks.track,
+                                                       np.arange(tracks.n_tracks + 1)),
+                    tracks.uv, 1.0 / tracks.noise_of(), keep, None, [])
+    lin, _, inv = _point_fit(prob, pack(state, lay), np.nan_to_num(state.points))
+    k = np.flatnonzero(keep)
+    jp = lin.jp[k]
+    hat = np.einsum("mri,mij,msj->mrs", jp, inv[tracks.track[k]], jp)
+    w, vec = np.linalg.eigh(np.eye(2)[None] - hat)
+    good = w > 1e-6      # a direction the point alone fits exactly carries no test
+    proj = np.einsum("mrs,mr->ms", vec, lin.res[k])
+    q = np.sum(np.where(good, proj ** 2 / np.where(good, w, 1.0), 0.0), axis=1)
+    stat = np.full(len(tracks.view), np.nan)
+    dof = np.zeros(len(tracks.view), np.int64)
+    stat[k], dof[k] = q, good.sum(axis=1)
+    return stat, dof
+
+
+def reject_inconsistent(state: TurntableState, views: list[SfmView], tracks: Tracks,
+                        keep: np.ndarray, opt: BundleOptions, k_sigma: float = 3.0,
+                        passes: int = 4, min_sigma: float = 0.02
+                        ) -> tuple[np.ndarray, dict[str, Any]]:
+    """Drop, track by track, the observation whose deleted residual
+    (``deleted_residuals``) is beyond ``k_sigma`` of its camera's robust residual scale,
+    the worst of a track first, until every track is consistent; the cameras held.
+
+    A wrong match of a repeated print (one dot taken for its neighbour) in a track of
+    a few photos shifts the fitted point and spreads its error over the good
+    observations, which the plain residual bound then misses.  The scale ``sigma`` is
+    per camera (the low camera's keypoints are noisier): from the median of the
+    two-degree-of-freedom statistics (a chi-square of 2 has median 2 ln 2).  The bound
+    is the tail of a ``k_sigma`` Rayleigh (exp(-k^2 / 2): 1.1 % of good observations at
+    3) at each statistic's own degrees of freedom.  A track left with one observation
+    goes.  ``sigma`` is at least ``min_sigma`` (noise units: px for a dot), so that exact
+    pixels do not turn rounding into outliers.  Returns the kept observations and counts.
+    """
+    from scipy.stats import chi2
+
+    keep = keep.copy()
+    tail = math.exp(-k_sigma ** 2 / 2.0)
+    bound = {1: float(chi2.isf(tail, 1)), 2: float(chi2.isf(tail, 2))}
+    cams = np.array([v.view.camera for v in views])[tracks.view]
+    start = int(keep.sum())
+    info: dict[str, Any] = {"k_sigma": k_sigma, "passes": 0, "sigma": {}}
+    for _ in range(passes):
+        refine_points(state, views, tracks, keep, opt)
+        stat, dof = deleted_residuals(state, views, tracks, keep, opt)
+        ratio = np.zeros(len(stat))
+        for c in np.unique(cams):
+            two = (cams == c) & (dof == 2) & np.isfinite(stat)
+            if two.sum() < 10:
+                continue
+            s2 = max(float(np.median(stat[two])) / (2.0 * math.log(2.0)), min_sigma ** 2)
+            info["sigma"][str(c)] = math.sqrt(s2)
+            sel = (cams == c) & (dof > 0) & np.isfinite(stat)
+            ratio[sel] = stat[sel] / s2 / np.where(dof[sel] == 2, bound[2], bound[1])
+        bad = ratio > 1.0
+        if not bad.any():
+            break
+        # the worst of each track only: one wrong match inflates its track-mates' too
+        order = np.lexsort((-ratio, tracks.track))
+        first = np.r_[True, np.diff(tracks.track[order]) != 0]
+        worst = np.zeros(len(stat), bool)
+        worst[order[first]] = True
+        keep &= ~(bad & worst)
+        counts = np.bincount(tracks.track[keep], minlength=tracks.n_tracks)
+        keep &= counts[tracks.track] >= 2
+        info["passes"] += 1
+    info["rejected_observations"] = start - int(keep.sum())
+    return keep, info

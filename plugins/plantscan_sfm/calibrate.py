@@ -67,6 +67,11 @@ class SfmSettings:
     markers: str | None = "DICT_4X4_250"
     marker_mm: float | None = None
     refine_dots: bool = True
+    reject_sigma: float | None = None
+    board: dict[str, Any] | None = None
+    board_role: str = "calibration"
+    board_noise: float = 1.0
+    board_corners: dict[str, list[tuple[int, np.ndarray, np.ndarray]]] | None = None
     prior_poses: dict[tuple[str, int], Pose] | None = None
     prior_focal: dict[str, float] | None = None
     workspace: Path | None = None
@@ -103,11 +108,40 @@ def calibrate_scan(scan, settings: SfmSettings) -> Calibration:
             f"camera {c} tilt {t} ({n})" for (c, t), n in sorted(few.items())) +
             "; structure from motion needs at least 3 per camera and tilt")
     sizes = _image_sizes(scan, views)
+    if settings.board is not None and settings.board_corners is None:
+        settings.board_corners = detect_board_views(scan, settings)
     if settings.workspace is not None:
         settings.workspace.mkdir(parents=True, exist_ok=True)
         return _calibrate(scan, views, sizes, settings, settings.workspace)
     with tempfile.TemporaryDirectory(prefix="plantscan-sfm-") as tmp:
         return _calibrate(scan, views, sizes, settings, Path(tmp))
+
+
+def detect_board_views(scan, settings: SfmSettings
+                       ) -> dict[str, list[tuple[int, np.ndarray, np.ndarray]]]:
+    """The board's corners in the photos of ``settings.board_role``, per camera: (view
+    index, board points (N, 3) mm, corners (N, 2) px) of every photo where it is found
+    (the chessboard calibrator's detector; ``settings.board`` its ``BoardSpec`` fields).
+    A camera with no photo of the board is a named error."""
+    from plantscan_calib.detect import BoardSpec
+    from plantscan_calib.plugin import detect_views
+
+    spec = BoardSpec(**settings.board)
+    views = scan.views_by_role(settings.board_role)
+    dets, _, _ = detect_views(scan, views, spec, workers=settings.threads)
+    obj = spec.object_points()
+    out: dict[str, list] = defaultdict(list)
+    for d in dets:
+        out[d.camera].append((int(d.view_index), obj[d.corner_ids], np.asarray(d.uv, float)))
+    cams = sorted({v.camera for v in scan.views_by_role(settings.role)})
+    missing = [c for c in cams if not out.get(c)]
+    if missing:
+        raise SfmError(
+            f"{scan.root}: no '{settings.board_role}' photo shows the board "
+            f"({spec.cols}x{spec.rows} inner corners) for camera(s) {', '.join(missing)} "
+            f"({len(views)} such photos); photograph the board once per camera, turned 30-60 "
+            "deg from facing it (docs/sfm.md, 'one board photo per camera')")
+    return dict(out)
 
 
 def match_scan(scan, views: list[ViewRecord], settings: SfmSettings, work: Path
@@ -208,9 +242,14 @@ def solve_tracks(views: list[SfmView], tracks: Tracks, sizes: dict[str, tuple[in
     t0 = time.perf_counter()
     held_focal = sorted(settings.focal_px or {}) if not settings.fit_focal else []
     width = max(w for w, _ in sizes.values())
+    state.boards = board_views(state, settings.board_corners or {}, settings.board_noise)
+    # a board photo of every camera fixes its principal point: freed, unless the lab gave it
+    fix_pp = settings.fix_principal_point and not (
+        state.boards and set(state.boards) >= set(state.intrinsics)
+        and not settings.principal_point_px)
     opt = bundle.BundleOptions(angle_sigma_deg=settings.angle_sigma_deg, fixed_focal=held_focal,
                                fit_angle_scale=settings.fit_angle_scale,
-                               fix_principal_point=settings.fix_principal_point,
+                               fix_principal_point=fix_pp,
                                fix_distortion=settings.fix_distortion, threads=settings.threads,
                                principal_point_sigma_px=settings.principal_point_prior * width
                                if settings.principal_point_prior else None)
@@ -221,12 +260,24 @@ def solve_tracks(views: list[SfmView], tracks: Tracks, sizes: dict[str, tuple[in
     keep, rep1 = bundle.adjust(state, views, tracks, first, rounds=1)
     keep = _clean_tracks(state, views, tracks, keep, CLEAN_PX)
     keep, rep2 = bundle.adjust(state, views, tracks, opt, keep=keep, rounds=2)
+    reject_info = None
+    if settings.reject_sigma:
+        # wrong matches the joint fit half absorbs: each track's observations against the
+        # point the others give, then the rig solved again without those beyond the bound
+        keep, reject_info = bundle.reject_inconsistent(state, views, tracks, keep, opt,
+                                                       settings.reject_sigma)
+        keep, rep3 = bundle.adjust(state, views, tracks, opt, keep=keep, rounds=1)
+        rep2.solves += rep3.solves
     t["bundle_s"] = time.perf_counter() - t0
     res = bundle.residuals(state, views, tracks)
     err = np.linalg.norm(res, axis=1)
     quality = _quality(state, views, tracks, keep, err, settings)
     quality["initialisation"] = init_info
     quality["solver"] = {"solves": rep1.solves + rep2.solves}
+    if reject_info is not None:
+        quality["inconsistent_observations"] = reject_info
+    if state.boards:
+        quality["board_views"] = _board_report(state)
     final = rep2.solves[-1]
     if not final["usable"]:
         raise SfmError(f"the turntable bundle adjustment failed ({final['termination']})")
@@ -269,6 +320,63 @@ def solve_tracks(views: list[SfmView], tracks: Tracks, sizes: dict[str, tuple[in
     quality["method"] = "sfm: pycolmap SIFT + turntable-constrained bundle adjustment (pyceres)"
     return Calibration(models, poses, {k: float(v) for k, v in tilts.items()},
                        float(state.scale[0]), tilt_axis, quality, view_angles)
+
+
+def board_views(state: bundle.TurntableState,
+                candidates: dict[str, list[tuple[int, np.ndarray, np.ndarray]]],
+                noise: float = 1.0) -> dict[str, bundle.BoardView]:
+    """One board photo per camera for the bundle (``bundle.BoardView``), its pose from
+    the corners under the initial intrinsics (OpenCV's PnP).
+
+    Of a camera's photos (``candidates``: view index, board points (N, 3) mm, corners
+    (N, 2) px) the one whose board is turned farthest from facing the camera (up to
+    ``BOARD_MAX_TILT_DEG``) among those with at least 80 % of the most corners found: a
+    board square-on to the camera moves in the image as the principal point does (a
+    plane parallel to the image shifts, whatever its depth), an oblique one does not.
+    """
+    import cv2
+
+    out = {}
+    for cam, cands in candidates.items():
+        if cam not in state.intrinsics or not cands:
+            continue
+        f, cu, cv_, _, _, asp = state.intrinsics[cam]
+        k_mat = np.array([[f, 0.0, cu], [0.0, f * asp, cv_], [0.0, 0.0, 1.0]])
+        most = max(len(c[2]) for c in cands)
+        best = None
+        for view_index, pts, uv in cands:
+            if len(uv) < 0.8 * most or len(uv) < 6:
+                continue
+            ok, rv, tv = cv2.solvePnP(pts.astype(np.float64), uv.astype(np.float64), k_mat,
+                                      None, flags=cv2.SOLVEPNP_ITERATIVE)
+            if not ok:
+                continue
+            normal = cv2.Rodrigues(rv)[0][:, 2]
+            centre = cv2.Rodrigues(rv)[0] @ pts.mean(axis=0) + tv.ravel()
+            tilt = math.degrees(math.acos(min(1.0, abs(float(normal @ centre))
+                                              / float(np.linalg.norm(centre)))))
+            if tilt > BOARD_MAX_TILT_DEG:
+                continue
+            if best is None or tilt > best[0]:
+                best = (tilt, view_index, pts, uv, np.r_[rv.ravel(), tv.ravel()])
+        if best is not None:
+            out[cam] = bundle.BoardView(np.asarray(best[2], float), np.asarray(best[3], float),
+                                        best[4].astype(float), noise, int(best[1]), best[0])
+    return out
+
+
+# A board turned beyond this from facing the camera: corners foreshortened and blurred.
+BOARD_MAX_TILT_DEG = 65.0
+
+
+def _board_report(state: bundle.TurntableState) -> dict[str, Any]:
+    out = {}
+    for cam, b in state.boards.items():
+        r = bundle.project_board(state.intrinsics[cam], b.pose, b.points) - b.uv
+        out[cam] = {"view_index": b.view_index, "corners": len(b.uv),
+                    "rms_px": float(np.sqrt(np.mean(np.sum(r ** 2, axis=1)))),
+                    "board_tilt_deg": b.tilt_deg}
+    return out
 
 
 def marker_edges(state: bundle.TurntableState, tracks: Tracks, solid: np.ndarray

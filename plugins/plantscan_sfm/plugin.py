@@ -15,6 +15,17 @@ from plantscan_sfm.calibrate import SfmError, SfmSettings, calibrate_scan
 __all__ = ["SfmCalibrator", "SfmError"]
 
 
+class BoardParams(StageParams):
+    """The board of the one photo per camera (``plantscan_calib.detect.BoardSpec``)."""
+
+    kind: Literal["chessboard", "charuco"] = "chessboard"
+    cols: int = Field(..., ge=2, description="inner corners along the board's rows")
+    rows: int = Field(..., ge=2, description="inner corners along the board's columns")
+    square_mm: float = Field(..., gt=0)
+    marker_mm: float = Field(0.0, ge=0, description="ChArUco marker side, mm")
+    dictionary: str = "DICT_5X5_100"
+
+
 class SfmCalibrator(Calibrator):
     """Structure from motion with the turntable's constraints (pycolmap + pyceres).
 
@@ -89,6 +100,20 @@ class SfmCalibrator(Calibrator):
             "pitch), where the photos do not fix it (a shallow scene)")
         fit_focal: bool = Field(False, description="refine the given focal_px instead of "
                                 "holding it")
+        reject_sigma: float | None = Field(
+            None, gt=0, description="after the bundle adjustment, drop each track's "
+            "observations farther than this many sigma (its camera's robust residual scale) "
+            "from the point the track's other photos give, and solve again (wrong matches of "
+            "a repeated print); null: off (docs/sfm.md: it helps with the principal point "
+            "given, not with it held)")
+        board: BoardParams | None = Field(
+            None, description="a calibration board photographed once per camera (photos of "
+            "board_role): its corners fix the intrinsics -- the principal point above all -- "
+            "jointly with the turntable bundle")
+        board_role: Literal["plant", "calibration", "background"] = Field(
+            "calibration", description="which photos show the board")
+        board_noise: float = Field(1.0, gt=0, description="the board corners' noise relative "
+                                   "to a refined dot's")
         prior_poses: str | None = Field(
             None, description="approximate poses (plantscan import poses) relative to the scan "
             "folder; default: the scan's prior_poses.yaml when present")
@@ -101,11 +126,16 @@ class SfmCalibrator(Calibrator):
             "camera_distance_mm", "plate_top_mm", "angle_sigma_deg", "fit_angle_scale",
             "fix_principal_point", "fix_distortion", "min_tracks", "min_view_observations",
             "focal_px", "principal_point_px", "fit_focal", "marker_mm", "markers", "refine_dots",
-            "principal_point_prior", "max_rms_px", "threads", "max_observations")})
+            "principal_point_prior", "max_rms_px", "threads", "max_observations",
+            "reject_sigma", "board_role", "board_noise")},
+            board=p.board.model_dump() if p.board is not None else None)
 
     def input_roles(self, scan) -> list[str]:
-        """The photos it calibrates from: new plant photos redo the calibration."""
-        return [self.params.role]
+        """The photos it calibrates from (and the board's): new ones redo the calibration."""
+        roles = [self.params.role]
+        if self.params.board is not None and self.params.board_role not in roles:
+            roles.append(self.params.board_role)
+        return roles
 
     def input_files(self, scan) -> list[Path]:
         """The approximate poses, when the scan has them."""
