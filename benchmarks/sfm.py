@@ -106,6 +106,8 @@ def run_scan(scan_dir: Path, plate_mm: float, work: Path, threads: int, chessboa
         corners = detect_board_views(scan, SfmSettings(board=spec, threads=threads))
         row["board_photos_found"] = {c: len(v) for c, v in corners.items()}
         variants["sfm_one_board_view"] = {"board": spec, "board_corners": corners}
+        variants["sfm_one_board_view_on_turntable"] = {"board": spec, "board_corners": corners,
+                                                       "board_on_turntable": True}
         if compare_reject:
             variants["sfm_one_board_view_no_track_check"] = {
                 "board": spec, "board_corners": corners, "reject_sigma": None}

@@ -255,6 +255,9 @@ class BoardView:
         The photo's index in the scan.
     tilt_deg : float
         How far the board is turned from facing the camera, deg.
+    angle_deg, group : float, (camera, tilt) or None
+        The photo's turntable angle and (camera, tilt): with ``TurntableState.board_rig``
+        the board stood on the turntable, and its corners go through the rig's own pose.
     """
 
     points: np.ndarray
@@ -263,16 +266,37 @@ class BoardView:
     noise: float = 1.0
     view_index: int = -1
     tilt_deg: float = float("nan")
+    angle_deg: float | None = None
+    group: tuple[str, int] | None = None
 
     def copy(self) -> BoardView:
         return BoardView(self.points, self.uv, self.pose.copy(), self.noise, self.view_index,
-                         self.tilt_deg)
+                         self.tilt_deg, self.angle_deg, self.group)
 
 
 def project_board(intr: np.ndarray, pose: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Pixels (N, 2) of board ``points`` (N, 3) under ``intr`` (6,) and the board's
     ``pose`` [rotvec, t] (6,): the camera model of ``_project``."""
-    x = points @ rotmats(pose[:3])[0].T + pose[3:6]
+    return _pixels(intr, points @ rotmats(pose[:3])[0].T + pose[3:6])
+
+
+def project_board_rig(intr: np.ndarray, pose: np.ndarray, rig: np.ndarray, angle_deg: float,
+                      points: np.ndarray) -> np.ndarray:
+    """Pixels (N, 2) of board ``points`` (N, 3, mm) on the turntable: ``rig`` (7,)
+    [rotvec, t, log scale] places the board in the turntable frame at angle 0 (state
+    units), the turntable turns it by ``angle_deg``, the (camera, tilt) ``pose``
+    [rotvec, C] and ``intr`` see it."""
+    x = math.exp(rig[6]) * (points @ rotmats(rig[:3])[0].T) + rig[3:6]
+    xw = x @ rotation_z_deg(angle_deg).T
+    return _pixels(intr, (xw - pose[3:6]) @ rotmats(pose[:3])[0].T)
+
+
+def rotation_z_deg(deg: float) -> np.ndarray:
+    c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _pixels(intr: np.ndarray, x: np.ndarray) -> np.ndarray:
     px, py = x[:, 0] / x[:, 2], x[:, 1] / x[:, 2]
     r2 = px * px + py * py
     s = 1.0 + intr[3] * r2 + intr[4] * r2 * r2
@@ -293,6 +317,7 @@ class TurntableState:
     pose_priors: dict[tuple[str, int], tuple[np.ndarray, np.ndarray]] = field(
         default_factory=dict)
     boards: dict[str, BoardView] = field(default_factory=dict)
+    board_rig: np.ndarray | None = None     # (7,) the board on the turntable, when tied
 
     def model(self, camera: str) -> CameraModel:
         f, cu, cv, d1, d2, aspect = (float(x) for x in self.intrinsics[camera])
@@ -318,7 +343,8 @@ class TurntableState:
                               {k: v.copy() for k, v in self.stops.items()},
                               self.scale.copy(), self.points.copy(), dict(self.image_sizes),
                               self.reference, dict(self.pose_priors),
-                              {c: b.copy() for c, b in self.boards.items()})
+                              {c: b.copy() for c, b in self.boards.items()},
+                              None if self.board_rig is None else self.board_rig.copy())
 
 
 def stop_key(v: SfmView) -> tuple[int, float]:
@@ -653,10 +679,12 @@ def layout_of(state: TurntableState, views: list[SfmView], tracks: Tracks,
     cams, groups, stops = sorted(state.intrinsics), sorted(state.poses), sorted(state.stops)
     index: dict = {}
     n = 0
-    boards = [c for c in sorted(state.boards) if c in state.intrinsics]
+    boards = [c for c in sorted(state.boards) if c in state.intrinsics
+              and not _on_rig(state, state.boards[c])]
+    rig = [(("B",), 7)] if any(_on_rig(state, b) for b in state.boards.values()) else []
     for key, size in ([(("i", c), 6) for c in cams] + [(("p", g), 6) for g in groups]
                       + [(("s", k), 1) for k in stops] + [(("c",), 1), (("lab",), 1)]
-                      + [(("b", c), 6) for c in boards]):
+                      + [(("b", c), 6) for c in boards] + rig):
         index[key] = n
         n += size
     # photos of cameras this state does not hold (an orbit solved alone) are never seen
@@ -690,8 +718,16 @@ def layout_of(state: TurntableState, views: list[SfmView], tracks: Tracks,
     return Layout(index, n, blocks, theta, free)
 
 
+def _on_rig(state: TurntableState, board: BoardView) -> bool:
+    """The board photo goes through the rig's pose (the board tied to the turntable)."""
+    return state.board_rig is not None and board.angle_deg is not None \
+        and board.group in state.poses
+
+
 def _block(state: TurntableState, key: tuple) -> np.ndarray:
     kind = key[0]
+    if kind == "B":
+        return state.board_rig
     return (state.intrinsics[key[1]] if kind == "i" else state.poses[key[1]] if kind == "p"
             else state.stops[key[1]] if kind == "s" else state.boards[key[1]].pose
             if kind == "b" else state.scale)
@@ -998,7 +1034,19 @@ def _prior_terms(state: TurntableState, lay: Layout, opt: BundleOptions) -> list
 
         terms.append((np.arange(i, i + 6), pose_res))
     for cam, board in state.boards.items():
-        if ("b", cam) not in lay.index or ("i", cam) not in lay.index:
+        if ("i", cam) not in lay.index:
+            continue
+        if _on_rig(state, board) and ("B",) in lay.index:
+            i, p, j = lay.index[("i", cam)], lay.index[("p", board.group)], lay.index[("B",)]
+
+            def rig_res(c, i=i, p=p, j=j, b=board):
+                return ((project_board_rig(c[i:i + 6], c[p:p + 6], c[j:j + 7], b.angle_deg,
+                                           b.points) - b.uv) / b.noise).ravel()
+
+            terms.append((np.r_[np.arange(i, i + 6), np.arange(p, p + 6),
+                                np.arange(j, j + 7)], rig_res))
+            continue
+        if ("b", cam) not in lay.index:
             continue
         i, j = lay.index[("i", cam)], lay.index[("b", cam)]
 

@@ -71,7 +71,8 @@ class SfmSettings:
     board: dict[str, Any] | None = None
     board_role: str = "calibration"
     board_noise: float = 1.0
-    board_corners: dict[str, list[tuple[int, np.ndarray, np.ndarray]]] | None = None
+    board_corners: dict[str, list[tuple]] | None = None
+    board_on_turntable: bool = False
     prior_poses: dict[tuple[str, int], Pose] | None = None
     prior_focal: dict[str, float] | None = None
     workspace: Path | None = None
@@ -120,7 +121,8 @@ def calibrate_scan(scan, settings: SfmSettings) -> Calibration:
 def detect_board_views(scan, settings: SfmSettings
                        ) -> dict[str, list[tuple[int, np.ndarray, np.ndarray]]]:
     """The board's corners in the photos of ``settings.board_role``, per camera: (view
-    index, board points (N, 3) mm, corners (N, 2) px) of every photo where it is found
+    index, board points (N, 3) mm, corners (N, 2) px, turntable angle deg, (camera,
+    tilt)) of every photo where it is found
     (the chessboard calibrator's detector; ``settings.board`` its ``BoardSpec`` fields).
     A camera with no photo of the board is a named error."""
     from plantscan_calib.detect import BoardSpec
@@ -132,7 +134,8 @@ def detect_board_views(scan, settings: SfmSettings
     obj = spec.object_points()
     out: dict[str, list] = defaultdict(list)
     for d in dets:
-        out[d.camera].append((int(d.view_index), obj[d.corner_ids], np.asarray(d.uv, float)))
+        out[d.camera].append((int(d.view_index), obj[d.corner_ids], np.asarray(d.uv, float),
+                              float(d.angle_deg), (d.camera, int(d.tilt_index))))
     cams = sorted({v.camera for v in scan.views_by_role(settings.role)})
     missing = [c for c in cams if not out.get(c)]
     if missing:
@@ -259,6 +262,8 @@ def solve_tracks(views: list[SfmView], tracks: Tracks, sizes: dict[str, tuple[in
                                     "outlier_px": 4.0})
     keep, rep1 = bundle.adjust(state, views, tracks, first, rounds=1)
     keep = _clean_tracks(state, views, tracks, keep, CLEAN_PX)
+    if settings.board_on_turntable and state.boards:
+        state.board_rig = board_rig_start(state)
     keep, rep2 = bundle.adjust(state, views, tracks, opt, keep=keep, rounds=2)
     reject_info = None
     if settings.reject_sigma:
@@ -295,6 +300,8 @@ def solve_tracks(views: list[SfmView], tracks: Tracks, sizes: dict[str, tuple[in
                                 marker_edges=marker_edges(state, tracks, solid),
                                 marker_mm=settings.marker_mm)
     quality["scale"] = sinfo
+    if state.board_rig is not None:  # the board's squares against the plate: one scale
+        quality["board_views"]["scale_vs_plate"] = float(s * math.exp(state.board_rig[6]))
     quality["sigma"] = _sigma_report(sigma, s)
     for p in state.poses.values():
         p[3:6] = s * p[3:6] + np.array([0.0, 0.0, settings.plate_top_mm - s * z0])
@@ -344,7 +351,7 @@ def board_views(state: bundle.TurntableState,
         k_mat = np.array([[f, 0.0, cu], [0.0, f * asp, cv_], [0.0, 0.0, 1.0]])
         most = max(len(c[2]) for c in cands)
         best = None
-        for view_index, pts, uv in cands:
+        for view_index, pts, uv, *where in cands:
             if len(uv) < 0.8 * most or len(uv) < 6:
                 continue
             ok, rv, tv = cv2.solvePnP(pts.astype(np.float64), uv.astype(np.float64), k_mat,
@@ -358,10 +365,12 @@ def board_views(state: bundle.TurntableState,
             if tilt > BOARD_MAX_TILT_DEG:
                 continue
             if best is None or tilt > best[0]:
-                best = (tilt, view_index, pts, uv, np.r_[rv.ravel(), tv.ravel()])
+                best = (tilt, view_index, pts, uv, np.r_[rv.ravel(), tv.ravel()], where)
         if best is not None:
+            angle, group = best[5] if best[5] else (None, None)
             out[cam] = bundle.BoardView(np.asarray(best[2], float), np.asarray(best[3], float),
-                                        best[4].astype(float), noise, int(best[1]), best[0])
+                                        best[4].astype(float), noise, int(best[1]), best[0],
+                                        angle, None if group is None else tuple(group))
     return out
 
 
@@ -369,13 +378,42 @@ def board_views(state: bundle.TurntableState,
 BOARD_MAX_TILT_DEG = 65.0
 
 
+def board_rig_start(state: bundle.TurntableState) -> np.ndarray | None:
+    """The board on the turntable (``TurntableState.board_rig``: [rotvec, t, log scale],
+    board mm to the turntable frame at angle 0, state units) from each camera's own
+    board pose and the solved camera poses: the scale that makes the cameras agree on
+    where the board's origin is.  None with fewer than two such photos."""
+    ends = []
+    for b in state.boards.values():
+        if b.angle_deg is None or b.group not in state.poses:
+            continue
+        cam = state.group_pose(b.group)
+        back = rotation_z(-b.angle_deg) @ cam.R.T
+        ends.append((back @ b.pose[3:6], rotation_z(-b.angle_deg) @ cam.C,
+                     back @ rotmats(b.pose[:3])[0]))
+    if len(ends) < 2:
+        return None
+    a = np.array([e[0] for e in ends])
+    c = np.array([e[1] for e in ends])
+    da, dc = a - a.mean(axis=0), c - c.mean(axis=0)
+    k = -float(np.sum(da * dc)) / max(float(np.sum(da * da)), 1e-300)
+    if not k > 0:
+        return None
+    origin = (k * a + c).mean(axis=0)
+    return np.r_[rotvec(ends[0][2]), origin, math.log(k)]
+
+
 def _board_report(state: bundle.TurntableState) -> dict[str, Any]:
     out = {}
     for cam, b in state.boards.items():
-        r = bundle.project_board(state.intrinsics[cam], b.pose, b.points) - b.uv
+        if bundle._on_rig(state, b):
+            r = bundle.project_board_rig(state.intrinsics[cam], state.poses[b.group],
+                                         state.board_rig, b.angle_deg, b.points) - b.uv
+        else:
+            r = bundle.project_board(state.intrinsics[cam], b.pose, b.points) - b.uv
         out[cam] = {"view_index": b.view_index, "corners": len(b.uv),
                     "rms_px": float(np.sqrt(np.mean(np.sum(r ** 2, axis=1)))),
-                    "board_tilt_deg": b.tilt_deg}
+                    "board_tilt_deg": b.tilt_deg, "on_turntable": bundle._on_rig(state, b)}
     return out
 
 

@@ -112,6 +112,10 @@ class SfmCalibrator(Calibrator):
             "jointly with the turntable bundle")
         board_role: Literal["plant", "calibration", "background"] = Field(
             "calibration", description="which photos show the board")
+        board_on_turntable: bool = Field(
+            False, description="the board stood on the turntable in its photos: one board "
+            "pose for every camera, seen at each photo's turntable angle (its squares then "
+            "give the scale too: quality.board_views.scale_vs_plate)")
         board_noise: float = Field(1.0, gt=0, description="the board corners' noise relative "
                                    "to a refined dot's")
         prior_poses: str | None = Field(
@@ -127,7 +131,7 @@ class SfmCalibrator(Calibrator):
             "fix_principal_point", "fix_distortion", "min_tracks", "min_view_observations",
             "focal_px", "principal_point_px", "fit_focal", "marker_mm", "markers", "refine_dots",
             "principal_point_prior", "max_rms_px", "threads", "max_observations",
-            "reject_sigma", "board_role", "board_noise")},
+            "reject_sigma", "board_role", "board_noise", "board_on_turntable")},
             board=p.board.model_dump() if p.board is not None else None)
 
     def input_roles(self, scan) -> list[str]:
