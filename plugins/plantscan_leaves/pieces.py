@@ -155,7 +155,9 @@ def piece_features(s: PieceSurface, labels: np.ndarray, n: int) -> Pieces:
     # the nearest other piece (touching pieces: 0)
     gap = np.zeros(n)
     nearest = np.zeros(n, np.int64)
-    faces_of = [np.flatnonzero(lab == i) for i in range(1, m)]
+    order = np.argsort(lab, kind="stable")  # each piece's faces in index order, one sort
+    bounds = np.searchsorted(lab[order], np.arange(m + 1))
+    faces_of = [order[bounds[i]:bounds[i + 1]] for i in range(1, m)]
     picked = [_strided(f, GAP_FACES) for f in faces_of]
     for i in range(n):
         if to_leaf[i] > 0:
