@@ -11,8 +11,8 @@ Per scan: SIFT extraction and matching once (timed, shared by both), then
   ``--principal-point-from-truth`` a second solve on the same tracks with the lens's
   principal point given (``principal_point_px``, as a lab would from a one-off lens
   calibration; the virtual scanner's, on a virtual scan);
-  with ``--compare-track-check`` each variant also without the per-track consistency
-  check (``reject_sigma`` None); with ``--board-view`` one more with one board photo per
+  with ``--compare-track-check`` each variant also with the per-track consistency
+  check (``reject_sigma`` 3; off by default); with ``--board-view`` one more with one board photo per
   camera (``board``: the scan's calibration photos, the recipe's board);
 * COLMAP: ``pycolmap.incremental_mapping`` on the same database (a pose per
   photo, a RADIAL camera per scanner camera), its registered photos and mean
@@ -90,13 +90,13 @@ def run_scan(scan_dir: Path, plate_mm: float, work: Path, threads: int, chessboa
     pts = plant_volume_points(scan_dir / "ground_truth") if truth is not None else None
     variants = {"sfm": {}}
     if compare_reject:
-        variants["sfm_no_track_check"] = {"reject_sigma": None}
+        variants["sfm_track_check"] = {"reject_sigma": 3.0}
     if pp_from_truth and truth is not None:
         pp = {c: (m.cu, m.cv) for c, m in truth.models.items()}
         variants["sfm_principal_point_given"] = {"principal_point_px": pp}
         if compare_reject:
-            variants["sfm_principal_point_given_no_track_check"] = {
-                "principal_point_px": pp, "reject_sigma": None}
+            variants["sfm_principal_point_given_track_check"] = {
+                "principal_point_px": pp, "reject_sigma": 3.0}
     if board and scan.views_by_role("calibration"):
         from plantscan_sfm.calibrate import detect_board_views
 
@@ -109,8 +109,8 @@ def run_scan(scan_dir: Path, plate_mm: float, work: Path, threads: int, chessboa
         variants["sfm_one_board_view_on_turntable"] = {"board": spec, "board_corners": corners,
                                                        "board_on_turntable": True}
         if compare_reject:
-            variants["sfm_one_board_view_no_track_check"] = {
-                "board": spec, "board_corners": corners, "reject_sigma": None}
+            variants["sfm_one_board_view_track_check"] = {
+                "board": spec, "board_corners": corners, "reject_sigma": 3.0}
     cal = None
     for name, extra in variants.items():
         sv_st = SfmSettings(plate_diameter_mm=plate_mm, threads=threads, workspace=work,
@@ -170,8 +170,8 @@ def main(argv=None) -> int:
     ap.add_argument("--principal-point-from-truth", action="store_true",
                     help="also solve with the virtual lens's principal point given")
     ap.add_argument("--compare-track-check", action="store_true",
-                    help="also solve each variant without the per-track consistency check "
-                    "(reject_sigma None: the behaviour before it)")
+                    help="also solve each variant with the per-track consistency check "
+                    "(reject_sigma 3; the default is off)")
     ap.add_argument("--board-view", action="store_true",
                     help="also solve with one board photo per camera (the scan's calibration "
                     "photos, the recipe's board; the most oblique one per camera)")
