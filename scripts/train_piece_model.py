@@ -71,7 +71,7 @@ def training_config(family: str, seeds: list[int]) -> dict:
 
 
 class _Recorder:
-    """A piece "model" that keeps the pieces it is shown and calls every one a leaf."""
+    """A piece "model" that keeps the pieces it is shown (and calls every one a leaf)."""
 
     def __init__(self) -> None:
         self.pieces: pc.Pieces | None = None
@@ -143,9 +143,11 @@ def plant_pieces(run_dir: Path, params: dict, cache: Path) -> dict:
     if path.exists():
         return dict(np.load(path))
     mesh = Mesh.load(mesh_file)
-    rec = _Recorder()
-    p = CurvatureRegionsParams(**{**params, "judge_pieces": True})
-    labelled, _ = segment_leaves(mesh, p, piece_model=rec)
+    labelled, _ = segment_leaves(mesh, CurvatureRegionsParams(**{**params,
+                                                                 "judge_pieces": False}))
+    rec = _Recorder()  # the same rules again, to see the pieces the judge is shown
+    segment_leaves(mesh, CurvatureRegionsParams(**{**params, "judge_pieces": True}),
+                   piece_model=rec)
     pieces = rec.pieces
     classes = piece_classes(labelled, pieces.partner, truth_dir_of(run_dir))
     d = dict(labels=labelled.face_labels, features=pieces.features, partner=pieces.partner,
@@ -203,9 +205,8 @@ def leave_one_out(runs: list[Path], plants: list[dict], recipe: Path, work: Path
         pieces = pc.Pieces(d["features"], d["partner"], d["area"])
         prob = np.asarray(booster.predict(d["features"].astype(np.float64), num_threads=1))
         judged = pc.apply_verdict(d["labels"], pieces, prob.reshape(len(d["area"]), -1))
-        all_leaf = np.zeros_like(prob)
-        all_leaf[:, pc.LEAF] = 1.0
-        rules = pc.apply_verdict(d["labels"], pieces, all_leaf)
+        n = len(d["area"])  # the rules alone (apply_verdict would apply its thickness rule)
+        rules = pc.Verdict(d["labels"], n, False, np.full(n, pc.LEAF), {})
         for name, verdict in (("rules", rules), ("judged", judged)):
             prow, lrows = evaluate_labels(run_dir, verdict, work / name / run_dir.name, mp)
             rows[name][0].append(prow)
