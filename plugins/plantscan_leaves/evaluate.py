@@ -54,7 +54,7 @@ from typing import Any
 
 import numpy as np
 
-from plantscan_core.data import TRAIT_NAMES, LabelledMesh, Traits, mean_relative_error
+from plantscan_core.data import TRAIT_NAMES, LabelledMesh, Traits, mean_relative_error, rotation_z
 from plantscan_core.errors import DataError
 from plantscan_leaves import geometry as geo
 from plantscan_leaves.measure import warned
@@ -75,11 +75,6 @@ GAUGE_GAIN = 0.5
 # need to count as far; the median decides); ICP pairs points up to a tenth of it
 SEARCH_BOUND_SHARE = 0.25
 ICP_PAIR_SHARE = 0.1
-
-
-def _turn(deg: float) -> np.ndarray:
-    a = np.radians(deg)
-    return np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0, 0, 1.0]])
 
 
 def align_gauge(points: np.ndarray, truth_points: np.ndarray) -> tuple[np.ndarray, dict]:
@@ -120,12 +115,12 @@ def align_gauge(points: np.ndarray, truth_points: np.ndarray) -> tuple[np.ndarra
     coarse = sample[:1000]  # the median of 1000 distances is plenty to rank the turns
     best = (np.inf, 0.0, 0.0)
     for deg in np.arange(0.0, 360.0, 5.0):
-        turned = coarse @ _turn(deg).T
+        turned = coarse @ rotation_z(deg).T
         for dz in shifts:
             d, _ = tree.query(turned + [0.0, 0.0, dz], distance_upper_bound=bound)
             best = min(best, (float(np.median(np.minimum(d, bound))), deg, dz))
     init = np.eye(4)
-    init[:3, :3] = _turn(best[1])
+    init[:3, :3] = rotation_z(best[1])
     init[2, 3] = best[2]
     src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(sample))
     dst = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(

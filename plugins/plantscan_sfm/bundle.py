@@ -43,7 +43,7 @@ from typing import Any
 import numpy as np
 from plantscan_calib.model import project_mats, rotmats, rotvec, turn_deg
 
-from plantscan_core.data import CameraModel, Pose
+from plantscan_core.data import CameraModel, Pose, rotation_z
 from plantscan_sfm.features import SfmView, Tracks
 from plantscan_sfm.initialise import GroupPose
 
@@ -287,13 +287,8 @@ def project_board_rig(intr: np.ndarray, pose: np.ndarray, rig: np.ndarray, angle
     units), the turntable turns it by ``angle_deg``, the (camera, tilt) ``pose``
     [rotvec, C] and ``intr`` see it."""
     x = math.exp(rig[6]) * (points @ rotmats(rig[:3])[0].T) + rig[3:6]
-    xw = x @ rotation_z_deg(angle_deg).T
+    xw = x @ rotation_z(angle_deg).T
     return _pixels(intr, (xw - pose[3:6]) @ rotmats(pose[:3])[0].T)
-
-
-def rotation_z_deg(deg: float) -> np.ndarray:
-    c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 def _pixels(intr: np.ndarray, x: np.ndarray) -> np.ndarray:
