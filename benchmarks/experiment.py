@@ -1,7 +1,8 @@
 """A virtual growth experiment: 2 genotypes x 2 treatments x 3 replicates x 5 days, one store.
 
     python benchmarks/experiment.py [--out DIR] [--genotypes G1=dicot,G2=branched]
-        [--days 5] [--replicates 3] [--image-size 640x427] [--views 24] [--resolution 256]
+        [--days 5] [--replicates 3] [--image-size 640x427,G2=1296x864] [--views 24]
+        [--resolution 256]
 
 * The design is ``plantscan_sim.experiment.growth_design``: genotypes are plant
   families of the virtual scanner, a replicate is a validation seed (>= 1000,
@@ -9,7 +10,7 @@
   (drought: ``DROUGHT_PACE`` of the control's).
 * Each plant is scanned on ``--days`` consecutive days by the virtual scanner
   (small images, the scanner's clock set to the experiment's day; renders are
-  kept in ``--out`` and reused), all scans of a genotype batch-processed
+  kept in ``--out`` per image size and reused), all scans of a genotype batch-processed
   (``plantscan batch`` with the sample sheet; the family's shipped recipe with
   exact cameras and masks and the hull at ``--resolution``) into one SQLite
   store, and the experiment report and the ISA-Tab export are written from it.
@@ -20,6 +21,11 @@
   leaf matching between successive days, on the truth's own leaf positions and
   on the measured leaves (each paired with its truth leaf: a link is kept when
   the truth leaf's measured leaves on two successive days share a track).
+
+Image size: 640 x 427 px, but 1296 x 864 for the branched genotype (``G2``): the
+branched rig frames a 600 mm plant (2100 mm away), 2.26 mm per pixel at 640 px, and
+its seedlings' leaflets (6-1,100 mm²) then lose about half a pixel along their
+outline (total leaf area -23 to -67 %); at 1296 px about -10 % (the page's notes).
 
 Writes ``docs/benchmarks/experiment.md`` (a ``## Notes`` section already in
 the page is kept).  Heavy: 60 renders and 60 runs (``nice -n 10``; about 1.5 h
@@ -42,17 +48,33 @@ DEFAULT_OUT = Path(os.environ.get("PLANTSCAN_EXPERIMENT_CACHE", "/work/cache/exp
 NOTES = "\n## Notes"
 
 
-def scan_all(design, out: Path, image_size: tuple[int, int], views: int) -> list[Path]:
-    """The scan folder of every planned scan, rendered when not already in ``out``."""
+def parse_image_sizes(text: str) -> dict[str | None, tuple[int, int]]:
+    """``"640x427,G2=1296x864"`` -> ``{None: (640, 427), "G2": (1296, 864)}``: the
+    experiment's image size (``None``) and a genotype's own, where one is given."""
+    sizes: dict[str | None, tuple[int, int]] = {}
+    for item in text.split(","):
+        genotype, _, size = item.rpartition("=")
+        w, h = (int(x) for x in size.split("x"))
+        sizes[genotype or None] = (w, h)
+    if None not in sizes:
+        raise ValueError(f"--image-size {text!r}: give the experiment's size (WxH) first")
+    return sizes
+
+
+def scan_all(design, out: Path, image_sizes: dict[str | None, tuple[int, int]],
+             views: int) -> list[Path]:
+    """The scan folder of every planned scan, rendered when not already in ``out`` at its
+    image size (the renders are kept per size: ``scans/WxH/dayN/plant``)."""
     from plantscan_sim import make_scan
 
     scans = []
     for s in design:
-        folder = out / "scans" / f"day{s.day + 1}" / s.plant_id
+        w, h = image_sizes.get(s.genotype, image_sizes[None])
+        folder = out / "scans" / f"{w}x{h}" / f"day{s.day + 1}" / s.plant_id
         scans.append(folder)
         if (folder / "views.jsonl").exists() and (folder / "ground_truth").is_dir():
             continue
-        make_scan(folder, preset=s.family, seed=s.seed, image_size=image_size,
+        make_scan(folder, preset=s.family, seed=s.seed, image_size=(w, h),
                   images_per_revolution=views, roles=("background", "plant"), supersampling=1,
                   scene={"clock_start": s.scan_time.isoformat() + "Z",
                          **({} if s.age is None else {"age": s.age})},
@@ -200,7 +222,10 @@ def main() -> int:
     ap.add_argument("--seed0", type=int, default=1000,
                     help="first seed: validation (>= 1000) by default, below 1000 development "
                     "seeds (tuning; the page then says so)")
-    ap.add_argument("--image-size", default="640x427")
+    ap.add_argument("--image-size", default="640x427,G2=1296x864",
+                    help="WxH of every scan, then GENOTYPE=WxH for a genotype of its own "
+                    "(the branched rig frames a 600 mm plant: its seedlings' leaflets need "
+                    "1296 px, docs/benchmarks/experiment.md)")
     ap.add_argument("--views", type=int, default=24, help="turntable stops per camera")
     ap.add_argument("--resolution", type=int, default=256)
     ap.add_argument("--workers", type=int, default=2)
@@ -226,9 +251,9 @@ def main() -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     design = growth_design(genotypes, args.days, args.replicates, args.first_age, args.seed0)
-    w, h = (int(x) for x in args.image_size.split("x"))
+    image_sizes = parse_image_sizes(args.image_size)
     t0 = time.perf_counter()
-    scans = scan_all(design, out, (w, h), args.views)
+    scans = scan_all(design, out, image_sizes, args.views)
     t_scan = time.perf_counter() - t0
     sheet = out / "samples.csv"
     sheet.write_text(sample_sheet(design))
@@ -304,6 +329,8 @@ def main() -> int:
     by_plant_day, by_group_day = error_by_day(m)
     batch_time = "reused (--reuse-runs)" if args.reuse_runs else f"{t_batch:.0f} s"
     names = ", ".join(f"{k} = virtual {v}" for k, v in genotypes.items())
+    sizes_text = ", ".join(f"{k} {w} x {h} px" for k, (w, h) in (
+        (g, image_sizes.get(g, image_sizes[None])) for g in genotypes))
     overrides = f" with `--set {' '.join(args.overrides)}`" if args.overrides else ""
     seeds_kind = ("**Validation seeds** (>= 1000)" if args.seed0 >= 1000 else
                   f"**Development seeds** (from {args.seed0 + 1}; tuning, not validation)")
@@ -314,7 +341,7 @@ def main() -> int:
 x {args.days} daily scans (control plants {args.first_age:g} to
 {args.first_age + args.days - 1:g} days old, drought plants
 {DROUGHT_PACE * args.first_age:g} to {DROUGHT_PACE * (args.first_age + args.days - 1):g});
-virtual scanner {w} x {h} px, {args.views} stops x 2 cameras, **exact cameras and masks**
+virtual scanner {sizes_text}, {args.views} stops x 2 cameras, **exact cameras and masks**
 (`truth`, `truth-masks`: the figures hold the hull's and the leaf stages' error, not the
 calibration's or the segmentation's), octree hull at {args.resolution}^3, otherwise each
 family's shipped recipe{overrides}; one batch per genotype ({args.workers} workers) with the sample
