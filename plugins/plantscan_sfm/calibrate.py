@@ -16,7 +16,7 @@ import math
 import tempfile
 import time
 from collections import Counter, defaultdict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -68,6 +68,7 @@ class SfmSettings:
     marker_mm: float | None = None
     refine_dots: bool = True
     reject_sigma: float | None = None
+    weigh_by_kind: bool = False
     board: dict[str, Any] | None = None
     board_role: str = "calibration"
     board_noise: float = 1.0
@@ -183,7 +184,7 @@ def refine_and_mark(scan, views: list[SfmView], tracks: Tracks, settings: SfmSet
     from plantscan_sfm import markers
 
     uv = tracks.uv.copy()
-    snapped = 0
+    on_dot = np.zeros(len(uv), bool)
     grays = []
     by_view = np.argsort(tracks.view, kind="stable")
     starts = np.searchsorted(tracks.view[by_view], np.arange(len(views) + 1))
@@ -192,13 +193,12 @@ def refine_and_mark(scan, views: list[SfmView], tracks: Tracks, settings: SfmSet
         if settings.refine_dots:
             obs = by_view[starts[i]:starts[i + 1]]
             labels, centres = markers.dot_centroids(gray)
-            uv[obs], moved = markers.snap_to_dots(uv[obs], labels, centres)
-            snapped += int(moved.sum())
+            uv[obs], on_dot[obs] = markers.snap_to_dots(uv[obs], labels, centres)
         if settings.markers:
             grays.append(gray)
     out = Tracks(tracks.view, tracks.track, uv, dict(tracks.stats), tracks.noise,
-                 tracks.marker)
-    out.stats["keypoints_on_dots"] = snapped
+                 tracks.marker, dot=on_dot)
+    out.stats["keypoints_on_dots"] = int(on_dot.sum())
     if settings.markers:
         corners = markers.detect_markers(grays, settings.markers)
         turning, lab = markers.split_static(corners, views)
@@ -262,9 +262,19 @@ def solve_tracks(views: list[SfmView], tracks: Tracks, sizes: dict[str, tuple[in
                                     "outlier_px": 4.0})
     keep, rep1 = bundle.adjust(state, views, tracks, first, rounds=1)
     keep = _clean_tracks(state, views, tracks, keep, CLEAN_PX)
+    noise_info = None
+    if settings.weigh_by_kind:
+        tracks, noise_info = _weigh_by_kind(state, views, tracks, keep)
+        opt = replace(opt, prior_noise_px=bundle.NOISE_UNIT_PX)
     if settings.board_on_turntable and state.boards:
         state.board_rig = board_rig_start(state)
     keep, rep2 = bundle.adjust(state, views, tracks, opt, keep=keep, rounds=2)
+    if settings.weigh_by_kind:
+        # again at the weighed solution: the first estimate still holds the rig's own error
+        # of the alike-weighed fit (a 0.03 px dot kind measured 0.07 px there)
+        tracks, noise_info = _weigh_by_kind(state, views, tracks, keep)
+        keep, rep3 = bundle.adjust(state, views, tracks, opt, keep=keep, rounds=1)
+        rep2.solves += rep3.solves
     reject_info = None
     if settings.reject_sigma:
         # wrong matches the joint fit half absorbs: each track's observations against the
@@ -281,6 +291,8 @@ def solve_tracks(views: list[SfmView], tracks: Tracks, sizes: dict[str, tuple[in
     quality["solver"] = {"solves": rep1.solves + rep2.solves}
     if reject_info is not None:
         quality["inconsistent_observations"] = reject_info
+    if noise_info is not None:
+        quality["noise_by_kind"] = noise_info
     if state.boards:
         quality["board_views"] = _board_report(state)
     final = rep2.solves[-1]
@@ -403,14 +415,31 @@ def board_rig_start(state: bundle.TurntableState) -> np.ndarray | None:
     return np.r_[rotvec(ends[0][2]), origin, math.log(k)]
 
 
+def _weigh_by_kind(state: bundle.TurntableState, views: list[SfmView], tracks: Tracks,
+                   keep: np.ndarray) -> tuple[Tracks, dict[str, Any]]:
+    """``tracks`` with each observation's noise from its (camera, kind) class, and every
+    board photo's corners weighed by their own residual (``bundle.noise_by_kind``)."""
+    noise, info = bundle.noise_by_kind(state, views, tracks, keep)
+    for cam, b in state.boards.items():
+        sigma = float(np.sqrt(np.mean(np.sum(_board_residuals(state, cam, b) ** 2, axis=1))
+                              / 2.0))
+        b.noise = max(sigma, 1e-3) / bundle.NOISE_UNIT_PX
+        info[f"{cam}/board"] = {"observations": len(b.uv), "sigma_px": sigma}
+    return replace(tracks, noise=noise), info
+
+
+def _board_residuals(state: bundle.TurntableState, cam: str, b: bundle.BoardView
+                     ) -> np.ndarray:
+    if bundle._on_rig(state, b):
+        return bundle.project_board_rig(state.intrinsics[cam], state.poses[b.group],
+                                        state.board_rig, b.angle_deg, b.points) - b.uv
+    return bundle.project_board(state.intrinsics[cam], b.pose, b.points) - b.uv
+
+
 def _board_report(state: bundle.TurntableState) -> dict[str, Any]:
     out = {}
     for cam, b in state.boards.items():
-        if bundle._on_rig(state, b):
-            r = bundle.project_board_rig(state.intrinsics[cam], state.poses[b.group],
-                                         state.board_rig, b.angle_deg, b.points) - b.uv
-        else:
-            r = bundle.project_board(state.intrinsics[cam], b.pose, b.points) - b.uv
+        r = _board_residuals(state, cam, b)
         out[cam] = {"view_index": b.view_index, "corners": len(b.uv),
                     "rms_px": float(np.sqrt(np.mean(np.sum(r ** 2, axis=1)))),
                     "board_tilt_deg": b.tilt_deg, "on_turntable": bundle._on_rig(state, b)}

@@ -53,6 +53,11 @@ class SfmView:
         return (self.view.camera, self.view.tilt_index)
 
 
+# What an observation is (``Tracks.kind_of``): a SIFT keypoint as found, one moved to a
+# printed dot's centroid, a turning marker's corner, a lab-fixed marker's corner.
+OBSERVATION_KINDS = ("keypoint", "dot", "marker", "lab marker")
+
+
 @dataclass
 class Tracks:
     """Feature tracks: each a 3D point seen in several photos.
@@ -74,6 +79,8 @@ class Tracks:
     lab : (M,) bool array or None
         The observation is of a point fixed in the lab (a marker on the backdrop), not
         of one turning with the plate (None: none is).
+    dot : (M,) bool array or None
+        The keypoint was moved to a printed dot's centroid (None: none was).
     """
 
     view: np.ndarray
@@ -83,10 +90,22 @@ class Tracks:
     noise: np.ndarray | None = None
     marker: np.ndarray | None = None
     lab: np.ndarray | None = None
+    dot: np.ndarray | None = None
 
     def lab_of(self) -> np.ndarray:
         """(M,) bool: observations of lab-fixed points."""
         return np.zeros(len(self.view), bool) if self.lab is None else self.lab
+
+    def dot_of(self) -> np.ndarray:
+        """(M,) bool: keypoints moved to a printed dot's centroid."""
+        return np.zeros(len(self.view), bool) if self.dot is None else self.dot
+
+    def kind_of(self) -> np.ndarray:
+        """(M,) int: what each observation is, an index into ``OBSERVATION_KINDS``."""
+        kind = np.where(self.dot_of(), 1, 0)
+        kind[self.marker_of() >= 0] = 2
+        kind[self.lab_of()] = 3
+        return kind
 
     def marker_of(self) -> np.ndarray:
         """(M,) marker corner of every observation, -1 for features."""
@@ -98,7 +117,8 @@ class Tracks:
         def pick(a):
             return None if a is None else a[keep][order]
         return Tracks(self.view[keep][order], np.asarray(track)[order], self.uv[keep][order],
-                      dict(self.stats), pick(self.noise), pick(self.marker), pick(self.lab))
+                      dict(self.stats), pick(self.noise), pick(self.marker), pick(self.lab),
+                      pick(self.dot))
 
     def noise_of(self) -> np.ndarray:
         """(M,) relative noise of every observation."""
@@ -125,7 +145,9 @@ class Tracks:
         if not parts:
             return Tracks(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)))
         offsets = np.cumsum([0] + [p.n_tracks for p in parts[:-1]])
-        noise = marker = lab = None
+        noise = marker = lab = dot = None
+        if any(p.dot is not None for p in parts):
+            dot = np.concatenate([p.dot_of() for p in parts])
         if any(p.noise is not None for p in parts):
             noise = np.concatenate([p.noise_of() for p in parts])
         if any(p.marker is not None for p in parts):
@@ -135,7 +157,7 @@ class Tracks:
         return Tracks(np.concatenate([p.view for p in parts]),
                       np.concatenate([p.track + o for p, o in zip(parts, offsets, strict=True)]),
                       np.concatenate([p.uv for p in parts]), dict(parts[0].stats), noise,
-                      marker, lab)
+                      marker, lab, dot)
 
 
 def workspace_views(scan, views: list[ViewRecord], work_dir: Path) -> list[SfmView]:

@@ -100,6 +100,10 @@ class SfmCalibrator(Calibrator):
             "pitch), where the photos do not fix it (a shallow scene)")
         fit_focal: bool = Field(False, description="refine the given focal_px instead of "
                                 "holding it")
+        weigh_by_kind: bool = Field(
+            False, description="weigh every observation by the noise of its class (camera x "
+            "raw keypoint / refined dot / marker corner / lab marker), measured from the "
+            "bundle's own residuals, and solve again (docs/sfm.md)")
         reject_sigma: float | None = Field(
             None, gt=0, description="after the bundle adjustment, drop each track's "
             "observations farther than this many sigma (its camera's robust residual scale) "
@@ -131,7 +135,7 @@ class SfmCalibrator(Calibrator):
             "fix_principal_point", "fix_distortion", "min_tracks", "min_view_observations",
             "focal_px", "principal_point_px", "fit_focal", "marker_mm", "markers", "refine_dots",
             "principal_point_prior", "max_rms_px", "threads", "max_observations",
-            "reject_sigma", "board_role", "board_noise", "board_on_turntable")},
+            "reject_sigma", "weigh_by_kind", "board_role", "board_noise", "board_on_turntable")},
             board=p.board.model_dump() if p.board is not None else None)
 
     def input_roles(self, scan) -> list[str]:
