@@ -1354,3 +1354,58 @@ def noise_by_kind(state: TurntableState, views: list[SfmView], tracks: Tracks,
             report[f"{c}/{name}"] = {"observations": n, "sigma_px": sigma}
     return noise, report
 
+
+
+# The stop-angle search (``search_stop_angles``): how far and how finely, and what fits.
+ANGLE_SEARCH_DEG = 3.0
+ANGLE_SEARCH_STEP_DEG = 0.05
+ANGLE_SEARCH_INLIER_PX = 2.0
+
+
+def search_stop_angles(state: TurntableState, views: list[SfmView], tracks: Tracks,
+                       min_gain: float = 1.5) -> dict[str, float]:
+    """Stops whose recorded angle is wrong, found by search; ``state.stops`` in place.
+
+    The first solve holds the recorded angles (a far start), so a stop the turntable
+    missed by 1 deg has every observation tens of px off and loses them all to the
+    outlier bound; the later solves, which free the angles, never see it again (on the
+    virtual paper-72 dicot with 20 % of the stops 1 deg off: 48k of 56k observations
+    kept, 4.3 px of volume reprojection).  Each stop is turned by -3..3 deg in steps of
+    0.05 deg with the points held, and the turn with the most observations within 2 px
+    (each counted by 1 - (e / 2 px)^2) is taken when it has ``min_gain`` times the count
+    of the recorded angle; the solves refine it.
+
+    Returns ``"tilt/angle"`` -> the turn applied, deg, for the stops moved.
+    """
+    offsets = np.arange(-ANGLE_SEARCH_DEG, ANGLE_SEARCH_DEG + ANGLE_SEARCH_STEP_DEG / 2,
+                        ANGLE_SEARCH_STEP_DEG)
+    k = len(offsets)
+    zero = int(np.argmin(np.abs(offsets)))
+    finite = np.isfinite(state.points[tracks.track, 0]) & ~tracks.lab_of()
+    counts: dict[tuple[int, float], np.ndarray] = defaultdict(lambda: np.zeros(k))
+    order = np.argsort(tracks.view, kind="stable")
+    starts = np.searchsorted(tracks.view[order], np.arange(len(views) + 1))
+    for i, v in enumerate(views):
+        ks = order[starts[i]:starts[i + 1]]
+        ks = ks[finite[ks]]
+        if not len(ks):
+            continue
+        p = state.poses[v.group]
+        key = stop_key(v)
+        uv = project_mats(np.repeat(state.intrinsics[v.view.camera][None], k, 0),
+                          np.repeat(rotmats(p[:3]), k, 0), np.repeat(p[None, 3:6], k, 0),
+                          np.repeat(np.eye(3)[None], k, 0), np.zeros((k, 3)),
+                          turn_deg(v.view.angle_deg, state.scale, state.stops[key] + offsets),
+                          state.points[tracks.track[ks]])
+        err = np.linalg.norm(uv - tracks.uv[ks][None], axis=2)
+        # a smooth count (1 at 0 px, 0 from the bound on): the peak of a plain count is
+        # a plateau a few steps wide
+        counts[key] += np.sum(np.clip(1.0 - (err / ANGLE_SEARCH_INLIER_PX) ** 2, 0.0, None),
+                              axis=1)
+    moved = {}
+    for key, c in counts.items():
+        best = int(np.argmax(c))
+        if best != zero and c[best] >= min_gain * max(c[zero], 1.0):
+            state.stops[key][0] += offsets[best]
+            moved[f"{key[0]}/{key[1]:g}"] = float(offsets[best])
+    return moved

@@ -261,6 +261,8 @@ def solve_tracks(views: list[SfmView], tracks: Tracks, sizes: dict[str, tuple[in
                                     "fix_principal_point": True, "angle_sigma_deg": None,
                                     "outlier_px": 4.0})
     keep, rep1 = bundle.adjust(state, views, tracks, first, rounds=1)
+    searched = bundle.search_stop_angles(state, views, tracks) \
+        if settings.angle_sigma_deg is not None else {}
     keep = _clean_tracks(state, views, tracks, keep, CLEAN_PX)
     noise_info = None
     if settings.weigh_by_kind:
@@ -288,6 +290,7 @@ def solve_tracks(views: list[SfmView], tracks: Tracks, sizes: dict[str, tuple[in
     err = np.linalg.norm(res, axis=1)
     quality = _quality(state, views, tracks, keep, err, settings)
     quality["initialisation"] = init_info
+    quality["stops_found_off_deg"] = searched
     quality["solver"] = {"solves": rep1.solves + rep2.solves}
     if reject_info is not None:
         quality["inconsistent_observations"] = reject_info

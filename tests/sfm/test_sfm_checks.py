@@ -232,3 +232,37 @@ def test_weighing_by_kind_measures_each_kinds_noise_and_follows_the_better_kind(
         assert abs(got[f"{cam}/keypoint"]["sigma_px"] / 0.3 - 1.0) < 0.15
     assert weighed["volume_px"] < 0.5 * alike["volume_px"]
     assert weighed["centre_mm"] < 0.75 * alike["centre_mm"]
+
+
+def test_stops_recorded_one_degree_off_are_found():
+    """The issue's perturbed case: 20 % of the turntable stops recorded 1 deg off (two of
+    12 here, one +1 and one -1 deg; each shared by both cameras).  The first solve holds
+    the recorded angles and would drop those photos' observations as outliers for good;
+    the stop-angle search must find both turns (to two of its 0.05 deg steps: the count
+    it maximises is flat near its peak; a plain count of inliers found -1.10 deg), the
+    solve then put the photos back (their solved angles within 0.02 deg of the truth:
+    the angle's 1-sigma here is ~0.005 deg) and give the rig of the correctly recorded
+    scan (the one-board test's bounds: the issue's targets, principal point given)."""
+    import dataclasses
+
+    truth, views, tracks, _ = _scene(3)
+    off = {2: 1.0, 7: -1.0}
+    recorded = [dataclasses.replace(v, view=dataclasses.replace(
+        v.view, commanded_angle_deg=v.view.commanded_angle_deg + off.get(v.view.angle_index,
+                                                                          0.0)))
+        for v in views]
+    pp = {c: (m.cu, m.cv) for c, m in truth.models.items()}
+    cal = _solve(recorded, tracks, principal_point_px=pp)
+    found = cal.quality["stops_found_off_deg"]
+    assert len(found) == 2
+    for v in recorded:
+        if v.view.angle_index in off:
+            key = f"0/{v.view.commanded_angle_deg:g}"
+            assert abs(found[key] + off[v.view.angle_index]) <= 0.1 + 1e-9
+            true_angle = v.view.commanded_angle_deg - off[v.view.angle_index]
+            assert abs(cal.view_angles_deg[v.view.index] - true_angle) < 0.02
+    err = _errors(cal, truth)
+    assert err["centre_mm"] < 0.5
+    assert err["rotation_deg"] < 0.05
+    assert err["focal"] < 0.002
+    assert err["volume_px"] < 0.3
