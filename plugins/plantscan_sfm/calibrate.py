@@ -68,7 +68,7 @@ class SfmSettings:
     marker_mm: float | None = None
     refine_dots: bool = True
     reject_sigma: float | None = None
-    weigh_by_kind: bool = False
+    weigh_by_kind: bool | None = None
     board: dict[str, Any] | None = None
     board_role: str = "calibration"
     board_noise: float = 1.0
@@ -265,13 +265,18 @@ def solve_tracks(views: list[SfmView], tracks: Tracks, sizes: dict[str, tuple[in
         if settings.angle_sigma_deg is not None else {}
     keep = _clean_tracks(state, views, tracks, keep, CLEAN_PX)
     noise_info = None
-    if settings.weigh_by_kind:
+    # weighed when the principal point is known (given, or fixed by a board photo of every
+    # camera); held at the image centre the rig is biased, and weighing measured worse
+    weigh = settings.weigh_by_kind if settings.weigh_by_kind is not None else (
+        settings.principal_point_px is not None or (
+            bool(state.boards) and set(state.boards) >= set(state.intrinsics)))
+    if weigh:
         tracks, noise_info = _weigh_by_kind(state, views, tracks, keep)
         opt = replace(opt, prior_noise_px=bundle.NOISE_UNIT_PX)
     if settings.board_on_turntable and state.boards:
         state.board_rig = board_rig_start(state)
     keep, rep2 = bundle.adjust(state, views, tracks, opt, keep=keep, rounds=2)
-    if settings.weigh_by_kind:
+    if weigh:
         # again at the weighed solution: the first estimate still holds the rig's own error
         # of the alike-weighed fit (a 0.03 px dot kind measured 0.07 px there)
         tracks, noise_info = _weigh_by_kind(state, views, tracks, keep)

@@ -100,10 +100,12 @@ class SfmCalibrator(Calibrator):
             "pitch), where the photos do not fix it (a shallow scene)")
         fit_focal: bool = Field(False, description="refine the given focal_px instead of "
                                 "holding it")
-        weigh_by_kind: bool = Field(
-            False, description="weigh every observation by the noise of its class (camera x "
+        weigh_by_kind: bool | None = Field(
+            None, description="weigh every observation by the noise of its class (camera x "
             "raw keypoint / refined dot / marker corner / lab marker), measured from the "
-            "bundle's own residuals, and solve again (docs/sfm.md)")
+            "bundle's own residuals, and solve again; null: when the principal point is "
+            "known (principal_point_px, or a board photo of every camera), as measured "
+            "best (docs/sfm.md)")
         reject_sigma: float | None = Field(
             None, gt=0, description="after the bundle adjustment, drop each track's "
             "observations farther than this many sigma (its camera's robust residual scale) "
