@@ -75,7 +75,13 @@ def metric_frame(points: np.ndarray, ref_distance: float, how: str,
     good = np.isfinite(points).all(axis=1)
     pts = points[good]
     if len(pts) < 30:
-        raise SfmError(f"only {len(pts)} points were reconstructed; too few for the scale")
+        # the real PhenoArch photos (12, 30 degrees apart, nothing printed): 0-6 points,
+        # 11 % of the verified matches of one point (docs/benchmarks/sfm_phenoarch.md)
+        raise SfmError(
+            f"only {len(pts)} points were reconstructed consistently with one turntable model; "
+            "too few for the scale: the photos share too few true feature matches -- take "
+            "them at smaller turntable steps (at most 10 degrees apart) and print the plate "
+            "and markers (docs/sfm.md, 'What to print')")
     extent = float(np.percentile(np.hypot(pts[:, 0], pts[:, 1]), 99))
     info: dict = {"method": how}
     if how == "plate":

@@ -116,3 +116,14 @@ def test_pose_table_import_round_trips(tmp_path):
     bad.write_text("camera,tilt_index,x_mm\ncam0,0,1\n")
     with pytest.raises(DataError, match="row 1: missing y_mm"):
         import_poses(bad, scan)
+
+
+def test_too_few_reconstructed_points_name_what_to_change():
+    """A scan whose photos share too few true matches (the real PhenoArch photos 30 degrees
+    apart: 0-6 points) is told what to photograph differently, not only that it failed."""
+    from plantscan_sfm.calibrate import SfmError
+    from plantscan_sfm.scale import metric_frame
+
+    pts = np.random.default_rng(0).normal(size=(6, 3))
+    with pytest.raises(SfmError, match="only 6 points.*smaller turntable steps.*print the plate"):
+        metric_frame(pts, 1.0, "camera-distance", None, 5446.0)
