@@ -18,7 +18,7 @@ When a run calibrates, its poses and focal length are compared with the lab's
 corners are reprojected with it (each board's pose fitted), and the hull of the 12
 side silhouettes is scored by IoU against the one from the lab's calibration::
 
-    python benchmarks/sfm_phenoarch.py --out docs/benchmarks/sfm_phenoarch.md
+    python benchmarks/sfm_phenoarch.py          # writes docs/benchmarks/sfm_phenoarch.md
 """
 
 from __future__ import annotations
@@ -185,7 +185,8 @@ def run(args) -> str:
             "focal_px": {"side": f_lab}, "prior_poses": {("side", 0): lab.poses[("side", 0)]},
             "prior_focal": {"side": f_lab}}),
     ]
-    lines = [f"## The `sfm` calibrator on the PhenoArch photos ({time.strftime('%Y-%m-%d')})", "",
+    lines = ["# `sfm` on real photos: PhenoArch maize plant 1 (`benchmarks/sfm_phenoarch.py`)", "",
+             f"## {time.strftime('%Y-%m-%d')}: the calibrator as a new user would run it", "",
              "12 side photos 30° apart (2056×2454 JPEG), no plate print, no markers; scale "
              f"from the camera's distance to the axis ({dist:.0f} mm, the lab's); "
              "`python benchmarks/sfm_phenoarch.py`.", "",
@@ -235,14 +236,13 @@ def main(argv=None) -> int:
     ap.add_argument("--data", type=Path, default=DATA)
     ap.add_argument("--work", type=Path, default=Path("/tmp/plantscan-sfm-phenoarch"))
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--out", type=Path, help="write the markdown here (default: print)")
+    ap.add_argument("--out", type=Path, default=REPO / "docs/benchmarks/sfm_phenoarch.md")
     args = ap.parse_args(argv)
     if not (args.data / "raw" / "side").is_dir():
         print(f"{args.data}: no raw/side photos (the shared PhenoArch data)", file=sys.stderr)
         return 2
     text = run(args)
-    if args.out:
-        args.out.write_text(text)
+    args.out.write_text(text)
     print(text)
     return 0
 
