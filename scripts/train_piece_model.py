@@ -1,15 +1,22 @@
 """Train the piece judge of ``curvature-regions`` (``judge_pieces``) on development plants.
 
-    python scripts/train_piece_model.py [--runs /work/cache/leavesd/dev-runs/dicot]
-        [--family dicot] [--seeds 0-7] [--out plugins/plantscan_leaves/models/piece_model.json.gz]
-        [--loo] [--report FILE]
+    python scripts/train_piece_model.py [--model piece_model.json.gz] [--runs DIR ...]
+        [--plants dicot=0-7 --plants branched=0-2 ...] [--out FILE] [--loo] [--validate]
+        [--report FILE]
+
+``--model`` names one of the models shipped in ``plantscan_leaves/models`` (``SHIPPED``:
+the file and the plants it is trained on; default the dicot model, ``pc.MODEL_FILE``) and
+retrains it into the package; ``--plants`` (repeated, one family each) trains on other
+plants (then ``--out`` says where the model goes).
 
 The plants are ``benchmarks/population.py``'s run folders of development seeds (< 1000;
 validation seeds are never trained on): ``population.py --families dicot --seeds 0-7
---runs DIR`` makes them (paper-72, 1296x864, the family recipe's 512^3 hull), each with
-its ``mesh.npz`` and the scan's truth.  For every plant the family recipe's
-``curvature-regions`` rules segment the mesh (judge off) and every numbered leaf (a
-piece) gets its features (``plantscan_leaves.pieces``) and a class from the truth, by
+--runs DIR`` makes them (paper-72, 1296x864, the family recipe's 512^3 hull) as
+``DIR/<family>/seed-<n>``, each with its ``mesh.npz`` and the scan's truth; ``--runs``
+(repeated) lists the folders to look in, first match wins.  For every plant its family
+recipe's ``curvature-regions`` rules (``--recipe-dir``, default ``recipes/``) segment the
+mesh (judge off) and every numbered leaf (a piece) gets its features
+(``plantscan_leaves.pieces``) and a class from the truth, by
 ``plantscan_leaves.evaluate.match_leaves`` (how ``plantscan evaluate`` pairs leaves):
 
 * ``leaf``: the piece is paired with a truth leaf (its main match);
@@ -22,11 +29,13 @@ piece) gets its features (``plantscan_leaves.pieces``) and a class from the trut
 
 A LightGBM multiclass booster (``BOOSTER_PARAMS``, small trees: eight plants give about
 160 pieces) is trained on all pieces and written with its training configuration and the
-hash of it (``TRAINING``): the test checks that the shipped model records this script's
-configuration.  Everything is seeded and deterministic: the same runs give the same file.
-``--loo`` also judges every plant with a model trained on the others (leave one plant
-out) and tabulates the rules against the judged labels, measured and evaluated as
-``benchmarks/leaf_population.py`` does.  Per-plant pieces are cached under ``--cache``.
+hash of it (``training_config``): the test checks that every shipped model records this
+script's configuration for it.  Everything is seeded and deterministic: the same runs give
+the same file.  ``--loo`` also judges every plant with a model trained on the others
+(leave one plant out), ``--validate`` every family with a model trained on the other
+families (leave one family out); both tabulate the rules against the judged labels per
+family, measured and evaluated as ``benchmarks/leaf_population.py`` does.  Per-plant
+pieces are cached under ``--cache``.
 """
 
 from __future__ import annotations
@@ -51,7 +60,7 @@ BOOSTER_PARAMS = dict(objective="multiclass", num_class=3, learning_rate=0.1, nu
                       bagging_freq=1, lambda_l2=1.0, num_threads=1, verbose=-1, seed=0,
                       deterministic=True, force_row_wise=True)
 ROUNDS = 100
-TRAINING = {  # what the shipped model was trained on (its hash is recorded in the file)
+TRAINING = {  # what every model is trained with (the plants and recipes: training_config)
     "family": "dicot",
     "seeds": list(range(8)),
     "population": "benchmarks/population.py paper-72 1296x864, recipes/dicot.yaml 512^3",
@@ -62,12 +71,35 @@ TRAINING = {  # what the shipped model was trained on (its hash is recorded in t
     "features": list(pc.FEATURE_NAMES),
     "join_reach_units": pc.JOIN_REACH_UNITS,
 }
-DEFAULT_OUT = REPO / "plugins" / "plantscan_leaves" / "models" / pc.MODEL_FILE
+ALL_MODEL_FILE = "piece_model_all.json.gz"
+# every model shipped in plantscan_leaves/models and the development plants it is trained
+# on (the recipes name them with segment_mesh.params.piece_model; the test checks each)
+SHIPPED = {
+    pc.MODEL_FILE: {"dicot": list(range(8))},
+    ALL_MODEL_FILE: {"dicot": list(range(8)), "branched": list(range(3)),
+                     "grass": list(range(3))},
+}
+MODELS_DIR = REPO / "plugins" / "plantscan_leaves" / "models"
 
 
-def training_config(family: str, seeds: list[int]) -> dict:
-    """``TRAINING`` for these plants (the shipped model's: dicot, 0-7)."""
-    return {**TRAINING, "family": family, "seeds": list(seeds)}
+def training_config(plants: dict[str, list[int]]) -> dict:
+    """The configuration a model trained on ``plants`` ({family: seeds}) records.  One
+    family: ``TRAINING`` with its family and seeds (the shipped dicot model's form);
+    several: ``plants`` in their place."""
+    if len(plants) == 1:
+        ((family, seeds),) = plants.items()
+        return {**TRAINING, "family": family, "seeds": list(seeds),
+                "population": TRAINING["population"].replace("recipes/dicot.yaml",
+                                                             f"recipes/{family}.yaml")}
+    config = {k: v for k, v in TRAINING.items() if k not in ("family", "seeds")}
+    return {**config, "plants": {f: list(s) for f, s in plants.items()},
+            "population": TRAINING["population"].replace("recipes/dicot.yaml",
+                                                         "recipes/<family>.yaml")}
+
+
+def trained_seeds(config: dict) -> dict[str, list[int]]:
+    """{family: seeds} a model's recorded configuration was trained on."""
+    return config.get("plants") or {config["family"]: config["seeds"]}
 
 
 class _Recorder:
@@ -190,79 +222,124 @@ def evaluate_labels(run_dir: Path, labels_verdict: pc.Verdict, out: Path, measur
     return pop.plant_row(key, evaluation, truth, None), pop.leaf_rows(key, evaluation)
 
 
-def leave_one_out(runs: list[Path], plants: list[dict], recipe: Path, work: Path) -> str:
-    """Markdown: the rules and the judge trained on the other plants, plant by plant."""
+def held_out(runs: list[Path], plants: list[dict], groups: list, recipe_dir: Path,
+             work: Path) -> str:
+    """Markdown: per family, the rules and the judge trained without each plant's group
+    (``groups``: one key per plant; a plant's own index leaves one plant out, its family
+    one family out), measured and evaluated."""
     import population as pop
     from plantscan_leaves.measure import LeafGeometryParams
 
     from plantscan_core.recipe import read_recipe_file
 
-    mp = LeafGeometryParams(**(read_recipe_file(recipe)["measure"].get("params") or {}))
-    rows = {"rules": ([], []), "judged": ([], [])}
+    rows: dict[str, dict[str, tuple[list, list]]] = {}
     per_plant = []
-    for k, (run_dir, d) in enumerate(zip(runs, plants)):
-        booster = train([p for j, p in enumerate(plants) if j != k])
+    boosters = {g: train([p for p, h in zip(plants, groups) if h != g])
+                for g in dict.fromkeys(groups)}
+    for run_dir, d, g in zip(runs, plants, groups):
+        family = run_dir.parent.name
+        mp = LeafGeometryParams(**(read_recipe_file(recipe_dir / f"{family}.yaml")["measure"]
+                                   .get("params") or {}))
         pieces = pc.Pieces(d["features"], d["partner"], d["area"])
-        prob = np.asarray(booster.predict(d["features"].astype(np.float64), num_threads=1))
+        prob = np.asarray(boosters[g].predict(d["features"].astype(np.float64),
+                                              num_threads=1))
         judged = pc.apply_verdict(d["labels"], pieces, prob.reshape(len(d["area"]), -1))
         n = len(d["area"])  # the rules alone (apply_verdict would apply its thickness rule)
         rules = pc.Verdict(d["labels"], n, False, np.full(n, pc.LEAF), {})
+        fam_rows = rows.setdefault(family, {"rules": ([], []), "judged": ([], [])})
         for name, verdict in (("rules", rules), ("judged", judged)):
-            prow, lrows = evaluate_labels(run_dir, verdict, work / name / run_dir.name, mp)
-            rows[name][0].append(prow)
-            rows[name][1].extend(lrows)
+            prow, lrows = evaluate_labels(run_dir, verdict,
+                                          work / name / family / run_dir.name, mp)
+            fam_rows[name][0].append(prow)
+            fam_rows[name][1].extend(lrows)
         truth = d["classes"]
-        per_plant.append(f"{run_dir.name}: {len(truth)} pieces (truth leaf/join/debris "
-                         f"{np.bincount(truth, minlength=3).tolist()}), judged "
+        per_plant.append(f"{family} {run_dir.name}: {len(truth)} pieces (truth leaf/join/"
+                         f"debris {np.bincount(truth, minlength=3).tolist()}), judged "
                          f"{np.bincount(judged.verdict, minlength=3).tolist()}, "
                          f"right {int((judged.verdict == truth).sum())}")
         print(per_plant[-1], flush=True)
     out = []
-    for name, (prows, lrows) in rows.items():
-        out += [f"### {name}", "", pop.tabulate(prows, lrows), ""]
+    for family, fam_rows in rows.items():
+        for name, (prows, lrows) in fam_rows.items():
+            out += [f"### {family}: {name}", "", pop.tabulate(prows, lrows), ""]
     return "\n".join(out + ["", *per_plant])
 
 
-def main(argv: list[str] | None = None) -> int:
+def parse_plants(specs: list[str]) -> dict[str, list[int]]:
+    """``["dicot=0-7", "grass=0-2"]`` -> {family: seeds}."""
     import population as pop
 
+    out = {}
+    for spec in specs:
+        family, sep, seeds = spec.partition("=")
+        if not sep or family not in pop.FAMILIES:
+            raise SystemExit(f"--plants {spec!r}: FAMILY=SEEDS with FAMILY one of "
+                             f"{', '.join(pop.FAMILIES)}")
+        out[family] = pop.parse_seeds(seeds)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--runs", type=Path, default=Path("/work/cache/leavesd/dev-runs/dicot"))
-    ap.add_argument("--family", default=TRAINING["family"])
-    ap.add_argument("--seeds", default="0-7")
-    ap.add_argument("--recipe", type=Path, default=None,
-                    help="the family recipe whose rules make the pieces (recipes/FAMILY.yaml)")
+    ap.add_argument("--runs", type=Path, action="append", default=[],
+                    help="a folder of <family>/seed-<n> run folders (repeat: first match "
+                         "wins; default /work/cache/leavesd/dev-runs)")
+    ap.add_argument("--model", default=pc.MODEL_FILE, choices=sorted(SHIPPED),
+                    help="the shipped model to retrain (its plants: SHIPPED)")
+    ap.add_argument("--plants", action="append", default=[], metavar="FAMILY=SEEDS",
+                    help="train on these plants instead (repeat per family; needs --out)")
+    ap.add_argument("--recipe-dir", type=Path, default=REPO / "recipes",
+                    help="the family recipes whose rules make the pieces (<family>.yaml)")
     ap.add_argument("--cache", type=Path, default=Path("/tmp/plantscan-piece-training"))
-    ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    ap.add_argument("--out", type=Path, default=None,
+                    help="where the model goes (default: --model's file in the package)")
     ap.add_argument("--loo", action="store_true", help="also leave one plant out")
-    ap.add_argument("--report", type=Path, default=None, help="write the --loo tables here")
+    ap.add_argument("--validate", action="store_true",
+                    help="also leave one family out (train on the others, judge it)")
+    ap.add_argument("--report", type=Path, default=None,
+                    help="write the --loo / --validate tables here")
     args = ap.parse_args(argv)
-    seeds = pop.parse_seeds(args.seeds)
-    if any(s >= pop.VALIDATION_SEED0 for s in seeds):
-        ap.error("--seeds: validation seeds (>= 1000) are never trained on")
-    recipe = args.recipe or REPO / "recipes" / f"{args.family}.yaml"
-    params = segment_params(recipe)
+    if args.plants and args.out is None:
+        ap.error("--plants: say where the model goes with --out (the shipped models are "
+                 "trained on SHIPPED's plants)")
+    plants_of = parse_plants(args.plants) if args.plants else SHIPPED[args.model]
+    out_file = args.out or MODELS_DIR / args.model
+    if any(s >= 1000 for seeds in plants_of.values() for s in seeds):
+        ap.error("validation seeds (>= 1000) are never trained on")
+    roots = args.runs or [Path("/work/cache/leavesd/dev-runs")]
     t0 = time.time()
     runs, plants = [], []
-    for seed in seeds:
-        run_dir = args.runs / args.family / f"seed-{seed}"
-        if not (run_dir / "mesh.npz").exists():
-            ap.error(f"{run_dir}: no mesh.npz (population.py --families {args.family} "
-                     f"--seeds {args.seeds} --runs {args.runs} makes it)")
-        d = plant_pieces(run_dir, params, args.cache)
-        runs.append(run_dir)
-        plants.append(d)
-        print(f"{args.family} {seed}: {len(d['classes'])} pieces, leaf/join/debris "
-              f"{np.bincount(d['classes'], minlength=3).tolist()} ({time.time() - t0:.0f} s)",
-              flush=True)
+    for family, seeds in plants_of.items():
+        params = segment_params(args.recipe_dir / f"{family}.yaml")
+        for seed in seeds:
+            found = [r / family / f"seed-{seed}" for r in roots
+                     if (r / family / f"seed-{seed}" / "mesh.npz").exists()]
+            if not found:
+                ap.error(f"{family} seed {seed}: no <runs>/{family}/seed-{seed}/mesh.npz "
+                         f"(population.py --families {family} --seeds {seed} --runs DIR "
+                         "makes it)")
+            d = plant_pieces(found[0], params, args.cache)
+            runs.append(found[0])
+            plants.append(d)
+            print(f"{family} {seed}: {len(d['classes'])} pieces, leaf/join/debris "
+                  f"{np.bincount(d['classes'], minlength=3).tolist()} "
+                  f"({time.time() - t0:.0f} s)", flush=True)
     booster = train(plants)
-    pc.save_model(booster, training_config(args.family, seeds), args.out)
-    print(f"model written to {args.out} ({time.time() - t0:.0f} s)")
+    pc.save_model(booster, training_config(plants_of), out_file)
+    print(f"model written to {out_file} ({time.time() - t0:.0f} s)")
+    texts = []
     if args.loo:
-        text = leave_one_out(runs, plants, recipe, args.cache / "loo")
-        print(text)
+        texts += ["## Leave one plant out", "",
+                  held_out(runs, plants, list(range(len(runs))), args.recipe_dir,
+                           args.cache / "loo")]
+    if args.validate:
+        texts += ["## Leave one family out", "",
+                  held_out(runs, plants, [r.parent.name for r in runs], args.recipe_dir,
+                           args.cache / "lofo")]
+    if texts:
+        print("\n".join(texts))
         if args.report:
-            args.report.write_text(text + "\n")
+            args.report.write_text("\n".join(texts) + "\n")
     return 0
 
 

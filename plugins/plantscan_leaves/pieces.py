@@ -321,14 +321,18 @@ def save_model(booster, config: dict, path: Path) -> None:
 
 @lru_cache(maxsize=4)
 def load_model(path: str | None = None) -> PieceModel:
-    """The piece model at ``path`` (``scripts/train_piece_model.py --out`` writes it); None:
-    the one shipped in ``plantscan_leaves/models``.  Loaded once per process and path."""
+    """The piece model at ``path`` (``scripts/train_piece_model.py --out`` writes it): None,
+    the one shipped in ``plantscan_leaves/models`` (``MODEL_FILE``); a file name without a
+    folder, another model shipped there (as a recipe names one: ``piece_model_all.json.gz``);
+    else a file path (``./my_model.json.gz`` in the working folder).  Loaded once per process
+    and path."""
     import lightgbm as lgb
 
     from plantscan_core.errors import DataError
 
-    where = (resources.files("plantscan_leaves") / "models" / MODEL_FILE if path is None
-             else Path(path))
+    shipped = resources.files("plantscan_leaves") / "models"
+    where = (shipped / MODEL_FILE if path is None
+             else shipped / path if "/" not in path else Path(path))
     try:
         body = json.loads(gzip.decompress(where.read_bytes()).decode())
     except (OSError, ValueError) as exc:

@@ -168,8 +168,10 @@ class CurvatureRegionsParams(StageParams):
                     "fragment (joined to the leaf piece it borders most) or debris (phantom "
                     "volume, crumbs: labelled debris, never counted as leaf)")
     piece_model: str | None = Field(
-        None, description="path of another piece model (scripts/train_piece_model.py --out "
-                          "writes one); None: the model shipped in the package")
+        None, description="another piece model (scripts/train_piece_model.py --out writes "
+                          "one): a file name without a folder is a model shipped in the "
+                          "package (piece_model_all.json.gz: trained on every family), else "
+                          "a path; None: the shipped dicot model (piece_model.json.gz)")
     ground_band_mm: float = Field(
         12.0, ge=0,
         description="leaf-like pieces lying entirely this close to the bottom of the mesh are "
