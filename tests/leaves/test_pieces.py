@@ -54,20 +54,49 @@ def lumpy_plant():
     return plant, mesh, plant.part_of(c), in_lump
 
 
-def test_the_shipped_model_is_what_the_training_script_trains():
-    # the model in the package records the configuration it was trained with (seeds, label
-    # rules, booster parameters, features); it must be this script's, so retraining with
-    # the script's defaults gives back the shipped model
+def _training_script():
     spec = importlib.util.spec_from_file_location(
         "train_piece_model", pc.__file__.replace("plugins/plantscan_leaves/pieces.py",
                                                  "scripts/train_piece_model.py"))
     script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(script)
-    model = pc.load_model()
-    config = script.training_config("dicot", list(range(8)))
-    assert all(s < 1000 for s in model.config["seeds"])  # development seeds only
-    assert model.config == config
-    assert model.config_sha256 == pc.config_sha256(config)
+    return script
+
+
+def test_the_shipped_models_are_what_the_training_script_trains():
+    # every model in the package records the configuration it was trained with (plants,
+    # label rules, booster parameters, features); it must be the script's for that file, so
+    # retraining with the script (--model FILE) gives back the shipped model
+    script = _training_script()
+    assert pc.MODEL_FILE in script.SHIPPED
+    for name, plants in script.SHIPPED.items():
+        model = pc.load_model(None if name == pc.MODEL_FILE else name)
+        config = script.training_config(plants)
+        assert model.config == config, name
+        assert model.config_sha256 == pc.config_sha256(config), name
+        seeds = script.trained_seeds(model.config)
+        assert seeds == plants and all(s < 1000 for v in seeds.values() for s in v), name
+
+
+def test_the_recipes_judge_with_a_shipped_model():
+    # a family recipe with the judge on names a model the package ships (piece_model: a
+    # file name in plantscan_leaves/models, or none: the dicot model), trained on that
+    # family's development plants among others
+    from plantscan_core.recipe import read_recipe_file
+
+    script = _training_script()
+    judged = {}
+    for recipe in sorted((script.REPO / "recipes").glob("*.yaml")):
+        params = read_recipe_file(recipe).get("segment_mesh", {}).get("params") or {}
+        if params.get("judge_pieces"):
+            judged[recipe.stem] = params.get("piece_model") or pc.MODEL_FILE
+    assert judged.get("dicot") == pc.MODEL_FILE  # the session-12 model, unchanged
+    for family, name in judged.items():
+        assert name in script.SHIPPED, (family, name)
+        model = pc.load_model(None if name == pc.MODEL_FILE else name)
+        assert model.config == script.training_config(script.SHIPPED[name]), family
+        if family in ("dicot", "branched", "grass"):  # the population families
+            assert family in script.trained_seeds(model.config), (family, name)
 
 
 def test_a_model_for_other_features_is_refused(tmp_path):
