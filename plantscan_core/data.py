@@ -620,6 +620,31 @@ class Silhouettes:
 
 
 # --------------------------------------------------------------------------- volumes and meshes
+@dataclass(frozen=True)
+class CarvingViews:
+    """Where the cameras stood that carved a hull, and how tolerant the carve was.
+
+    What a mesher may know of the views (the cone over the pot's opening that no
+    view carves follows from them).
+
+    Attributes
+    ----------
+    centres_mm : (V, 3) float64 array, mm, turntable frame
+        The camera centre of every plant view (the view's turntable angle applied).
+    k : int
+        A voxel stays in the hull while at most ``k`` views see it outside.
+    """
+
+    centres_mm: np.ndarray
+    k: int = 0
+
+    @classmethod
+    def of(cls, silhouettes: Silhouettes, calibration: Calibration, k: int = 0) -> CarvingViews:
+        """The views of ``silhouettes`` placed by ``calibration``."""
+        return cls(np.array([calibration.camera_for_view(s.view).pose.centre
+                             for s in silhouettes], dtype=float).reshape(-1, 3), int(k))
+
+
 # Side (voxels) of the blocks of a ``BlockField``: the octree's top cells and the mesher's
 # marching-cubes blocks have the same side, so each is one block.
 FIELD_BLOCK = 32

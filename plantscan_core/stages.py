@@ -31,6 +31,7 @@ import numpy as np
 from plantscan_core.bounds import CheckedModel
 from plantscan_core.data import (
     Calibration,
+    CarvingViews,
     LabelledMesh,
     Mesh,
     Silhouettes,
@@ -412,8 +413,12 @@ class Mesher(Stage):
     stage = "mesher"
 
     @abc.abstractmethod
-    def mesh(self, volume: Volume) -> Mesh:
-        """Watertight surface of the plant (pot removed) from ``volume``."""
+    def mesh(self, volume: Volume, views: CarvingViews | None = None) -> Mesh:
+        """Watertight surface of the plant (pot removed) from ``volume``.
+
+        ``views`` (the run passes them) are the cameras that carved ``volume``:
+        what no view could carve (the cone over the pot's opening) follows from them.
+        """
 
 
 class MeshSegmenter(Stage):

@@ -31,6 +31,7 @@ import numpy as np
 
 from plantscan_core.data import (
     Calibration,
+    CarvingViews,
     LabelledMesh,
     Mesh,
     Silhouette,
@@ -433,7 +434,10 @@ def _load_plan(run: StepRun) -> ViewPlan:
 
 # --------------------------------------------------------------------------- mesh, leaves
 def _mesh(plugin: Mesher, run: StepRun) -> Mesh:
-    mesh = plugin.mesh(run.results["volume"])
+    hull = run.result.reports.get("reconstruct")
+    views = CarvingViews.of(run.results["silhouettes"], run.results["calibration"],
+                            hull.counts.get("k", 0) if hull is not None else 0)
+    mesh = plugin.mesh(run.results["volume"], views)
     mesh.save(run.path("mesh.npz"))
     write_ply(run.path("mesh.ply"), mesh)
     return mesh
@@ -480,7 +484,7 @@ CORE_STEPS: tuple[Step, ...] = (
          needs=("calibration", "silhouettes", "volume"), files=_files(PLAN_JSON),
          scan_inputs=_plan_inputs),
     Step("mesh", Mesher, "mesh", _mesh, lambda run: Mesh.load(run.path("mesh.npz")),
-         needs=("volume",), files=_files("mesh.npz")),
+         needs=("calibration", "silhouettes", "volume"), files=_files("mesh.npz")),
     Step("segment_mesh", MeshSegmenter, "labelled", _segment_mesh,
          lambda run: LabelledMesh.load(run.path("labelled.npz")),
          needs=("mesh",), files=_files("labelled.npz")),

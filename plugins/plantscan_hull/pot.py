@@ -31,7 +31,7 @@ from pydantic import Field
 from scipy import ndimage
 
 from plantscan_core.bounds import CheckedModel
-from plantscan_core.data import Volume
+from plantscan_core.data import CarvingViews, Volume
 from plantscan_hull.fields import read_box, write_box, z_profile
 
 # A slice is disc-like when its area fills this fraction of the disc through its
@@ -324,6 +324,112 @@ def fit_cap(volume: Volume, pot: TaperedCylinder) -> TaperedCylinder | None:
         z_bottom_mm=float(pot.z_top_mm), z_top_mm=float(z_top),
         r_bottom_mm=float(min(slope * pot.z_top_mm + intercept, r_rim)),
         r_top_mm=float(stem), centre_xy_mm=(float(centre[0]), float(centre[1])))
+
+
+def _hidden_views(points: np.ndarray, centres: np.ndarray,
+                  targets: list[TaperedCylinder]) -> np.ndarray:
+    """How many views see each point against a target's top (the pot's opening, a carrier).
+
+    A view sees ``P`` against a cylinder when the ray from its centre through ``P``
+    crosses the cylinder's top plane (ahead of the camera) within its widest radius:
+    past the point, descending, or in front of it from below (through the pot).
+
+    Parameters
+    ----------
+    points : (N, 3) float64 array, mm, turntable frame
+    centres : (V, 3) float64 array, mm, turntable frame
+    targets : the cylinders the masks hold (pot, carrier)
+
+    Returns
+    -------
+    (N,) int array, views
+    """
+    d = points[:, None, :] - centres[None, :, :]            # (N, V, 3): the ray at t = 1
+    hidden = np.zeros(d.shape[:2], dtype=bool)
+    for c in targets:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (c.z_top_mm - centres[None, :, 2]) / d[:, :, 2]
+        qx = centres[None, :, 0] + t * d[:, :, 0] - c.centre_xy_mm[0]
+        qy = centres[None, :, 1] + t * d[:, :, 1] - c.centre_xy_mm[1]
+        radius = max(c.r_top_mm, c.r_bottom_mm)
+        hidden |= (t > 0) & np.isfinite(t) & (qx * qx + qy * qy <= radius * radius)
+    return hidden.sum(axis=1)
+
+
+def views_cone(views: CarvingViews, cylinders: list[TaperedCylinder],
+               step_mm: float) -> TaperedCylinder | None:
+    """The straight cone over the pot's opening that the views cannot carve; None if none.
+
+    A point over the opening stays in the hull while at most ``views.k`` views see
+    it outside the masks, and every view that sees it against the pot or a carrier
+    (:func:`_hidden_views`) sees it inside them.  That region is found from the
+    cameras: its apex on the pot's axis and, at heights through it, its edge on
+    rays every 5 deg about the axis, each by bisection to ``step_mm`` / 64 (the
+    region is convex for ``k`` 0: one view's is the oblique cone from its centre
+    through the rim).  The cone returned is the tallest straight cone from the
+    whole rim to an apex on the axis inside it: a bound on the cap (:func:`fit_cap`)
+    that no leaf above it can push up.
+
+    Parameters
+    ----------
+    views : CarvingViews
+        The cameras that carved the hull, and its k.
+    cylinders : the fitted pot (the top one) and carrier
+    step_mm : float, mm
+        The voxel size.
+
+    Returns
+    -------
+    TaperedCylinder or None
+        From the rim (``r_bottom_mm`` the rim's radius) to the apex (``r_top_mm``
+        ``step_mm``); None when the cone is less than ``step_mm`` tall (a camera
+        level with the rim).
+    """
+    if not cylinders or len(views.centres_mm) == 0:
+        return None
+    pot = max(cylinders, key=lambda c: c.z_top_mm)
+    centres = np.asarray(views.centres_mm, dtype=float)
+    cx, cy = pot.centre_xy_mm
+    z0, r_rim = pot.z_top_mm, pot.r_top_mm
+    steps = max(1, math.ceil(math.log2(max(r_rim, centres[:, 2].max() - z0) * 64 / step_mm)))
+
+    def inside(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+        pts = np.column_stack([x, y, z])
+        return len(centres) - _hidden_views(pts, centres, cylinders) <= views.k
+
+    # the apex on the axis, between the rim and the highest camera (nothing hides above it)
+    lo, hi = z0, float(centres[:, 2].max())
+    for _ in range(steps):
+        mid = (lo + hi) / 2
+        if inside(np.array([cx]), np.array([cy]), np.array([mid]))[0]:
+            lo = mid
+        else:
+            hi = mid
+    height = lo - z0
+    if height < step_mm:
+        return None
+    # the region's edge at heights through it: the straight cone from the rim must stay
+    # inside, r_rim (1 - h / H) <= edge(h), so H <= h r_rim / (r_rim - edge(h))
+    az = np.deg2rad(np.arange(0.0, 360.0, 5.0))
+    c, sn = np.cos(az), np.sin(az)
+    for h in height * np.linspace(0.05, 0.95, 19):
+        r_lo, r_hi = np.zeros(az.size), np.full(az.size, r_rim)
+        for _ in range(steps):
+            mid = (r_lo + r_hi) / 2
+            ok = inside(cx + mid * c, cy + mid * sn, np.full(az.size, z0 + h))
+            r_lo, r_hi = np.where(ok, mid, r_lo), np.where(ok, r_hi, mid)
+        edge = float(r_lo.min())
+        if edge < r_rim:
+            height = min(height, h * r_rim / (r_rim - edge))
+    return TaperedCylinder(z_bottom_mm=float(z0), z_top_mm=float(z0 + height),
+                           r_bottom_mm=float(r_rim), r_top_mm=float(step_mm),
+                           centre_xy_mm=(float(cx), float(cy)))
+
+
+def bound_cap(cap: TaperedCylinder, bound: TaperedCylinder) -> TaperedCylinder:
+    """``cap`` no taller and no wider at the rim than ``bound`` (:func:`views_cone`)."""
+    return cap.model_copy(update={"z_top_mm": min(cap.z_top_mm, bound.z_top_mm),
+                                  "r_bottom_mm": min(cap.r_bottom_mm, bound.r_bottom_mm)})
 
 
 def remove_cylinders(volume: Volume, cylinders: list[TaperedCylinder],

@@ -11,7 +11,7 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import Field, field_validator
 
-from plantscan_core.data import Calibration, Mesh, Silhouettes, Volume
+from plantscan_core.data import Calibration, CarvingViews, Mesh, Silhouettes, Volume
 from plantscan_core.errors import DataError
 from plantscan_core.preflight import WorkEstimate, WorkPlan, check
 from plantscan_core.stages import Mesher, Reconstructor, StageParams
@@ -24,7 +24,14 @@ from plantscan_hull.meshing import (
     postprocess,
     topology_report,
 )
-from plantscan_hull.pot import TaperedCylinder, fit_cap, fit_pot, remove_cylinders
+from plantscan_hull.pot import (
+    TaperedCylinder,
+    bound_cap,
+    fit_cap,
+    fit_pot,
+    remove_cylinders,
+    views_cone,
+)
 from plantscan_hull.views import prepare_views
 
 log = logging.getLogger(__name__)
@@ -246,6 +253,11 @@ class MarchingCubesMesher(Mesher):
             True, description="also remove the hull's cone over the pot's opening that no "
                               "view carves (every camera sees it against the soil or the pot; "
                               "docs/reconstruction.md)")
+        cap_fit: Literal["bounded", "hull"] = Field(
+            "hull", description="the cap fitted from the hull's slices: 'bounded' no taller and "
+                                "no wider at the rim than the cone the views cannot carve "
+                                "(recorded as cap_views_bound), 'hull' as fitted; without the "
+                                "views (a volume meshed on its own) as fitted")
         pot_margin_mm: float = Field(
             1.5, ge=0, description="removed beyond the pot surface, plus one voxel (the hull's "
                                    "rim is known to a voxel)")
@@ -259,7 +271,7 @@ class MarchingCubesMesher(Mesher):
         target_faces: int | None = Field(None, ge=100,
                                          description="pymeshlab quadric decimation target")
 
-    def mesh(self, volume: Volume) -> Mesh:
+    def mesh(self, volume: Volume, views: CarvingViews | None = None) -> Mesh:
         """Remove pot and carrier from ``volume``, then extract the closed surface."""
         p = self.params
         if p.pot == "auto":
@@ -268,9 +280,13 @@ class MarchingCubesMesher(Mesher):
             cylinders = []
         else:
             cylinders = list(p.pot)
-        cap = None
+        cap = bound = fitted = None
         if p.pot_cap and cylinders:
-            cap = fit_cap(volume, max(cylinders, key=lambda c: c.z_top_mm))
+            fitted = cap = fit_cap(volume, max(cylinders, key=lambda c: c.z_top_mm))
+            if views is not None:  # recorded either way, applied when asked
+                bound = views_cone(views, cylinders, float(volume.voxel_size))
+            if bound is not None and cap is not None and p.cap_fit == "bounded":
+                cap = bound_cap(cap, bound)
         margin = p.pot_margin_mm + float(volume.voxel_size)
         # Pot and specks are removed in the volume's own field and put back afterwards (the
         # volume is the caller's): a copy of the grid is 411 MB of fresh pages at 512^3.
@@ -300,6 +316,9 @@ class MarchingCubesMesher(Mesher):
                   if isinstance(p.pot, str) else "given", "pot_margin_mm": margin,
                   "pot_voxels_removed": removed,
                   "cap": None if cap is None else cap.model_dump(),
+                  "cap_fitted": None if fitted is None else fitted.model_dump(),
+                  "cap_views_bound": None if bound is None else bound.model_dump(),
+                  "cap_fit": p.cap_fit if views is not None else "hull (no views)",
                   "cap_voxels_removed": cap_removed,
                   "components_dropped": dropped, "topology": topology_report(mesh)}
         self.report.note(report)
