@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import inspect
 import json
 import sys
 import threading
@@ -433,11 +434,19 @@ def _load_plan(run: StepRun) -> ViewPlan:
 
 
 # --------------------------------------------------------------------------- mesh, leaves
+def call_mesher(plugin: Mesher, volume: Volume, views: CarvingViews) -> Mesh:
+    """``plugin.mesh(volume, views)``; a mesher written before the views were passed
+    (``mesh(self, volume)``, docs/plugin-guide.md) is called with the volume alone."""
+    if "views" in inspect.signature(plugin.mesh).parameters:
+        return plugin.mesh(volume, views)
+    return plugin.mesh(volume)
+
+
 def _mesh(plugin: Mesher, run: StepRun) -> Mesh:
     hull = run.result.reports.get("reconstruct")
     views = CarvingViews.of(run.results["silhouettes"], run.results["calibration"],
                             hull.counts.get("k", 0) if hull is not None else 0)
-    mesh = plugin.mesh(run.results["volume"], views)
+    mesh = call_mesher(plugin, run.results["volume"], views)
     mesh.save(run.path("mesh.npz"))
     write_ply(run.path("mesh.ply"), mesh)
     return mesh

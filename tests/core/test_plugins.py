@@ -170,3 +170,20 @@ def test_installed_entry_points_match_pyproject():
 def test_every_default_plugin_loads():
     manager = plugins.load_plugins(strict=False)
     assert manager.failed == [], [f.error for f in manager.failed]
+
+
+def test_a_mesher_written_before_the_views_were_passed_still_runs():
+    """Meshers now receive the carving views (the cone over the pot no view carves); a
+    lab's mesher with the older ``mesh(self, volume)`` must keep working unchanged."""
+    from plantscan_core.steps import call_mesher
+
+    class Old:
+        def mesh(self, volume):
+            return ("old", volume)
+
+    class New:
+        def mesh(self, volume, views=None):
+            return ("new", volume, views)
+
+    assert call_mesher(Old(), "vol", "views") == ("old", "vol")
+    assert call_mesher(New(), "vol", "views") == ("new", "vol", "views")
