@@ -42,6 +42,14 @@ NOMINAL_DISTANCE = 1000.0  # arbitrary units until the metric scale is known
 # the peak lands 129 deg off; a wrong link must be an error, never a calibration).
 MIN_AZIMUTH_CONTRAST = 8.0
 MIN_SHAPE_PAIRS = 200
+# Two groups sharing the corners of two markers or more are linked on those alone; four
+# (one marker) suffice to check a link made otherwise.  A link after which the markers'
+# corners lie more than this share of the plate's radius apart is contradicted (the
+# virtual grass scan's wrong link: cam0 240 mm and 450 mm off on a 200 mm radius; a
+# right link leaves the initial triangulation's error, a few mm).
+MIN_MARKER_LINK_POINTS = 8
+MIN_MARKER_CHECK_POINTS = 4
+MARKER_CONTRADICTION = 0.1
 
 
 @dataclass
@@ -277,8 +285,9 @@ def link_groups(tracks: Tracks, views: list[SfmView], models: dict[str, CameraMo
     by the plate (``_register_by_shape``).  Groups linked to no posed group
     raise SfmError.
 
-    Returns the poses, a report, and per group linked by shape the pairs of
-    tracks ``(K, 2)`` (its, the other's) found to be the same points.
+    Returns the poses, a report, per group linked by shape the pairs of tracks
+    ``(K, 2)`` (its, the other's) found to be the same points, and the tracks ``(L,)``
+    whose points in two linked groups the link puts apart (to be split by group).
     """
     group_of_view = [v.group for v in views]
     gid = {g: k for k, g in enumerate(sorted(set(group_of_view)))}
@@ -292,18 +301,28 @@ def link_groups(tracks: Tracks, views: list[SfmView], models: dict[str, CameraMo
         own[g] = np.where((spread > 2.0)[:, None], pts, np.nan)
     placed = {ref: poses[ref]}
     links = {}
+    is_marker = np.zeros(tracks.n_tracks, bool)
+    is_marker[tracks.track[tracks.marker_of() >= 0]] = True
+    split: list[np.ndarray] = []
     pending = [g for g in poses if g != ref]
     while pending:
+        # Marker ids name the same corner in every camera without matching, so a pair of
+        # groups sharing enough of them is linked on them alone, before any pair linked by
+        # matched features only (a repeated print matched across cameras can agree on a
+        # wrong link: the virtual grass scan's 301 shared tracks did).
         best = None
         for g in pending:
             for h in placed:
                 both = np.isfinite(own[g][:, 0]) & np.isfinite(own[h][:, 0])
-                if both.sum() >= 8 and (best is None or both.sum() > best[2]):
-                    best = (g, h, int(both.sum()))
+                n_marker = int(np.sum(both & is_marker))
+                rank = (n_marker >= MIN_MARKER_LINK_POINTS, int(both.sum()))
+                if both.sum() >= 8 and (best is None or rank > best[3]):
+                    best = (g, h, int(both.sum()), rank)
         if best is None and plate_diameter_mm is not None:
             found = _register_by_shape(pending, placed, own, plate_diameter_mm)
             if found is not None:
                 g, h, n_common, (s, phi, dz, inl), pairs = found
+                _check_markers(g, h, own, is_marker, (s, phi, dz), "3D shape")
                 _place(g, h, s, phi, dz, n_common, inl, poses, placed, links, "3D shape",
                        pairs)
                 pending.remove(g)
@@ -316,15 +335,61 @@ def link_groups(tracks: Tracks, views: list[SfmView], models: dict[str, CameraMo
                 "a print seen from elevations 40 degrees apart); add a tilt or camera between "
                 "them, print texture that both see at a similar angle (the rim and pot "
                 "carrier), or calibrate with a board (calibrate.plugin: turntable)")
-        g, h, n_common = best
+        g, h, n_common, (by_markers, _) = best
         both = np.isfinite(own[g][:, 0]) & np.isfinite(own[h][:, 0])
-        s, phi, dz, inl = _axial_similarity(own[g][both], own[h][both])
-        _place(g, h, s, phi, dz, n_common, inl, poses, placed, links, "shared tracks")
+        how = "marker ids" if by_markers else "shared tracks"
+        fit_on = both & is_marker if by_markers else both
+        s, phi, dz, inl = _axial_similarity(own[g][fit_on], own[h][fit_on])
+        _check_markers(g, h, own, is_marker, (s, phi, dz), how)
+        _place(g, h, s, phi, dz, int(fit_on.sum()), inl, poses, placed, links, how)
+        # shared features the link puts apart join different points (of a repeated print):
+        # each group keeps its own part of such a track
+        ids = np.flatnonzero(both & ~is_marker)
+        apart = _link_residuals(own[g][ids], own[h][ids], (s, phi, dz)) > \
+            MARKER_CONTRADICTION * _radius(own[h][fit_on])
+        split.append(ids[apart])
+        links[g][3]["features_split"] = int(apart.sum())
         pending.remove(g)
     info = {"reference": f"{ref[0]}/t{ref[1]}",
             "links": {f"{g[0]}/t{g[1]}": v[3] for g, v in links.items()}}
     merged = {g: v[4] for g, v in links.items() if v[4] is not None}
-    return placed, info, merged
+    return placed, info, merged, np.unique(np.concatenate(split or [np.zeros(0, np.int64)]))
+
+
+def _link_residuals(x: np.ndarray, y: np.ndarray, link: tuple[float, float, float]
+                    ) -> np.ndarray:
+    """Distances (K,) between ``y`` and ``x`` moved by the link ``(s, phi deg, dz)``."""
+    s, phi, dz = link
+    moved = s * x @ rotation_z(phi).T + np.array([0.0, 0.0, dz])
+    return np.linalg.norm(moved - y, axis=1)
+
+
+def _radius(points: np.ndarray) -> float:
+    """Median distance of ``points`` (K, 3) from the axis."""
+    return float(np.median(np.hypot(points[:, 0], points[:, 1])))
+
+
+def _check_markers(g, h, own, is_marker: np.ndarray, link: tuple[float, float, float],
+                   how: str) -> None:
+    """A link that the markers g and h both see do not follow is a named error.
+
+    ``MARKER_CONTRADICTION``: the marker corners' median distance after the link, as a
+    share of their median distance from the axis (the plate's radius, whatever the
+    frame's units)."""
+    both = np.isfinite(own[g][:, 0]) & np.isfinite(own[h][:, 0]) & is_marker
+    if both.sum() < MIN_MARKER_CHECK_POINTS:
+        return
+    y = own[h][both]
+    radius = _radius(y)
+    off = float(np.median(_link_residuals(own[g][both], y, link)))
+    if off > MARKER_CONTRADICTION * radius:
+        raise SfmError(
+            f"the link of {g[0]} tilt {g[1]} to {h[0]} tilt {h[1]} by {how} is contradicted "
+            f"by the {int(both.sum())} marker corners both see: after it they lie "
+            f"{off / radius:.0%} of the plate's radius apart (limit "
+            f"{MARKER_CONTRADICTION:.0%}). The photos' matched features join different "
+            "points of a repeated print, or two printed markers share an id; print the "
+            "marker rows with distinct ids (docs/sfm.md, 'what to print')")
 
 
 def _place(g, h, s, phi, dz, n_common, inl, poses, placed, links, how, pairs=None) -> None:

@@ -28,9 +28,8 @@ def _exact_tracks(truth: Calibration, stops: int, rng):
     """Views and tracks of plate-top, rim and carrier points (the plate 400 mm across, its
     rim 60 mm deep, the carrier 60 mm in radius and 30 mm high), seen where they face the
     camera; the pixels are the exact cameras' projections."""
-    from plantscan_sfm.features import SfmView, Tracks
+    from plantscan_sfm.features import Tracks
 
-    from plantscan_core.data import ViewRecord
 
     n_top, n_rim, n_car = 1200, 600, 200
     r = 200.0 * np.sqrt(rng.uniform(0.09, 0.98, n_top))
@@ -43,6 +42,21 @@ def _exact_tracks(truth: Calibration, stops: int, rng):
     normals = np.concatenate([np.tile([0.0, 0.0, 1.0], (n_top, 1)),
                               np.c_[np.cos(ar), np.sin(ar), np.zeros(n_rim)],
                               np.c_[np.cos(ac), np.sin(ac), np.zeros(n_car)]])
+    views, view, point, uv = _observe(truth, stops, pts, normals)
+    seen = np.bincount(point, minlength=len(pts))[point] >= 2
+    order = np.argsort(point[seen], kind="stable")
+    _, track = np.unique(point[seen][order], return_inverse=True)
+    return views, Tracks(view[seen][order], track, uv[seen][order])
+
+
+def _observe(truth: Calibration, stops: int, pts: np.ndarray, normals: np.ndarray):
+    """Photos of both cameras at ``stops`` turntable stops, and every point ``pts``
+    (N, 3) seen where its surface (``normals``) faces the camera and it falls inside the
+    image: views, then the observations' view (M,), point (M,) and exact pixel (M, 2)."""
+    from plantscan_sfm.features import SfmView
+
+    from plantscan_core.data import ViewRecord
+
     views, obs = [], []
     for k in range(stops):
         for cam in ("cam0", "cam1"):
@@ -57,13 +71,8 @@ def _exact_tracks(truth: Calibration, stops: int, rng):
             inside = np.isfinite(uv).all(1) & (uv[:, 0] > 0) & (uv[:, 0] < SIZE[0] - 1) \
                 & (uv[:, 1] > 0) & (uv[:, 1] < SIZE[1] - 1)
             obs += [(i, t, uv[t]) for t in np.flatnonzero(facing & inside)]
-    view = np.array([o[0] for o in obs])
-    point = np.array([o[1] for o in obs])
-    seen = np.bincount(point, minlength=len(pts))[point] >= 2
-    order = np.argsort(point[seen], kind="stable")
-    _, track = np.unique(point[seen][order], return_inverse=True)
-    uv = np.array([o[2] for o in obs])[seen][order]
-    return views, Tracks(view[seen][order], track, uv)
+    return (views, np.array([o[0] for o in obs]), np.array([o[1] for o in obs]),
+            np.array([o[2] for o in obs]))
 
 
 @pytest.mark.slow
