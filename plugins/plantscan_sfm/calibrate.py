@@ -595,14 +595,12 @@ def _initial_state(views: list[SfmView], tracks: Tracks, sizes: dict[str, tuple[
             focal[g[0]].append(f)
         models = {c: CameraModel(float(np.median(focal[c])), *principal_point(settings, c, (w, h)),
                                  0, 0, w, h) for c, (w, h) in sizes.items()}
-        poses, info["link"], merged, apart = initialise.link_groups(
+        poses, info["link"], merged = initialise.link_groups(
             tracks, views, models, own, commanded,
             settings.plate_diameter_mm if settings.scale == "plate" else None)
-        if merged or len(apart):
-            pairs = np.concatenate(list(merged.values())) if merged else np.zeros((0, 2), int)
-            tracks = relink_tracks(tracks, views, pairs, apart)
-            info["link"]["tracks_merged"] = int(len(pairs))
-            info["link"]["tracks_split"] = int(len(apart))
+        if merged:
+            tracks = merge_tracks(tracks, np.concatenate(list(merged.values())))
+            info["link"]["tracks_merged"] = int(sum(len(m) for m in merged.values()))
         info["source"] = "two-view geometry of turntable neighbours"
     ref = max(groups, key=lambda g: int(np.sum([views[i].group == g for i in tracks.view])))
     poses = _normalise(poses, ref)
@@ -627,23 +625,16 @@ def principal_point(settings: SfmSettings, camera: str, size: tuple[int, int]
     return (size[0] - 1) / 2, (size[1] - 1) / 2
 
 
-def relink_tracks(tracks: Tracks, views: list[SfmView], pairs: np.ndarray,
-                  split: np.ndarray) -> Tracks:
-    """Tracks with each pair ``(a, b)`` of track ids (``pairs`` (K, 2)) made one, and each
-    track of ``split`` (L,) cut into one track per (camera, tilt) (singletons dropped)."""
+def merge_tracks(tracks: Tracks, pairs: np.ndarray) -> Tracks:
+    """Tracks with each pair ``(a, b)`` of track ids (``pairs`` (K, 2)) made one."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
     n = tracks.n_tracks
     g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
     _, label = connected_components(g, directed=False)
-    gid = {grp: k for k, grp in enumerate(sorted({v.group for v in views}))}
-    obs_g = np.array([gid[views[i].group] for i in tracks.view], np.int64)
-    cut = np.isin(tracks.track, split)
-    key = label[tracks.track] * (len(gid) + 1) + np.where(cut, obs_g + 1, 0)
-    _, t = np.unique(key, return_inverse=True)
-    out = tracks.reordered(np.arange(len(tracks.view)), t)
-    return out.subset(np.ones(len(out.view), bool)) if cut.any() else out
+    _, t = np.unique(label[tracks.track], return_inverse=True)
+    return tracks.reordered(np.arange(len(tracks.view)), t)
 
 
 def _orbit_start(views: list[SfmView], tracks: Tracks, motions, group: tuple[str, int],

@@ -285,9 +285,8 @@ def link_groups(tracks: Tracks, views: list[SfmView], models: dict[str, CameraMo
     by the plate (``_register_by_shape``).  Groups linked to no posed group
     raise SfmError.
 
-    Returns the poses, a report, per group linked by shape the pairs of tracks
-    ``(K, 2)`` (its, the other's) found to be the same points, and the tracks ``(L,)``
-    whose points in two linked groups the link puts apart (to be split by group).
+    Returns the poses, a report, and per group linked by shape the pairs of
+    tracks ``(K, 2)`` (its, the other's) found to be the same points.
     """
     group_of_view = [v.group for v in views]
     gid = {g: k for k, g in enumerate(sorted(set(group_of_view)))}
@@ -303,7 +302,6 @@ def link_groups(tracks: Tracks, views: list[SfmView], models: dict[str, CameraMo
     links = {}
     is_marker = np.zeros(tracks.n_tracks, bool)
     is_marker[tracks.track[tracks.marker_of() >= 0]] = True
-    split: list[np.ndarray] = []
     pending = [g for g in poses if g != ref]
     while pending:
         # Marker ids name the same corner in every camera without matching, so a pair of
@@ -342,18 +340,16 @@ def link_groups(tracks: Tracks, views: list[SfmView], models: dict[str, CameraMo
         s, phi, dz, inl = _axial_similarity(own[g][fit_on], own[h][fit_on])
         _check_markers(g, h, own, is_marker, (s, phi, dz), how)
         _place(g, h, s, phi, dz, int(fit_on.sum()), inl, poses, placed, links, how)
-        # shared features the link puts apart join different points (of a repeated print):
-        # each group keeps its own part of such a track
+        # shared features the link puts apart join different points (of a repeated print)
         ids = np.flatnonzero(both & ~is_marker)
-        apart = _link_residuals(own[g][ids], own[h][ids], (s, phi, dz)) > \
-            MARKER_CONTRADICTION * _radius(own[h][fit_on])
-        split.append(ids[apart])
-        links[g][3]["features_split"] = int(apart.sum())
+        links[g][3]["features_apart"] = int(np.sum(
+            _link_residuals(own[g][ids], own[h][ids], (s, phi, dz))
+            > MARKER_CONTRADICTION * _radius(own[h][fit_on])))
         pending.remove(g)
     info = {"reference": f"{ref[0]}/t{ref[1]}",
             "links": {f"{g[0]}/t{g[1]}": v[3] for g, v in links.items()}}
     merged = {g: v[4] for g, v in links.items() if v[4] is not None}
-    return placed, info, merged, np.unique(np.concatenate(split or [np.zeros(0, np.int64)]))
+    return placed, info, merged
 
 
 def _link_residuals(x: np.ndarray, y: np.ndarray, link: tuple[float, float, float]
