@@ -12,8 +12,8 @@ Per scan: SIFT extraction and matching once (timed, shared by both), then
   principal point given (``principal_point_px``, as a lab would from a one-off lens
   calibration; the virtual scanner's, on a virtual scan);
   with ``--compare-track-check`` each variant also with the per-track consistency
-  check (``reject_sigma`` 3; off by default); with ``--board-view`` one more with one board photo per
-  camera (``board``: the scan's calibration photos, the recipe's board);
+  check (``reject_sigma`` 3; off by default); with ``--board-view`` one more with one board
+  photo per camera (``board``: the scan's calibration photos, the recipe's board);
 * COLMAP: ``pycolmap.incremental_mapping`` on the same database (a pose per
   photo, a RADIAL camera per scanner camera), its registered photos and mean
   reprojection error;
