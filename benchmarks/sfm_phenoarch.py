@@ -131,6 +131,7 @@ def compare(cal, lab, dets, boards, data: Path) -> dict:
     import cv2
     from plantscan_calib.phenoarch import load_silhouettes
     from plantscan_hull.stages import MarchingCubesMesher, OctreeHull
+    from plantscan_sim.render import silhouette_mask
     from scipy.optimize import least_squares
 
     from plantscan_core.data import Silhouettes
@@ -161,10 +162,9 @@ def compare(cal, lab, dets, boards, data: Path) -> dict:
         mesh = MarchingCubesMesher(MarchingCubesMesher.Params(pot="none")).mesh(vol)
         per = []
         for s in sils:
-            uv = c.camera_for_view(s.view).project(mesh.vertices)
-            img = np.zeros(s.shape, np.uint8)
-            cv2.fillPoly(img, list(np.round(uv[mesh.faces] * 4).astype(np.int32)), 1, shift=2)
-            h = img.astype(bool)
+            # the exact projection (one triangle at a time: cv2.fillPoly of overlapping
+            # triangles fills by parity, benchmarks/hull.py)
+            h = silhouette_mask(mesh.vertices, mesh.faces, c.camera_for_view(s.view))
             per.append(np.count_nonzero(h & s.mask) / np.count_nonzero(h | s.mask))
         ious[name] = float(np.mean(per))
     out["hull_iou"] = (ious["sfm"], ious["lab"])
