@@ -364,3 +364,48 @@ def mesh_unit(vertices: np.ndarray, faces: np.ndarray) -> float:
     sides = np.concatenate([row_norm(v[faces[:, a]] - v[faces[:, b]])
                             for a, b in ((0, 1), (1, 2), (2, 0))])
     return float(np.median(sides))
+
+
+def triangle_union_mask(triangles: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """(H, W) bool: the pixels whose centre lies in (or on) any of ``triangles``.
+
+    ``triangles`` (T, 3, 2) float, pixel coordinates (x = column, y = row: pixel
+    ``[r, c]`` has its centre at ``(c, r)``); ``shape`` (H, W).  The *union*: a pixel
+    under several triangles is set once.  ``cv2.fillPoly`` given many polygons fills by
+    parity instead, so where two triangles overlap (a leaf over a leaf, seen from above)
+    their overlap is left empty.  Scanline per triangle row: each triangle's span on each
+    pixel row it crosses is added to a per-row difference array, whose running sum counts
+    the triangles over every pixel.
+    """
+    h, w = shape
+    tri = np.asarray(triangles, float)
+    if not len(tri):
+        return np.zeros((h, w), bool)
+    y = tri[:, :, 1]
+    r0 = np.maximum(np.ceil(y.min(axis=1)), 0).astype(np.int64)
+    r1 = np.minimum(np.floor(y.max(axis=1)), h - 1).astype(np.int64)
+    # a triangle with no height covers no area (its edge belongs to its neighbours)
+    rows = np.where(y.max(axis=1) > y.min(axis=1), r1 - r0 + 1, 0)
+    keep = rows > 0
+    tri, r0, rows = tri[keep], r0[keep], rows[keep]
+    # one (triangle, row) pair per span
+    owner = np.repeat(np.arange(len(tri)), rows)
+    row = r0[owner] + (np.arange(len(owner)) - np.repeat(np.cumsum(rows) - rows, rows))
+    lo = np.full(len(owner), np.inf)
+    hi = np.full(len(owner), -np.inf)
+    for a, b in ((0, 1), (1, 2), (2, 0)):
+        xa, ya = tri[owner, a, 0], tri[owner, a, 1]
+        xb, yb = tri[owner, b, 0], tri[owner, b, 1]
+        dy = yb - ya
+        crosses = (dy != 0) & (row >= np.minimum(ya, yb)) & (row <= np.maximum(ya, yb))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x = xa + (row - ya) * (xb - xa) / dy
+        lo = np.where(crosses, np.minimum(lo, x), lo)
+        hi = np.where(crosses, np.maximum(hi, x), hi)
+    c0 = np.maximum(np.ceil(lo), 0).astype(np.int64)
+    c1 = np.minimum(np.floor(hi), w - 1).astype(np.int64)
+    span = c0 <= c1
+    row, c0, c1 = row[span], c0[span], c1[span]
+    diff = np.bincount(row * (w + 1) + c0, minlength=h * (w + 1))
+    diff -= np.bincount(row * (w + 1) + c1 + 1, minlength=h * (w + 1))
+    return np.cumsum(diff.reshape(h, w + 1), axis=1)[:, :w] > 0

@@ -995,16 +995,13 @@ def plant_traits(mesh: Mesh, leaves: list[LeafTraits], pixel_mm: float | None = 
         out["convex_hull_volume_mm3"] = float(ConvexHull(v).volume)
     except Exception as exc:  # flat or degenerate point sets have no hull volume
         log.warning("convex hull volume not measured: %s", exc)
-    import cv2
-
     lo = v[:, :2].min(axis=0) - 2 * pixel_mm
     size = np.ceil((v[:, :2].max(axis=0) + 2 * pixel_mm - lo) / pixel_mm).astype(int) + 1
-    img = np.zeros((int(size[1]), int(size[0])), np.uint8)
     # the top-view shadow of a closed surface is covered by its up-facing triangles alone
     up = mesh.faces[geo.face_cross(v, mesh.faces)[:, 2] >= 0]
-    tri = np.round((v[up][:, :, :2] - lo) / pixel_mm * 16).astype(np.int32)
-    cv2.fillPoly(img, list(tri), 1, lineType=cv2.LINE_8, shift=4)
-    out["projected_area_mm2"] = float(img.sum()) * pixel_mm * pixel_mm
+    shadow = geo.triangle_union_mask((v[up][:, :, :2] - lo) / pixel_mm,
+                                     (int(size[1]), int(size[0])))
+    out["projected_area_mm2"] = float(shadow.sum()) * pixel_mm * pixel_mm
     return out
 
 

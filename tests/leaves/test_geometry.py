@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from plantscan_leaves import phantoms as ph
-from plantscan_leaves.geometry import sort_keys, topology, unique_inverse
+from plantscan_leaves.geometry import sort_keys, topology, triangle_union_mask, unique_inverse
 
 
 @pytest.mark.parametrize("n, bound", [(0, 4), (1, 4), (20_000, 50), (20_000, 2**61)])
@@ -84,3 +84,36 @@ def test_smoothing_shrinkage_of_a_straight_line_is_zero():
     line = np.stack([np.linspace(0.0, 50.0, 200), np.zeros(200), np.zeros(200)], axis=1)
     with np.errstate(all="raise"):
         assert smoothing_shrinkage(line, 5.0, curve_sigma_mm=10.0) == 0.0
+
+
+def _union_reference(triangles: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Every pixel centre tested against every triangle (edge functions, edges included)."""
+    r, c = np.mgrid[: shape[0], : shape[1]]
+    out = np.zeros(shape, bool)
+    for t in triangles:
+        s = np.sign((t[1, 0] - t[0, 0]) * (t[2, 1] - t[0, 1])
+                    - (t[1, 1] - t[0, 1]) * (t[2, 0] - t[0, 0]))
+        if s == 0:
+            continue
+        inside = np.ones(shape, bool)
+        for a, b in ((0, 1), (1, 2), (2, 0)):
+            e = (t[b, 0] - t[a, 0]) * (r - t[a, 1]) - (t[b, 1] - t[a, 1]) * (c - t[a, 0])
+            inside &= s * e >= -1e-9
+        out |= inside
+    return out
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_triangle_union_matches_brute_force(seed):
+    # overlapping triangles of both orientations, some reaching past the image's edges
+    rng = np.random.default_rng(seed)
+    tri = rng.uniform(-4.0, 36.0, (40, 3, 2))
+    tri[:5] = tri[:5].round()  # vertices and edges exactly on pixel centres
+    assert np.array_equal(triangle_union_mask(tri, (30, 33)), _union_reference(tri, (30, 33)))
+
+
+def test_triangle_union_counts_an_overlap_once():
+    # two triangles covering one square: cv2.fillPoly of both (parity) leaves it empty
+    square = np.array([[[2, 2], [20, 2], [20, 20]], [[2, 2], [20, 20], [2, 20]]], float)
+    both = np.concatenate([square, square[:, ::-1]])
+    assert triangle_union_mask(both, (24, 24)).sum() == 19 * 19
