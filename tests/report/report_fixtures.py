@@ -115,14 +115,11 @@ def make_recipe() -> Recipe:
 
 
 def _render_mask(calibration: Calibration, view: ViewRecord, labelled: LabelledMesh) -> np.ndarray:
-    import cv2
+    # the exact projection (cv2.fillPoly of the triangles would fill them by parity)
+    from plantscan_sim.render import silhouette_mask
 
-    cam = calibration.camera_for_view(view)
-    uv = cam.project(labelled.mesh.vertices)
-    mask = np.zeros((240, 320), np.uint8)
-    tris = np.round(uv[labelled.mesh.faces]).astype(np.int32)
-    cv2.fillPoly(mask, list(tris), 1)
-    return mask.astype(bool)
+    mesh = labelled.mesh
+    return silhouette_mask(mesh.vertices, mesh.faces, calibration.camera_for_view(view))
 
 
 def make_scan(root: Path, calibration: Calibration, labelled: LabelledMesh,
