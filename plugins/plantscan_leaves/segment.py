@@ -172,6 +172,15 @@ class CurvatureRegionsParams(StageParams):
                           "one): a file name without a folder is a model shipped in the "
                           "package (piece_model_all.json.gz: trained on every family), else "
                           "a path; None: the shipped dicot model (piece_model.json.gz)")
+    judge_stem_parts: bool = Field(
+        False,
+        description="before the piece judge, a learned judge (plantscan_leaves.stem_parts) "
+                    "looks at the parts of the stem off the straight culms and makes those it "
+                    "calls blades leaf pieces (narrow grass blades are tubes to the rules)")
+    stem_part_model: str | None = Field(
+        None, description="another stem-part model (scripts/train_stem_part_model.py --out "
+                          "writes one): a file name without a folder is a model shipped in "
+                          "the package, else a path; None: the shipped one")
     ground_band_mm: float = Field(
         12.0, ge=0,
         description="leaf-like pieces lying entirely this close to the bottom of the mesh are "
@@ -187,11 +196,13 @@ def _regions_of(nf: int, pairs: np.ndarray, keep: np.ndarray) -> np.ndarray:
 def _grow(labels: np.ndarray, pairs: np.ndarray) -> np.ndarray:
     """Spread labels into unlabelled (-1) faces ring by ring until nothing changes."""
     labels = labels.copy()
-    # only pairs with an unlabelled face can ever change anything
-    pairs = pairs[(labels[pairs[:, 0]] < 0) | (labels[pairs[:, 1]] < 0)]
     a, b = pairs[:, 0], pairs[:, 1]
     while True:
         la, lb = labels[a], labels[b]
+        # only pairs with an unlabelled face can ever change anything: the others leave
+        # (a crease band is crossed in tens of steps, each then over the band's pairs alone)
+        open_ = (la < 0) | (lb < 0)
+        a, b, la, lb = a[open_], b[open_], la[open_], lb[open_]
         to_a = (la < 0) & (lb >= 0)
         to_b = (lb < 0) & (la >= 0)
         if not (to_a.any() or to_b.any()):
@@ -266,6 +277,16 @@ class _Surface:
         self.centroids = geo.face_centroids(mesh.vertices, mesh.faces)
         self.curvature = face_curvature(mesh, topo, p.smoothing_mm)  # (F,) 1/mm, < 0 concave
         self.piece_model = None  # the judge of judge_pieces when not the params' file
+        self.stem_part_model = None  # the judge of judge_stem_parts when not the params' file
+
+    @functools.cached_property
+    def piece_surface(self):
+        """The surface as the learned judges read it (``pieces.PieceSurface``)."""
+        from plantscan_leaves import pieces
+
+        return pieces.PieceSurface(self.mesh.vertices, self.mesh.faces, self.centroids,
+                                   self.normals, self.areas, self.pairs, self.curvature,
+                                   geo.mesh_unit(self.mesh.vertices, self.mesh.faces))
 
     @functools.cached_property
     def spread(self) -> np.ndarray:
@@ -498,15 +519,27 @@ def _pieces_judged(s: _Surface, lab: _Labels) -> None:
     from plantscan_leaves import pieces
 
     model = s.piece_model or pieces.load_model(s.p.piece_model)
-    surface = pieces.PieceSurface(s.mesh.vertices, s.mesh.faces, s.centroids, s.normals,
-                                  s.areas, s.pairs, s.curvature,
-                                  geo.mesh_unit(s.mesh.vertices, s.mesh.faces))
-    verdict, _, _ = pieces.judge(surface, lab.out, lab.n_leaves, model)
+    verdict, _, _ = pieces.judge(s.piece_surface, lab.out, lab.n_leaves, model)
     for k, name in enumerate(pieces.CLASS_NAMES):
         s.report.counts[f"pieces_{name}"] = int(np.count_nonzero(verdict.verdict == k))
     lab.out = verdict.labels.astype(np.int32)
     lab.n_leaves, lab.debris = verdict.n_leaves, verdict.debris
     lab.evidence = pieces.joined_evidence(verdict)
+
+
+def _stem_parts_judged(s: _Surface, lab: _Labels) -> None:
+    """Parts of the stem off the culms that are blades become leaf pieces (``judge_stem_parts``)."""
+    if not s.p.judge_stem_parts:
+        return
+    from plantscan_leaves import stem_parts
+
+    model = s.stem_part_model or stem_parts.load_model(s.p.stem_part_model)
+    ground_z = float(s.mesh.vertices[:, 2].min()) + s.p.ground_band_mm
+    parts = stem_parts.stem_parts(s.piece_surface, lab.out, lab.n_leaves, ground_z)
+    lab.out, lab.n_leaves, n_blades = stem_parts.blades_from_stem(
+        lab.out, lab.n_leaves, parts, model.probabilities(parts))
+    s.report.counts["stem_parts"] = parts.m
+    s.report.counts["stem_parts_to_leaf"] = n_blades
 
 
 PASSES = (
@@ -522,17 +555,20 @@ PASSES = (
     ("touching leaves split", _touching_leaves_split),
     ("broken blades joined", _broken_blades_joined),
     ("bases off culms", _bases_off_culms),
+    ("stem parts judged", _stem_parts_judged),
     ("pieces judged", _pieces_judged),
 )
 """The passes of ``segment_leaves``, in order, each ``(name, fn(surface, labels))``."""
 
 
 def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None,
-                   piece_model=None) -> tuple[LabelledMesh, StageReport]:
+                   piece_model=None, stem_part_model=None) -> tuple[LabelledMesh, StageReport]:
     """Label every face of ``mesh`` as one leaf or the stem (``PASSES`` in turn).
 
     ``piece_model``: the judge of ``judge_pieces`` (anything with ``probabilities(pieces)
-    -> (n, 3)``, ``plantscan_leaves.pieces``; None: the params' file or the shipped one).
+    -> (n, 3)``, ``plantscan_leaves.pieces``; None: the params' file or the shipped one);
+    ``stem_part_model`` likewise the judge of ``judge_stem_parts`` (``probabilities(parts)
+    -> (m,)``, ``plantscan_leaves.stem_parts``).
 
     Returns
     -------
@@ -553,7 +589,7 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None,
         # at once; labels are per face, so they carry back to the mesh as it was
         scaled, report = segment_leaves(Mesh(mesh.vertices * scale, mesh.faces),
                                         p.model_copy(update={"reference_unit_mm": None}),
-                                        piece_model)
+                                        piece_model, stem_part_model)
         report.figures.update(mesh_unit_mm=round(unit, 6), scale_to_reference_unit=round(scale, 6))
         return LabelledMesh(mesh, scaled.face_labels, scaled.kinds, scaled.evidence), report
     if mesh.is_empty:
@@ -569,6 +605,7 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None,
         report.warn("non-manifold", msg)
     surface = _Surface(mesh, topo, p, report)
     surface.piece_model = piece_model
+    surface.stem_part_model = stem_part_model
     lab = _Labels(regions=np.zeros(surface.nf, np.int64))
     for _name, run_pass in PASSES:
         run_pass(surface, lab)
