@@ -309,10 +309,12 @@ def config_sha256(config: dict) -> str:
     return hashlib.sha256(json.dumps(config, sort_keys=True).encode()).hexdigest()
 
 
-def save_model(booster, config: dict, path: Path) -> None:
-    """One gzip'd JSON file: the training config, its hash and the booster's text."""
+def save_model(booster, config: dict, path: Path, feature_names=FEATURE_NAMES,
+               class_names=CLASS_NAMES) -> None:
+    """One gzip'd JSON file: the training config, its hash and the booster's text (the
+    piece judge's features and classes unless given: ``stem_parts`` writes its own)."""
     body = {"config": config, "config_sha256": config_sha256(config),
-            "feature_names": list(FEATURE_NAMES), "classes": list(CLASS_NAMES),
+            "feature_names": list(feature_names), "classes": list(class_names),
             "booster": booster.model_to_string()}
     path.parent.mkdir(parents=True, exist_ok=True)
     # mtime 0: the same model gives the same bytes
@@ -326,23 +328,33 @@ def load_model(path: str | None = None) -> PieceModel:
     folder, another model shipped there (as a recipe names one: ``piece_model_all.json.gz``);
     else a file path (``./my_model.json.gz`` in the working folder).  Loaded once per process
     and path."""
+    booster, body = read_model(path, MODEL_FILE, FEATURE_NAMES, "piece model",
+                               "plantscan_leaves.pieces", "scripts/train_piece_model.py")
+    return PieceModel(booster, body["config"], body["config_sha256"])
+
+
+def read_model(path: str | None, default: str, feature_names: tuple[str, ...], what: str,
+               module: str, script: str) -> tuple[object, dict]:
+    """The LightGBM booster and the body of a model file ``save_model`` wrote: ``path``
+    None is ``default`` shipped in ``plantscan_leaves/models``, a name without a folder
+    another file shipped there, else a path.  A missing file, or one trained on other
+    features than ``feature_names``, is a ``DataError`` naming it and ``script``."""
     import lightgbm as lgb
 
     from plantscan_core.errors import DataError
 
     shipped = resources.files("plantscan_leaves") / "models"
-    where = (shipped / MODEL_FILE if path is None
+    where = (shipped / default if path is None
              else shipped / path if "/" not in path else Path(path))
     try:
         body = json.loads(gzip.decompress(where.read_bytes()).decode())
     except (OSError, ValueError) as exc:
-        raise DataError(f"{where}: piece model missing or unreadable ({exc}); "
-                        "scripts/train_piece_model.py writes it") from exc
-    if tuple(body.get("feature_names", ())) != FEATURE_NAMES:
-        raise DataError(f"{where}: trained on other features than plantscan_leaves.pieces "
-                        "computes; retrain it (scripts/train_piece_model.py)")
-    return PieceModel(lgb.Booster(model_str=body["booster"]), body["config"],
-                      body["config_sha256"])
+        raise DataError(f"{where}: {what} missing or unreadable ({exc}); {script} writes "
+                        "it") from exc
+    if tuple(body.get("feature_names", ())) != feature_names:
+        raise DataError(f"{where}: trained on other features than {module} computes; "
+                        f"retrain it ({script})")
+    return lgb.Booster(model_str=body["booster"]), body
 
 
 def judge(s: PieceSurface, labels: np.ndarray, n: int, model) -> tuple[Verdict, Pieces,

@@ -18,11 +18,8 @@ debris, as it does with the rules' own pieces.
 
 from __future__ import annotations
 
-import gzip
-import json
 from dataclasses import dataclass
 from functools import lru_cache
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -111,35 +108,18 @@ class StemPartModel:
 
 
 def save_model(booster, config: dict, path: Path) -> None:
-    """One gzip'd JSON file, as ``pieces.save_model`` writes the piece judge's."""
-    body = {"config": config, "config_sha256": pc.config_sha256(config),
-            "feature_names": list(FEATURE_NAMES), "classes": list(CLASS_NAMES),
-            "booster": booster.model_to_string()}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_bytes(gzip.compress(json.dumps(body, sort_keys=True).encode(), mtime=0))
+    """One gzip'd JSON file, as the piece judge's (``pieces.save_model``)."""
+    pc.save_model(booster, config, path, FEATURE_NAMES, CLASS_NAMES)
 
 
 @lru_cache(maxsize=4)
 def load_model(path: str | None = None) -> StemPartModel:
     """The stem-part model at ``path``: None, the shipped one (``MODEL_FILE``); a file name
     without a folder, another shipped in ``plantscan_leaves/models``; else a file path."""
-    import lightgbm as lgb
-
-    from plantscan_core.errors import DataError
-
-    shipped = resources.files("plantscan_leaves") / "models"
-    where = (shipped / MODEL_FILE if path is None
-             else shipped / path if "/" not in path else Path(path))
-    try:
-        body = json.loads(gzip.decompress(where.read_bytes()).decode())
-    except (OSError, ValueError) as exc:
-        raise DataError(f"{where}: stem-part model missing or unreadable ({exc}); "
-                        "scripts/train_stem_part_model.py writes it") from exc
-    if tuple(body.get("feature_names", ())) != FEATURE_NAMES:
-        raise DataError(f"{where}: trained on other features than plantscan_leaves.stem_parts "
-                        "computes; retrain it (scripts/train_stem_part_model.py)")
-    return StemPartModel(lgb.Booster(model_str=body["booster"]), body["config"],
-                         body["config_sha256"])
+    booster, body = pc.read_model(path, MODEL_FILE, FEATURE_NAMES, "stem-part model",
+                                  "plantscan_leaves.stem_parts",
+                                  "scripts/train_stem_part_model.py")
+    return StemPartModel(booster, body["config"], body["config_sha256"])
 
 
 def blades_from_stem(labels: np.ndarray, n: int, parts: StemParts, prob: np.ndarray
