@@ -22,6 +22,7 @@ import yaml
 
 
 def time_run(run: Path, recipe: Path, repeat: int) -> list[str]:
+    from plantscan_leaves.geometry import forget_meshes
     from plantscan_leaves.plugin import CurvatureRegions, LeafGeometry
 
     from plantscan_core.data import Mesh
@@ -33,6 +34,7 @@ def time_run(run: Path, recipe: Path, repeat: int) -> list[str]:
         for judge in (False, True):
             p = copy.deepcopy(r["segment_mesh"]["params"])
             p["judge_pieces"] = judge
+            forget_meshes()  # no scene or unit left from the round before
             w0, c0 = time.perf_counter(), time.process_time()
             labelled = CurvatureRegions(CurvatureRegions.Params(**p)).segment(mesh)
             w1, c1 = time.perf_counter(), time.process_time()

@@ -189,9 +189,7 @@ def inward_thickness(mesh: Mesh, faces: np.ndarray) -> np.ndarray:
     import open3d as o3d
 
     v, f = mesh.vertices, mesh.faces
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(v.astype(np.float32)),
-                        o3d.core.Tensor(f.astype(np.uint32)))
+    scene = geo.raycasting_scene(v, f)
     fn, _ = geo.face_normals_areas(v, f[faces])
     centre = geo.face_centroids(v, f[faces])
     eps = 1e-3 * float(np.median(geo.row_norm(v[f[faces, 0]] - v[f[faces, 1]])))  # off the face

@@ -117,3 +117,21 @@ def test_triangle_union_counts_an_overlap_once():
     square = np.array([[[2, 2], [20, 2], [20, 20]], [[2, 2], [20, 20], [2, 20]]], float)
     both = np.concatenate([square, square[:, ::-1]])
     assert triangle_union_mask(both, (24, 24)).sum() == 19 * 19
+
+
+def test_per_mesh_caches_key_on_content():
+    # the segmenter's judge and the measurer share one scene and unit per surface: by its
+    # content, so a copy hits and an edited copy does not
+    from plantscan_leaves.geometry import forget_meshes, mesh_unit, raycasting_scene
+
+    mesh = ph.ellipse_slab_mesh(20.0, 10.0, 2.0, voxel_mm=0.5)
+    v, f = mesh.vertices, mesh.faces
+    forget_meshes()
+    scene = raycasting_scene(v, f)
+    assert raycasting_scene(v.copy(), f.copy()) is scene
+    assert mesh_unit(v.copy(), f) == mesh_unit(v, f)
+    moved = v * 2.0
+    assert raycasting_scene(moved, f) is not scene
+    assert mesh_unit(moved, f) == pytest.approx(2.0 * mesh_unit(v, f))
+    forget_meshes()
+    assert raycasting_scene(v, f) is not scene
