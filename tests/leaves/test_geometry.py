@@ -135,3 +135,25 @@ def test_per_mesh_caches_key_on_content():
     assert mesh_unit(moved, f) == pytest.approx(2.0 * mesh_unit(v, f))
     forget_meshes()
     assert raycasting_scene(v, f) is not scene
+
+
+@pytest.mark.parametrize("case", ["slab", "open", "non-manifold", "shuffled"])
+def test_compiled_topology_matches_the_reference(case):
+    # the same arrays, in the same order, as the numpy reference: every pass downstream
+    # (region growing, smoothing sums) then gives the same labels to the bit
+    from plantscan_leaves.geometry import HAVE_NUMBA, topology_reference
+
+    if not HAVE_NUMBA:
+        pytest.skip("numba not installed: topology is the reference")
+    f = ph.ellipse_slab_mesh(20.0, 10.0, 2.0, voxel_mm=0.5).faces
+    if case == "open":  # borders: edges of one face
+        f = f[: len(f) // 2]
+    elif case == "non-manifold":  # an edge of three and four faces, a duplicated face
+        f = np.vstack([f, [[f[0, 0], f[0, 1], f.max() + 1]], f[:1], f[5:6, ::-1]])
+    elif case == "shuffled":
+        f = np.random.default_rng(3).permutation(f)
+        f = np.roll(f, 1, axis=1)
+    got, want = topology(f), topology_reference(f)
+    for name in ("edges", "face_edges", "edge_face_count", "face_pairs", "pair_edge"):
+        a, b = getattr(got, name), getattr(want, name)
+        assert a.dtype == b.dtype and np.array_equal(a, b), name
