@@ -210,29 +210,33 @@ def _axes_at(points: np.ndarray, keys: np.ndarray, axes: np.ndarray, grid: np.nd
              cell: float) -> np.ndarray:
     """Trilinear interpolation of the oriented cell axes at ``points`` (unit vectors)."""
     lo, dims = grid[:3], grid[3:].astype(np.int64)
-    # a dense key -> cell table (the grid is a leaf's box in cells of several mm: small)
-    lut = np.full(int(np.prod(dims)), -1, np.int64)
-    lut[keys] = np.arange(len(keys))
-
-    def cell_at(ijk: np.ndarray) -> np.ndarray:
-        inside = np.all((ijk >= 0) & (ijk < dims), axis=1)
-        qk = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
-        return np.where(inside, lut[np.where(inside, qk, 0)], -1)
-
+    # a dense key -> cell table (the grid is a leaf's box in cells of several mm: small);
+    # an unoccupied or outside corner reads a zero axis (row nc), which adds nothing
+    nc = len(keys)
+    lut = np.full(int(np.prod(dims)), nc, np.int64)
+    lut[keys] = np.arange(nc)
+    axes0 = np.vstack([axes, np.zeros((1, 3))])
     u = (points - lo) / cell - 0.5
     base = np.floor(u).astype(np.int64)
     frac = u - base
+    weight = (1.0 - frac, frac)  # per corner offset 0 / 1, per axis
+    inside = tuple((base + c >= 0) & (base + c < dims) for c in (0, 1))
+    stride = np.array([dims[1] * dims[2], dims[2], 1])
+    key0 = base @ stride
     out = np.zeros_like(points)
     for corner in np.array(np.meshgrid([0, 1], [0, 1], [0, 1])).reshape(3, -1).T:
-        pos = cell_at(base + corner)
-        w = np.prod(np.where(corner == 1, frac, 1.0 - frac), axis=1)
-        hit = pos >= 0
-        out[hit] += w[hit, None] * axes[pos[hit]]
+        cx, cy, cz = corner
+        ok = inside[cx][:, 0] & inside[cy][:, 1] & inside[cz][:, 2]
+        pos = np.where(ok, lut[np.where(ok, key0 + int(corner @ stride), 0)], nc)
+        w = weight[cx][:, 0] * weight[cy][:, 1] * weight[cz][:, 2]
+        out += w[:, None] * axes0[pos]
     norm = geo.row_norm(out)
     missing = norm < 1e-9
     if missing.any():  # fall back to the own cell's axis (every point's cell is occupied)
-        pos = cell_at(np.floor((points[missing] - lo) / cell).astype(np.int64))
-        out[missing] = axes[np.maximum(pos, 0)]
+        own = np.floor((points[missing] - lo) / cell).astype(np.int64)
+        ok = np.all((own >= 0) & (own < dims), axis=1)
+        pos = np.where(ok, lut[np.where(ok, own @ stride, 0)], nc)
+        out[missing] = axes[np.where(pos < nc, pos, 0)]
         norm[missing] = 1.0
     return out / norm[:, None]
 
