@@ -230,7 +230,8 @@ def test_thick_stem_grown_into_a_leaf_goes_back_to_the_stem():
     is_blade = z > 90.0  # well clear of the junction at z = 80
     is_stem = (z > 3.0) & (z < 70.0)  # the sides, clear of the flat bottom cap
     p = CurvatureRegionsParams(min_leaf_area_mm2=200.0)
-    moved = _stems_in_leaves(topo.face_pairs, np.ones(len(f), bool), centroids,
+    spread = _neighbourhood_spread(centroids, normals, areas, p.stem_scale_mm)
+    moved = _stems_in_leaves(spread, topo.face_pairs, np.ones(len(f), bool), centroids,
                              normals, areas, p)
     # most of the stem's sides go: a face's 3x3x3 block of 3 mm cells sees the ~120 deg of arc
     # a tube-like spread needs for most, not all, placements of the grid on a 9 mm stem (74 %
