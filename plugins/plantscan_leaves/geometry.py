@@ -188,6 +188,54 @@ if HAVE_NUMBA:
         return (edges[:ne].copy(), face_edges.reshape(nf, 3), counts[:ne].copy(),
                 pairs[:npairs].copy(), pair_edge[:npairs].copy())
 
+    @njit(cache=True, nogil=True)
+    def _averaging_kernel(n, links):
+        """``averaging_operator``'s CSR arrays: indptr, indices (descending per row), data."""
+        count = np.ones(n, np.int64)  # the identity
+        for e in range(links.shape[0]):
+            count[links[e, 0]] += 1
+            count[links[e, 1]] += 1
+        start = np.zeros(n + 1, np.int64)
+        for r in range(n):
+            start[r + 1] = start[r] + count[r]
+        cols = np.empty(start[n], np.int64)
+        fill = start[:n].copy()
+        for r in range(n):
+            cols[fill[r]] = r
+            fill[r] += 1
+        for e in range(links.shape[0]):
+            a, b = links[e, 0], links[e, 1]
+            cols[fill[a]] = b
+            fill[a] += 1
+            cols[fill[b]] = a
+            fill[b] += 1
+        indptr = np.zeros(n + 1, np.int64)
+        indices = np.empty(start[n], np.int64)
+        data = np.empty(start[n], np.float64)
+        k = 0
+        for r in range(n):
+            s, e = start[r], start[r + 1]
+            for t in range(s + 1, e):  # descending insertion sort of the row's few columns
+                c = cols[t]
+                u = t - 1
+                while u >= s and cols[u] < c:
+                    cols[u + 1] = cols[u]
+                    u -= 1
+                cols[u + 1] = c
+            inv = 1.0 / (e - s)  # the degree counts repeated links: entries, not columns
+            t = s
+            while t < e:
+                c = cols[t]
+                mult = 0
+                while t < e and cols[t] == c:
+                    mult += 1
+                    t += 1
+                indices[k] = c
+                data[k] = inv * mult
+                k += 1
+            indptr[r + 1] = k
+        return indptr, indices[:k].copy(), data[:k].copy()
+
 
 def row_norm(x: np.ndarray) -> np.ndarray:
     """(N,) Euclidean norm of each row of ``x`` (N, 3) (3-4x faster than ``np.linalg.norm``)."""
@@ -231,18 +279,38 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 def face_adjacency_operator(nf: int, pairs: np.ndarray) -> sparse.csr_matrix:
     """Row-stochastic averaging operator over each face and its edge neighbours."""
-    i = np.concatenate([pairs[:, 0], pairs[:, 1], np.arange(nf)])
-    j = np.concatenate([pairs[:, 1], pairs[:, 0], np.arange(nf)])
-    a = sparse.csr_matrix((np.ones(len(i)), (i, j)), shape=(nf, nf))
-    deg = np.asarray(a.sum(axis=1)).ravel()
-    return sparse.diags(1.0 / deg) @ a
+    return averaging_operator(nf, pairs)
 
 
 def vertex_adjacency_operator(nv: int, edges: np.ndarray) -> sparse.csr_matrix:
     """Row-stochastic averaging operator over each vertex and its 1-ring."""
-    i = np.concatenate([edges[:, 0], edges[:, 1], np.arange(nv)])
-    j = np.concatenate([edges[:, 1], edges[:, 0], np.arange(nv)])
-    a = sparse.csr_matrix((np.ones(len(i)), (i, j)), shape=(nv, nv))
+    return averaging_operator(nv, edges)
+
+
+def averaging_operator(n: int, links: np.ndarray) -> sparse.csr_matrix:
+    """``diags(1 / degree) @ A``, ``A`` the adjacency of ``links`` (L, 2) (a repeated link
+    counts twice) plus the identity: the mean over each node and its neighbours.
+
+    Compiled (``_averaging_kernel``: the rows filled by counting, each row's few columns
+    sorted in place; 0.35-0.6 -> 0.05 s at 1.7 M faces) when numba is there, else
+    ``averaging_operator_reference``: the same arrays, each row's columns in the order
+    scipy's product leaves them (descending), so a smoothing sums every row in the same
+    order and gives the same values to the bit.
+    """
+    links = np.asarray(links, dtype=np.int64).reshape(-1, 2)
+    if not HAVE_NUMBA or n == 0:
+        return averaging_operator_reference(n, links)
+    indptr, indices, data = _averaging_kernel(n, np.ascontiguousarray(links))
+    return sparse.csr_matrix((data, indices, indptr), shape=(n, n))
+
+
+def averaging_operator_reference(n: int, links: np.ndarray) -> sparse.csr_matrix:
+    """``averaging_operator`` with scipy: a sparse matrix of the links, its row sums, their
+    inverse as a diagonal matrix times it (the plain reference the kernel is tested
+    against)."""
+    i = np.concatenate([links[:, 0], links[:, 1], np.arange(n)])
+    j = np.concatenate([links[:, 1], links[:, 0], np.arange(n)])
+    a = sparse.csr_matrix((np.ones(len(i)), (i, j)), shape=(n, n))
     deg = np.asarray(a.sum(axis=1)).ravel()
     return (sparse.diags(1.0 / deg) @ a).tocsr()
 

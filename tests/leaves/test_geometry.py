@@ -157,3 +157,27 @@ def test_compiled_topology_matches_the_reference(case):
     for name in ("edges", "face_edges", "edge_face_count", "face_pairs", "pair_edge"):
         a, b = getattr(got, name), getattr(want, name)
         assert a.dtype == b.dtype and np.array_equal(a, b), name
+
+
+@pytest.mark.parametrize("case", ["faces", "vertices", "repeated"])
+def test_compiled_averaging_operator_matches_the_reference(case):
+    # the same CSR arrays (each row's columns in scipy's product order): smoothing sums
+    # every row in the same order, so curvature and smoothed slabs are the same to the bit
+    from plantscan_leaves.geometry import (
+        HAVE_NUMBA,
+        averaging_operator,
+        averaging_operator_reference,
+    )
+
+    if not HAVE_NUMBA:
+        pytest.skip("numba not installed: the operator is the reference")
+    mesh = ph.ellipse_slab_mesh(20.0, 10.0, 2.0, voxel_mm=0.5)
+    t = topology(mesh.faces)
+    n, links = {"faces": (len(mesh.faces), t.face_pairs),
+                "vertices": (len(mesh.vertices), t.edges),
+                "repeated": (6, np.array([[0, 1], [1, 2], [0, 1], [3, 3], [5, 2]]))}[case]
+    got, want = averaging_operator(n, links), averaging_operator_reference(n, links)
+    for name in ("indptr", "indices", "data"):
+        assert np.array_equal(getattr(got, name), getattr(want, name)), name
+    x = np.random.default_rng(1).normal(size=(n, 3))
+    assert np.array_equal(got @ x, want @ x)
