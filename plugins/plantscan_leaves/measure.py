@@ -194,16 +194,32 @@ def _cell_sheet_axes(points: np.ndarray, normals: np.ndarray, weights: np.ndarra
     w = 1.0 + 1e-6 - np.abs(np.einsum("ij,ij->i", axes[i], axes[j]))
     tree = minimum_spanning_tree(sparse.csr_matrix((w, (i, j)), shape=(nc, nc)))
     tree = tree + tree.T
-    seen = np.zeros(nc, bool)
-    for start in np.argsort(-ev[:, 2]):  # start each tree piece at its strongest cell
-        if seen[start]:
-            continue
-        order, parent = breadth_first_order(tree, int(start), directed=False)
-        seen[order] = True
-        for c in order[1:]:
-            if axes[c] @ axes[parent[c]] < 0:
-                axes[c] = -axes[c]
-    return keys, axes, grid
+    # each piece of the tree hangs from its strongest cell (the first of its cells by
+    # decreasing eigenvalue); one walk from a hub node joined to every such root gives each
+    # cell its parent (a tree's path to its root is unique, so any walk gives the same)
+    _, piece = connected_components(tree, directed=False)
+    by_strength = np.argsort(-ev[:, 2])
+    roots = by_strength[np.unique(piece[by_strength], return_index=True)[1]]
+    t = tree.tocoo()
+    hub = np.full(len(roots), nc)
+    walk = sparse.csr_matrix((np.ones(len(t.row) + 2 * len(roots)),
+                              (np.concatenate([t.row, hub, roots]),
+                               np.concatenate([t.col, roots, hub]))), shape=(nc + 1, nc + 1))
+    parent = breadth_first_order(walk, nc, directed=False)[1][:nc]
+    # a cell flips when its axis opposes its parent's once the parent is oriented: its sign
+    # is its parent's times the sign of their dot product; a cell edge-on to its parent
+    # (dot 0) keeps its axis and starts afresh, as a root does
+    child = np.flatnonzero(parent < nc)
+    dot = np.zeros(nc)
+    dot[child] = np.einsum("ij,ij->i", axes[child], axes[parent[child]])
+    fresh = ~(dot != 0)
+    sign = np.where(fresh | (dot > 0), 1, -1)
+    up = np.where(fresh, -1, parent)
+    while (up >= 0).any():  # signs multiplied along the paths by pointer jumping
+        live = np.flatnonzero(up >= 0)
+        sign[live] = sign[live] * sign[up[live]]
+        up[live] = up[up[live]]
+    return keys, axes * sign[:, None], grid
 
 
 def _axes_at(points: np.ndarray, keys: np.ndarray, axes: np.ndarray, grid: np.ndarray,
@@ -960,10 +976,10 @@ def _radius_graphs(q: np.ndarray, kind: np.ndarray, radius: float
                                 np.concatenate([pairs[:, 1], pairs[:, 0]]))), shape=(n, n))
     pair_of = g_all.data.astype(np.int64) - 1
     g_all.data = w[pair_of]
-    ka, kb = kind[pairs[pair_of, 0]], kind[pairs[pair_of, 1]]
+    ka, kb = kind[pairs[:, 0]], kind[pairs[:, 1]]
     g_a, g_b = g_all.copy(), g_all.copy()
-    g_a.data = np.where((ka != 2) & (kb != 2), g_all.data, np.inf)
-    g_b.data = np.where((ka != 1) & (kb != 1), g_all.data, np.inf)
+    g_a.data = np.where(((ka != 2) & (kb != 2))[pair_of], g_all.data, np.inf)
+    g_b.data = np.where(((ka != 1) & (kb != 1))[pair_of], g_all.data, np.inf)
     return g_all, g_a, g_b
 
 
