@@ -236,6 +236,38 @@ if HAVE_NUMBA:
             indptr[r + 1] = k
         return indptr, indices[:k].copy(), data[:k].copy()
 
+    @njit(cache=True, nogil=True)
+    def _union_kernel(tri, h, w):
+        """``triangle_union_mask``'s (H, W + 1) difference array, span by span."""
+        diff = np.zeros((h, w + 1), np.int64)
+        for t in range(tri.shape[0]):
+            ymin = min(tri[t, 0, 1], tri[t, 1, 1], tri[t, 2, 1])
+            ymax = max(tri[t, 0, 1], tri[t, 1, 1], tri[t, 2, 1])
+            if not ymax > ymin:  # no height, no area
+                continue
+            r0 = np.int64(max(np.ceil(ymin), 0.0))
+            r1 = np.int64(min(np.floor(ymax), float(h - 1)))
+            for row in range(r0, r1 + 1):
+                fr = float(row)
+                lo, hi = np.inf, -np.inf
+                for a in range(3):
+                    b = (a + 1) % 3
+                    xa, ya = tri[t, a, 0], tri[t, a, 1]
+                    xb, yb = tri[t, b, 0], tri[t, b, 1]
+                    dy = yb - ya
+                    if dy != 0 and fr >= min(ya, yb) and fr <= max(ya, yb):
+                        x = xa + (fr - ya) * (xb - xa) / dy
+                        lo = min(lo, x)
+                        hi = max(hi, x)
+                if lo == np.inf or hi == -np.inf:
+                    continue
+                c0 = np.int64(max(np.ceil(lo), 0.0))
+                c1 = np.int64(min(np.floor(hi), float(w - 1)))
+                if c0 <= c1:
+                    diff[row, c0] += 1
+                    diff[row, c1 + 1] -= 1
+        return diff
+
 
 def row_norm(x: np.ndarray) -> np.ndarray:
     """(N,) Euclidean norm of each row of ``x`` (N, 3) (3-4x faster than ``np.linalg.norm``)."""
@@ -592,8 +624,21 @@ def triangle_union_mask(triangles: np.ndarray, shape: tuple[int, int]) -> np.nda
     parity instead, so where two triangles overlap (a leaf over a leaf, seen from above)
     their overlap is left empty.  Scanline per triangle row: each triangle's span on each
     pixel row it crosses is added to a per-row difference array, whose running sum counts
-    the triangles over every pixel.
+    the triangles over every pixel.  Compiled (``_union_kernel``, the same spans from the
+    same float expressions: 1.4 -> 0.1 s for a 1.7 M-face plant's shadow) when numba is
+    there, else ``triangle_union_mask_reference``.
     """
+    h, w = shape
+    tri = np.asarray(triangles, float)
+    if not HAVE_NUMBA or not len(tri):
+        return triangle_union_mask_reference(tri, shape)
+    diff = _union_kernel(np.ascontiguousarray(tri), int(h), int(w))
+    return np.cumsum(diff, axis=1)[:, :w] > 0
+
+
+def triangle_union_mask_reference(triangles: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """``triangle_union_mask`` in numpy, every (triangle, row) span at once (the plain
+    reference the kernel is tested against)."""
     h, w = shape
     tri = np.asarray(triangles, float)
     if not len(tri):

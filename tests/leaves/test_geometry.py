@@ -181,3 +181,20 @@ def test_compiled_averaging_operator_matches_the_reference(case):
         assert np.array_equal(getattr(got, name), getattr(want, name)), name
     x = np.random.default_rng(1).normal(size=(n, 3))
     assert np.array_equal(got @ x, want @ x)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_compiled_triangle_union_matches_the_reference(seed):
+    # the same spans from the same float expressions: the same pixels, also for vertices on
+    # pixel centres, horizontal edges and triangles of no height
+    from plantscan_leaves.geometry import HAVE_NUMBA, triangle_union_mask_reference
+
+    if not HAVE_NUMBA:
+        pytest.skip("numba not installed: the mask is the reference")
+    rng = np.random.default_rng(seed)
+    tri = rng.uniform(-4.0, 36.0, (80, 3, 2))
+    tri[:10] = tri[:10].round()
+    tri[10:14, 1, 1] = tri[10:14, 0, 1]
+    tri[14, :, 1] = tri[14, 0, 1]
+    assert np.array_equal(triangle_union_mask(tri, (30, 33)),
+                          triangle_union_mask_reference(tri, (30, 33)))
