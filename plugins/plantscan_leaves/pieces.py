@@ -159,26 +159,17 @@ def piece_features(s: PieceSurface, labels: np.ndarray, n: int) -> Pieces:
     bounds = np.searchsorted(lab[order], np.arange(m + 1))
     faces_of = [order[bounds[i]:bounds[i + 1]] for i in range(1, m)]
     picked = [_strided(f, GAP_FACES) for f in faces_of]
-    # one tree per piece, built once and asked by every piece that touches no leaf (one tree
-    # of all the others per asking piece built the same points again and again)
-    trees = [cKDTree(s.centroids[p]) if len(p) else None for p in picked]
     for i in range(n):
         if to_leaf[i] > 0:
             nearest[i] = partner[i]
             continue
-        others = [j for j in range(n) if j != i and trees[j] is not None]
-        if not others or not len(picked[i]):
+        others = np.concatenate([picked[j] for j in range(n) if j != i] or [np.zeros(0, int)])
+        if not len(others) or not len(picked[i]):
             gap[i] = np.inf
             continue
-        q = s.centroids[picked[i]]
-        dist = np.full(len(q), np.inf)
-        owner = np.zeros(len(q), np.int64)
-        for j in others:
-            d, _ = trees[j].query(q)
-            closer = d < dist
-            dist[closer], owner[closer] = d[closer], j + 1
-        at = int(np.argmin(dist))
-        gap[i], nearest[i] = float(dist[at]), owner[at]
+        dist, k = cKDTree(s.centroids[others]).query(s.centroids[picked[i]])
+        gap[i] = float(dist.min())
+        nearest[i] = lab[others[k[int(np.argmin(dist))]]]
     reach = (to_leaf > 0) | (gap <= JOIN_REACH_UNITS * u)
     partner = np.where(reach, nearest, 0)
 
