@@ -44,7 +44,12 @@ def warm_up(recipe: dict) -> None:
     import open3d  # noqa: F401
     from plantscan_leaves import geometry, pieces
 
-    geometry.topology(np.array([[0, 1, 2], [0, 2, 3], [0, 3, 1], [1, 3, 2]]))
+    tetra = np.array([[0, 1, 2], [0, 2, 3], [0, 3, 1], [1, 3, 2]])
+    geometry.topology(tetra)
+    for kernel, args in (("averaging_operator", (4, tetra[:, :2])),  # absent before 6c4f266
+                         ("triangle_union_mask", (np.zeros((1, 3, 2)), (2, 2)))):
+        if hasattr(geometry, kernel):
+            getattr(geometry, kernel)(*args)
     pieces.load_model(recipe["segment_mesh"]["params"].get("piece_model"))
 
 
