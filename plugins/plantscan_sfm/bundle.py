@@ -364,12 +364,12 @@ def new_state(views: list[SfmView], models: dict[str, CameraModel],
 def residuals(state: TurntableState, views: list[SfmView], tracks: Tracks) -> np.ndarray:
     """(M, 2) reprojection residuals of every observation, px (NaN behind a camera)."""
     out = np.full((len(tracks.view), 2), np.nan)
-    by_view = defaultdict(list)
-    for k, (i, fixed) in enumerate(zip(tracks.view, tracks.lab_of(), strict=True)):
-        by_view[(int(i), bool(fixed))].append(k)
-    for (i, fixed), ks in by_view.items():
+    group = 2 * tracks.view.astype(np.int64) + tracks.lab_of()   # (photo, lab-fixed)
+    order = np.argsort(group, kind="stable")
+    firsts = np.flatnonzero(np.r_[True, np.diff(group[order]) != 0])
+    for ks in np.split(order, firsts[1:]):
+        i, fixed = divmod(int(group[ks[0]]), 2)
         v = views[i]
-        ks = np.array(ks)
         p = state.poses[v.group]
         # a lab-fixed point is seen at turntable angle 0 in every photo
         theta, stop = (0.0, np.zeros(1)) if fixed else (v.view.angle_deg,
@@ -898,6 +898,10 @@ def _reduced_system(n_cam, track_start, obs_blocks, keep, robust_w, res, jc, jp,
     ent = np.empty(N_LOCAL, np.int64)
     pos = -np.ones(n_cam, np.int64)
     loc = np.empty(n_cam, np.int64)
+    # one triangle of each observation's and each track's symmetric products, in whatever
+    # order its global entries come (an observation's 14 entries are distinct), mirrored
+    # once at the end: half the multiply-adds of the full square
+    half = np.zeros((n_cam, n_cam))
     for t in range(len(track_start) - 1):
         a0, a1 = track_start[t], track_start[t + 1]
         v = np.zeros((3, 3))
@@ -930,14 +934,16 @@ def _reduced_system(n_cam, track_start, obs_blocks, keep, robust_w, res, jc, jp,
                     g[i] += rw * jp[o, r, i] * res[o, r]
                     for j in range(3):
                         v[i, j] += rw * jp[o, r, i] * jp[o, r, j]
-                for k in range(N_LOCAL):
-                    gk = ent[k]
-                    b_vec[gk] += rw * jc[o, r, k] * res[o, r]
-                    u_diag[gk] += rw * jc[o, r, k] * jc[o, r, k]
-                    for m in range(N_LOCAL):
-                        s_mat[gk, ent[m]] += rw * jc[o, r, k] * jc[o, r, m]
-                    for i in range(3):
-                        wmat[pos[gk], i] += rw * jc[o, r, k] * jp[o, r, i]
+            for k in range(N_LOCAL):
+                gk = ent[k]
+                c0, c1 = rw * jc[o, 0, k], rw * jc[o, 1, k]
+                b_vec[gk] += c0 * res[o, 0] + c1 * res[o, 1]
+                u_diag[gk] += c0 * jc[o, 0, k] + c1 * jc[o, 1, k]
+                for m in range(k, N_LOCAL):
+                    half[gk, ent[m]] += c0 * jc[o, 0, m] + c1 * jc[o, 1, m]
+                pk = pos[gk]
+                for i in range(3):
+                    wmat[pk, i] += c0 * jp[o, 0, i] + c1 * jp[o, 1, i]
         for i in range(3):
             v[i, i] += lam * v[i, i] + 1e-12
         vi = np.linalg.inv(v)
@@ -948,13 +954,16 @@ def _reduced_system(n_cam, track_start, obs_blocks, keep, robust_w, res, jc, jp,
             ga = loc[a]
             for i in range(3):
                 b_vec[ga] -= wv[a, i] * g[i]
-            for c in range(n_loc):
-                acc = 0.0
-                for i in range(3):
-                    acc += wv[a, i] * wmat[c, i]
-                s_mat[ga, loc[c]] -= acc
+            for c in range(a, n_loc):
+                half[ga, loc[c]] -= wv[a, 0] * wmat[c, 0] + wv[a, 1] * wmat[c, 1] \
+                    + wv[a, 2] * wmat[c, 2]
         for a in range(n_loc):
             pos[loc[a]] = -1
+    for a in range(n_cam):
+        s_mat[a, a] += half[a, a]
+        for c in range(a + 1, n_cam):
+            s_mat[a, c] += half[a, c] + half[c, a]
+            s_mat[c, a] += half[a, c] + half[c, a]
 
 
 @_jit
@@ -1362,6 +1371,27 @@ ANGLE_SEARCH_STEP_DEG = 0.05
 ANGLE_SEARCH_INLIER_PX = 2.0
 
 
+@_jit
+def _turn_counts(intr, pose, scale, theta_deg, stop_deg, points, uv, inlier_px):
+    """For each stop angle of ``stop_deg`` (K,): the smooth count of ``search_stop_angles``
+    (each observation 1 - (e / inlier_px)^2 where positive) of the points (N, 3) seen at
+    pixels ``uv`` (N, 2) in one photo, the points held; a point behind the camera counts
+    0.  Smooth (1 at 0 px, 0 from the bound on) because the peak of a plain count is a
+    plateau a few steps wide."""
+    out = np.zeros(len(stop_deg))
+    px = np.empty(2)
+    for j in range(len(stop_deg)):
+        acc = 0.0
+        for n in range(len(points)):
+            if not _project(intr, pose, stop_deg[j], scale, points[n], theta_deg, px):
+                continue
+            e2 = ((px[0] - uv[n, 0]) ** 2 + (px[1] - uv[n, 1]) ** 2) / (inlier_px * inlier_px)
+            if e2 < 1.0:
+                acc += 1.0 - e2
+        out[j] = acc
+    return out
+
+
 def search_stop_angles(state: TurntableState, views: list[SfmView], tracks: Tracks,
                        min_gain: float = 1.5) -> dict[str, float]:
     """Stops whose recorded angle is wrong, found by search; ``state.stops`` in place.
@@ -1390,18 +1420,12 @@ def search_stop_angles(state: TurntableState, views: list[SfmView], tracks: Trac
         ks = ks[finite[ks]]
         if not len(ks):
             continue
-        p = state.poses[v.group]
         key = stop_key(v)
-        uv = project_mats(np.repeat(state.intrinsics[v.view.camera][None], k, 0),
-                          np.repeat(rotmats(p[:3]), k, 0), np.repeat(p[None, 3:6], k, 0),
-                          np.repeat(np.eye(3)[None], k, 0), np.zeros((k, 3)),
-                          turn_deg(v.view.angle_deg, state.scale, state.stops[key] + offsets),
-                          state.points[tracks.track[ks]])
-        err = np.linalg.norm(uv - tracks.uv[ks][None], axis=2)
-        # a smooth count (1 at 0 px, 0 from the bound on): the peak of a plain count is
-        # a plateau a few steps wide
-        counts[key] += np.sum(np.clip(1.0 - (err / ANGLE_SEARCH_INLIER_PX) ** 2, 0.0, None),
-                              axis=1)
+        counts[key] += _turn_counts(state.intrinsics[v.view.camera], state.poses[v.group],
+                                    float(state.scale[0]), v.view.angle_deg,
+                                    float(state.stops[key][0]) + offsets,
+                                    state.points[tracks.track[ks]], tracks.uv[ks],
+                                    ANGLE_SEARCH_INLIER_PX)
     moved = {}
     for key, c in counts.items():
         best = int(np.argmax(c))

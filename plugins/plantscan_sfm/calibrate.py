@@ -16,6 +16,7 @@ import math
 import tempfile
 import time
 from collections import Counter, defaultdict
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -260,9 +261,11 @@ def solve_tracks(views: list[SfmView], tracks: Tracks, sizes: dict[str, tuple[in
     first = bundle.BundleOptions(**{**opt.__dict__, "fix_distortion": True,
                                     "fix_principal_point": True, "angle_sigma_deg": None,
                                     "outlier_px": 4.0})
-    starts = focal_starts(state, held_focal)
-    tried, best = [], None
-    for f_start in starts:
+    # The starts are independent and the compiled solver releases the GIL: ``threads`` at a
+    # time.  (Ranking them by a cheaper pass was measured and not kept: docs/sfm.md,
+    # session 15.)
+
+    def solve_from(f_start: dict[str, float]) -> tuple:
         cand = state.copy()
         for cam, f in f_start.items():
             cand.intrinsics[cam][0] = f
@@ -274,12 +277,15 @@ def solve_tracks(views: list[SfmView], tracks: Tracks, sizes: dict[str, tuple[in
         if settings.board_on_turntable and cand.boards:
             cand.board_rig = board_rig_start(cand)
         keep, rep2 = bundle.adjust(cand, views, tracks, opt, keep=keep, rounds=2)
-        cost = truncated_cost(cand, views, tracks)
-        tried.append({"f_start_px": {c: float(f) for c, f in f_start.items()},
-                      "f_px": {c: float(v[0]) for c, v in cand.intrinsics.items()},
-                      "truncated_cost": cost})
-        if best is None or cost < best[0]:
-            best = (cost, cand, keep, rep1, rep2, searched)
+        return truncated_cost(cand, views, tracks), cand, keep, rep1, rep2, searched
+
+    starts = focal_starts(state, held_focal)
+    with ThreadPoolExecutor(max(settings.threads, 1)) as pool:
+        runs = list(pool.map(solve_from, starts))
+    tried = [{"f_start_px": {c: float(f) for c, f in f_start.items()},
+              "f_px": {c: float(v[0]) for c, v in run[1].intrinsics.items()},
+              "truncated_cost": run[0]} for f_start, run in zip(starts, runs, strict=True)]
+    best = min(runs, key=lambda run: run[0])   # the first of equal costs
     _, state, keep, rep1, rep2, searched = best
     rep2.solves = rep1.solves + rep2.solves
     noise_info = None
@@ -590,8 +596,12 @@ def _initial_state(views: list[SfmView], tracks: Tracks, sizes: dict[str, tuple[
             if not motions.get(g):
                 raise SfmError(f"camera {g[0]} tilt {g[1]}: no two photos a few turntable stops "
                                f"apart share enough features. {ADVICE_TEXTURE}")
-            f, own[g], info[f"pose_{g[0]}/t{g[1]}"] = _orbit_start(
-                views, tracks, motions[g], g, sizes[g[0]], settings, g in shared)
+        # each orbit alone, ``threads`` at a time (OpenCV and the compiled solver release
+        # the GIL; OpenCV's RANSAC seeds itself per call)
+        with ThreadPoolExecutor(max(settings.threads, 1)) as pool:
+            orbits = list(pool.map(lambda g: _orbit_start(
+                views, tracks, motions[g], g, sizes[g[0]], settings, g in shared), groups))
+        for g, (f, own[g], info[f"pose_{g[0]}/t{g[1]}"]) in zip(groups, orbits, strict=True):
             focal[g[0]].append(f)
         models = {c: CameraModel(float(np.median(focal[c])), *principal_point(settings, c, (w, h)),
                                  0, 0, w, h) for c, (w, h) in sizes.items()}
