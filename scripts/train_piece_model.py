@@ -72,12 +72,14 @@ TRAINING = {  # what every model is trained with (the plants and recipes: traini
     "join_reach_units": pc.JOIN_REACH_UNITS,
 }
 ALL_MODEL_FILE = "piece_model_all.json.gz"
+GRASS_MODEL_FILE = "piece_model_grass.json.gz"  # the pieces of the grass rules + stem judge
 # every model shipped in plantscan_leaves/models and the development plants it is trained
 # on (the recipes name them with segment_mesh.params.piece_model; the test checks each)
 SHIPPED = {
     pc.MODEL_FILE: {"dicot": list(range(8))},
     ALL_MODEL_FILE: {"dicot": list(range(8)), "branched": list(range(3)),
                      "grass": list(range(3))},
+    GRASS_MODEL_FILE: {"grass": list(range(10))},
 }
 MODELS_DIR = REPO / "plugins" / "plantscan_leaves" / "models"
 
