@@ -47,7 +47,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator
 from scipy import sparse
 from scipy.sparse.csgraph import (
     breadth_first_order,
@@ -125,6 +125,19 @@ class LeafGeometryParams(StageParams):
         0, ge=0, description="plant views this recipe's plants need (the family's protocol): "
                              "fewer flag the plant 'check', fewer than half 'fail' "
                              "(docs/leaves.md, Trust); 0: no check")
+    trust_model: str | None = Field(
+        None, description="a learned trust model (scripts/train_trust_model.py writes one): "
+                          "each leaf's confidence is also at most 1 - the model's probability "
+                          "that its traits are wrong (docs/leaves.md, Trust); a file name "
+                          "without a folder is a model shipped in the package "
+                          "(trust_model_grass.json.gz), else a path; None: the rules alone")
+
+    @field_validator("trust_model")
+    @classmethod
+    def _trust_model_exists(cls, value: str | None) -> str | None:
+        from plantscan_leaves.pieces import check_model_name
+
+        return check_model_name(value, "scripts/train_trust_model.py")
 
     def scales(self, unit_mm: float) -> LeafScales:
         """These parameters with their lengths in mm for a mesh unit of ``unit_mm``."""
@@ -1128,7 +1141,7 @@ def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = No
     _thick_and_outline_checks(labelled, measurements, report, unit)
     leaves = [m.traits for m in measurements]
     traits = Traits(leaves, plant_traits(mesh, leaves, geometry=geometry))
-    _judge(traits, measurements, labelled, p, plant_views, report)
+    _judge(traits, measurements, labelled, p, plant_views, report, unit)
     return traits, measurements, report
 
 
@@ -1158,20 +1171,28 @@ def _thick_and_outline_checks(labelled: LabelledMesh, measurements: list[LeafMea
 
 
 def _judge(traits: Traits, measurements: list[LeafMeasurement], labelled: LabelledMesh,
-           p: LeafGeometryParams, plant_views: int | None, report: StageReport) -> None:
+           p: LeafGeometryParams, plant_views: int | None, report: StageReport,
+           unit_mm: float | None = None) -> None:
     """Each leaf's confidence and the plant's quality flag, into ``traits`` and ``report``."""
-    from plantscan_leaves.trust import REASON_TEXT, leaf_trust, plant_quality
+    from plantscan_leaves.trust import leaf_trust, model_trust, plant_quality, reason_text
 
-    trusts = []
-    for m in measurements:
+    trusts = [leaf_trust(m.traits, labelled.evidence.get(m.traits.leaf_id))
+              for m in measurements]
+    if p.trust_model and measurements:
+        from plantscan_leaves import trust_model as tm
+
+        model = tm.load_model(p.trust_model)
+        x = tm.leaf_features(traits, measurements, labelled, unit_mm
+                             or geo.mesh_unit(labelled.mesh.vertices, labelled.mesh.faces))
+        trusts = [model_trust(t, pb, why)
+                  for t, pb, why in zip(trusts, model.p_bad(x), model.why(x))]
+    for m, t in zip(measurements, trusts):
         leaf = m.traits
-        t = leaf_trust(leaf, labelled.evidence.get(leaf.leaf_id))
         leaf.confidence, leaf.confidence_reasons = t.confidence, ";".join(t.reasons)
         leaf.quality_flag = "check" if t.low else "ok"
-        trusts.append(t)
         if t.low:
             report.warn("low-confidence", f"leaf {leaf.leaf_id}: confidence {t.confidence:.2f}: "
-                        + "; ".join(REASON_TEXT[r] for r in t.reasons), leaf=leaf.leaf_id)
+                        + "; ".join(reason_text(r, t) for r in t.reasons), leaf=leaf.leaf_id)
     debris = [k for k, kind in labelled.kinds.items() if kind == "debris"]
     # the debris faces' areas only (the whole plant's cost 0.3-0.9 s at 1.7 M faces)
     on_debris = labelled.mesh.faces[np.isin(labelled.face_labels, debris)]

@@ -333,6 +333,24 @@ def load_model(path: str | None = None) -> PieceModel:
     return PieceModel(booster, body["config"], body["config_sha256"])
 
 
+def model_location(path: str | None, default: str):
+    """Where a model file named as a recipe names it is: ``path`` None is ``default``
+    shipped in ``plantscan_leaves/models``, a name without a folder another file shipped
+    there, else a path."""
+    shipped = resources.files("plantscan_leaves") / "models"
+    return (shipped / default if path is None
+            else shipped / path if "/" not in path else Path(path))
+
+
+def check_model_name(value: str | None, script: str) -> str | None:
+    """A recipe's model field checked when the recipe is read (before any motor moves): a
+    file that is neither shipped nor on disk is a ``ValueError`` naming it and ``script``."""
+    if value is not None and not model_location(value, value).is_file():
+        raise ValueError(f"model file {value!r} not found (neither shipped in "
+                         f"plantscan_leaves/models nor a file there); {script} writes one")
+    return value
+
+
 def read_model(path: str | None, default: str, feature_names: tuple[str, ...], what: str,
                module: str, script: str) -> tuple[object, dict]:
     """The LightGBM booster and the body of a model file ``save_model`` wrote: ``path``
@@ -343,9 +361,7 @@ def read_model(path: str | None, default: str, feature_names: tuple[str, ...], w
 
     from plantscan_core.errors import DataError
 
-    shipped = resources.files("plantscan_leaves") / "models"
-    where = (shipped / default if path is None
-             else shipped / path if "/" not in path else Path(path))
+    where = model_location(path, default)
     try:
         body = json.loads(gzip.decompress(where.read_bytes()).decode())
     except (OSError, ValueError) as exc:

@@ -46,7 +46,7 @@ import functools
 import logging
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator
 from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
@@ -187,6 +187,15 @@ class CurvatureRegionsParams(StageParams):
         description="leaf-like pieces lying entirely this close to the bottom of the mesh are "
                     "remnants of the pot cut / soil, not leaves (0 for rosettes lying on the "
                     "soil), mm")
+
+    @field_validator("piece_model", "stem_part_model")
+    @classmethod
+    def _model_exists(cls, value: str | None, info) -> str | None:
+        from plantscan_leaves.pieces import check_model_name
+
+        script = ("scripts/train_piece_model.py" if info.field_name == "piece_model"
+                  else "scripts/train_stem_part_model.py")
+        return check_model_name(value, script)
 
 
 def _regions_of(nf: int, pairs: np.ndarray, keep: np.ndarray) -> np.ndarray:

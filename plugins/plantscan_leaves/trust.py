@@ -13,6 +13,9 @@ measured conditions, each with its threshold and why (docs/leaves.md, "Trust"):
   unsure of (probability under ``WEAK_MERGE``);
 * ``small``: under ``SMALL_LEAF_UNITS2`` mesh units squared (a few voxels across: its
   outline and length are a few voxels' worth of hull);
+* ``model``: a learned trust model (``plantscan_leaves.trust_model``, when the recipe's
+  ``measure`` names one) gives the leaf a probability over 0.5 of being measured more than
+  10 % off, merged, split or not a leaf; its confidence is the lower of the two;
 * ``shape``: a leaf whose area is not what its length and width allow (area / (length x
   width) outside ``FILL_RANGE``: a flat leaf's planform fills 0.5-0.8 of its bounding
   rectangle, a grass blade 0.6-0.8, an ellipse pi/4).
@@ -46,6 +49,7 @@ class Trust:
 
     confidence: float
     reasons: list[str] = field(default_factory=list)
+    model_why: list[str] = field(default_factory=list)  # the trust model's top features
 
     @property
     def low(self) -> bool:
@@ -80,6 +84,27 @@ REASON_TEXT = {
     "small": "a few voxels across: a finer hull measures it",
     "shape": "its area does not fit its length and width",
 }
+
+
+def model_trust(rules: Trust, p_bad: float, why: list[str]) -> Trust:
+    """The rules' trust with a trust model's (``plantscan_leaves.trust_model``): the lower
+    confidence of the two; the reason ``model`` when the model's is under ``LOW_CONFIDENCE``
+    (``why``: the features that raised its doubt most, for the message)."""
+    conf = round(1.0 - float(p_bad), 3)
+    if conf >= LOW_CONFIDENCE:
+        return Trust(min(rules.confidence, conf), rules.reasons)
+    return Trust(min(rules.confidence, conf), [*rules.reasons, "model"], list(why))
+
+
+def reason_text(reason: str, trust: Trust) -> str:
+    """The words of one reason code of ``trust`` (``model`` names its features)."""
+    if reason != "model":
+        return REASON_TEXT[reason]
+    from plantscan_leaves.trust_model import FEATURE_TEXT
+
+    words = " and ".join(FEATURE_TEXT[f] for f in trust.model_why) or "its features together"
+    return ("leaves like it on the virtual scanner's plants were measured more than 10 % off "
+            f"(the trust model; mostly from {words})")
 
 
 def plant_quality(trusts: list[Trust], debris_share: float, plant_views: int | None,

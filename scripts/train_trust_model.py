@@ -1,0 +1,196 @@
+"""Train the measurer's learned trust model (``measure``'s ``trust_model``) on dev plants.
+
+    python scripts/train_trust_model.py --runs DIR [--runs DIR ...] [--plants grass=0-9]
+        [--recipe-dir recipes] [--out FILE] [--cache DIR] [--loo]
+
+The plants are ``benchmarks/population.py``'s run folders of development seeds (< 1000;
+validation seeds are never trained on), ``DIR/<family>/seed-<n>`` with its ``mesh.npz``
+and the scan's truth.  Every plant's mesh goes through its family recipe's leaf stages
+(``segment_mesh`` and ``measure`` as shipped, without a trust model), the run is evaluated
+against the truth (``plantscan evaluate``'s instance matching), and every measured leaf
+gets the features of ``plantscan_leaves.trust_model`` and a class: **good** when it is
+one truth leaf measured within 10 % on length, width, area and perimeter, **bad**
+otherwise (off by more, merged, a piece of a split leaf, or no truth leaf).  A LightGBM
+binary booster (``BOOSTER_PARAMS``) is trained on all leaves and written with its
+training configuration and the hash of it; the same runs give the same file.  Without
+``--out`` the model goes into the package (``SHIPPED``'s file); ``--loo`` also prints
+leave-one-plant-out figures: the share of bad leaves the rules, the model and both
+together flag, and the share of flagged leaves that are accurate (within 5 %).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "scripts"))
+sys.path.insert(0, str(REPO / "benchmarks"))
+
+from plantscan_leaves import trust_model as tm  # noqa: E402
+from train_piece_model import truth_dir_of  # noqa: E402
+from train_stem_part_model import parse_plants  # noqa: E402
+
+GOOD = ("accurate", "fair")  # leaf_population.leaf_kinds: a truth leaf within 10 %
+BOOSTER_PARAMS = dict(objective="binary", learning_rate=0.05, num_leaves=4, min_data_in_leaf=8,
+                      feature_fraction=0.8, bagging_fraction=0.8, bagging_freq=1,
+                      lambda_l2=2.0, num_threads=1, verbose=-1, seed=0, deterministic=True,
+                      force_row_wise=True)
+ROUNDS = 150
+SHIPPED = {"trust_model_grass.json.gz": {"grass": list(range(10))}}
+MODELS_DIR = REPO / "plugins/plantscan_leaves/models"
+
+
+def training_config(plants: dict[str, list[int]]) -> dict:
+    """What a model trained on ``plants`` ({family: seeds}) records."""
+    return {"plants": {f: list(s) for f, s in plants.items()},
+            "population": "benchmarks/population.py paper-72 1296x864, "
+                          "recipes/<family>.yaml 512^3",
+            "labels": "good: one truth leaf, every trait within 10 %; bad: otherwise",
+            "booster": BOOSTER_PARAMS, "rounds": ROUNDS, "features": list(tm.FEATURE_NAMES)}
+
+
+def leaf_sections(recipe: Path) -> dict:
+    """The family recipe's ``segment_mesh`` and ``measure`` sections, the trust model off."""
+    from plantscan_core.recipe import read_recipe_file
+
+    raw = read_recipe_file(recipe)
+    measure = dict(raw["measure"])
+    measure["params"] = {**(measure.get("params") or {}), "trust_model": None}
+    return {"segment_mesh": raw["segment_mesh"], "measure": measure}
+
+
+def plant_leaves(run_dir: Path, sections: dict, cache: Path) -> dict:
+    """Features, classes and evaluation figures of one run's measured leaves (cached per
+    mesh and recipe sections)."""
+    import leaf_population as lp
+    import population as pop
+    from plantscan_leaves import geometry as geo
+    from plantscan_leaves.measure import measure_plant
+    from plantscan_leaves.trust import leaf_trust
+
+    from plantscan_core.api import build_stage
+    from plantscan_core.data import Mesh
+
+    mesh_file = run_dir / "mesh.npz"
+    key = hashlib.sha256(json.dumps([str(mesh_file), mesh_file.stat().st_size,
+                                     mesh_file.stat().st_mtime, sections,
+                                     training_config({})]).encode()).hexdigest()[:16]
+    path = cache / f"{run_dir.parent.name}-{run_dir.name}-{key}.npz"
+    if path.exists():
+        return dict(np.load(path))
+    info = json.loads((run_dir / "run.json").read_text())
+    views = (info.get("scan_record") or {}).get("views")
+    mesh = Mesh.load(mesh_file)
+    seg = build_stage("mesh_segmenter", sections["segment_mesh"]["plugin"],
+                      sections["segment_mesh"].get("params") or {})
+    mea = build_stage("measurer", sections["measure"]["plugin"],
+                      sections["measure"].get("params") or {})
+    labelled = seg.segment(mesh)
+    traits, measurements, _ = measure_plant(labelled, mea.params, views)
+    out = cache / f"{run_dir.parent.name}-{run_dir.name}-{key}"
+    out.mkdir(parents=True, exist_ok=True)
+    labelled.save(out / "labelled.npz")
+    traits.save(out / "traits.csv", out / "plant_traits.json")
+    evaluation = pop.evaluate_plant(out, truth_dir_of(run_dir))
+    (out / "evaluation.json").write_text(json.dumps(evaluation, indent=1, default=str))
+    kinds = lp.leaf_kinds(evaluation)
+    unit = geo.mesh_unit(mesh.vertices, mesh.faces)
+    ids = np.array([m.traits.leaf_id for m in measurements], np.int64)
+    kind = [kinds.get(int(i), "extra") for i in ids]
+    rules_low = [leaf_trust(m.traits, labelled.evidence.get(m.traits.leaf_id)).low
+                 for m in measurements]
+    d = dict(features=tm.leaf_features(traits, measurements, labelled, unit),
+             classes=np.array([k not in GOOD for k in kind], np.int64),
+             accurate=np.array([k == "accurate" for k in kind]),
+             kinds=np.array(kind), leaf_ids=ids, rules_low=np.array(rules_low, bool))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(path, **d)
+    return d
+
+
+def train(plants: list[dict]):
+    import lightgbm as lgb
+
+    x = np.vstack([d["features"] for d in plants]).astype(np.float64)
+    y = np.concatenate([d["classes"] for d in plants])
+    return lgb.train(BOOSTER_PARAMS, lgb.Dataset(x, y, feature_name=list(tm.FEATURE_NAMES)),
+                     ROUNDS)
+
+
+def flag_figures(bad: np.ndarray, accurate: np.ndarray, low: np.ndarray) -> str:
+    """'bad flagged a/b (p %); flagged accurate c/d (q %)'."""
+    b, f = int(bad.sum()), int(low.sum())
+    bl, fa = int((bad & low).sum()), int((accurate & low).sum())
+    return (f"bad flagged {bl}/{b} ({100 * bl / max(b, 1):.0f} %), flagged that are accurate "
+            f"{fa}/{f} ({100 * fa / max(f, 1):.0f} %)")
+
+
+def leave_one_out(plants: list[dict], names: list[str]) -> str:
+    """Each plant judged by a model trained on the others: rules, model, both."""
+    p_bad = []
+    for i in range(len(plants)):
+        booster = train([d for j, d in enumerate(plants) if j != i])
+        p_bad.append(booster.predict(plants[i]["features"].astype(np.float64), num_threads=1))
+    bad = np.concatenate([d["classes"] for d in plants]).astype(bool)
+    acc = np.concatenate([d["accurate"] for d in plants])
+    rules = np.concatenate([d["rules_low"] for d in plants])
+    model = np.concatenate(p_bad) >= 0.5
+    lines = [f"leaves {len(bad)} of {len(plants)} plants ({', '.join(names)}), bad {bad.sum()}",
+             f"rules: {flag_figures(bad, acc, rules)}",
+             f"model: {flag_figures(bad, acc, model)}",
+             f"both:  {flag_figures(bad, acc, rules | model)}"]
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--runs", action="append", type=Path, required=True)
+    ap.add_argument("--model", default="trust_model_grass.json.gz", choices=sorted(SHIPPED),
+                    help="the shipped model to retrain (its plants: SHIPPED)")
+    ap.add_argument("--plants", action="append", default=[], metavar="FAMILY=SEEDS",
+                    help="train on these plants instead (repeat per family; needs --out)")
+    ap.add_argument("--recipe-dir", type=Path, default=REPO / "recipes")
+    ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--cache", type=Path, default=Path("/tmp/plantscan-trust-training"))
+    ap.add_argument("--loo", action="store_true", help="also leave one plant out")
+    args = ap.parse_args(argv)
+    if args.plants and args.out is None:
+        ap.error("--plants: say where the model goes with --out (the shipped models are "
+                 "trained on SHIPPED's plants)")
+    plants_of = parse_plants(args.plants) if args.plants else SHIPPED[args.model]
+    out_file = args.out or MODELS_DIR / args.model
+    t0 = time.time()
+    data, names = [], []
+    for family, seeds in plants_of.items():
+        sections = leaf_sections(args.recipe_dir / f"{family}.yaml")
+        for seed in seeds:
+            run = next((r / family / f"seed-{seed}" for r in args.runs
+                        if (r / family / f"seed-{seed}" / "mesh.npz").exists()), None)
+            if run is None:
+                ap.error(f"{family} seed {seed}: no <runs>/{family}/seed-{seed}/mesh.npz "
+                         f"(population.py --families {family} --seeds {seed} --runs DIR "
+                         "makes it)")
+            d = plant_leaves(run, sections, args.cache)
+            data.append(d)
+            names.append(f"{family} {seed}")
+            print(f"{family} {seed}: {len(d['classes'])} leaves, {int(d['classes'].sum())} bad "
+                  f"({time.time() - t0:.0f} s)", flush=True)
+    booster = train(data)
+    from plantscan_leaves.pieces import save_model
+
+    save_model(booster, training_config(plants_of), out_file, tm.FEATURE_NAMES, tm.CLASS_NAMES)
+    print(f"model written to {out_file} ({time.time() - t0:.0f} s)")
+    if args.loo:
+        print(leave_one_out(data, names))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

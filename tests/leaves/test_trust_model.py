@@ -1,0 +1,105 @@
+"""The learned trust model of the measurer (``measure``'s ``trust_model``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from plantscan_leaves import trust_model as tm
+from plantscan_leaves.measure import LeafGeometryParams, measure_plant
+from plantscan_leaves.trust import LOW_CONFIDENCE, Trust, leaf_trust, model_trust, reason_text
+from pydantic import ValidationError
+
+from plantscan_core.data import LabelledMesh, Mesh
+
+SHIPPED = "trust_model_grass.json.gz"
+
+
+@pytest.fixture(scope="module")
+def measured(mock_plant_measured):
+    labelled, _ = mock_plant_measured
+    traits, measurements, _ = measure_plant(labelled)
+    return labelled, traits, measurements
+
+
+def _features(labelled, traits, measurements):
+    from plantscan_leaves import geometry as geo
+
+    unit = geo.mesh_unit(labelled.mesh.vertices, labelled.mesh.faces)
+    return tm.leaf_features(traits, measurements, labelled, unit)
+
+
+def test_features_are_scale_free(measured):
+    # the same plant modelled in centimetres (every coordinate / 10) must look the same to
+    # the model: a recipe's model then serves a seedling and a grass alike
+    labelled, traits, measurements = measured
+    x_mm = _features(labelled, traits, measurements)
+    cm = LabelledMesh(Mesh(labelled.mesh.vertices / 10.0, labelled.mesh.faces),
+                      labelled.face_labels, labelled.kinds, labelled.evidence)
+    t_cm, m_cm, _ = measure_plant(cm)
+    x_cm = _features(cm, t_cm, m_cm)
+    assert x_mm.shape == (len(measurements), len(tm.FEATURE_NAMES)) == x_cm.shape
+    assert np.isfinite(x_mm).all()
+    # the measurer works in mesh units, so only float rounding differs between the two:
+    # points binned into cells fall on the other side of a cell border now and then, which
+    # moves one leaf's width and outline by up to 0.07 % (measured); 0.5 % is far below
+    # any step the model's trees could take on these ratios
+    np.testing.assert_allclose(x_cm, x_mm, rtol=5e-3, atol=1e-6)
+
+
+def test_edge_contact_shares(measured):
+    # the mock plant's leaves sit on petioles labelled stem: each leaf's edge touches the
+    # stem and nothing else, so its three contact shares are (1, 0, 0)
+    labelled, traits, measurements = measured
+    x = _features(labelled, traits, measurements)
+    c = [tm.FEATURE_NAMES.index(f) for f in ("contact_stem", "contact_leaf", "contact_debris")]
+    np.testing.assert_allclose(x[:, c].sum(axis=1), 1.0)
+    assert (x[:, c[0]] > 0.9).all()
+
+
+def test_shipped_model_is_trained_on_development_seeds_only():
+    model = tm.load_model(SHIPPED)
+    seeds = [s for ss in model.config["plants"].values() for s in ss]
+    assert seeds and max(seeds) < 1000  # validation seeds (>= 1000) are never trained on
+    assert model.config["features"] == list(tm.FEATURE_NAMES)
+
+
+def test_model_adds_doubt_never_removes_it():
+    ruled = Trust(0.3, ["phantom"])
+    assert model_trust(ruled, 0.1, []).confidence == 0.3  # the rules' doubt stays
+    assert model_trust(ruled, 0.1, []).reasons == ["phantom"]
+    t = model_trust(Trust(1.0), 0.8, ["contact_stem", "aspect"])
+    assert t.confidence == pytest.approx(0.2) and t.low and t.reasons == ["model"]
+    words = reason_text("model", t)
+    assert "touches the stem" in words and "width for its length" in words
+    assert not model_trust(Trust(1.0), 0.2, ["aspect"]).low
+
+
+def test_measure_with_the_shipped_model(measured):
+    labelled, _, _ = measured
+    traits, measurements, report = measure_plant(labelled,
+                                                 LeafGeometryParams(trust_model=SHIPPED))
+    model = tm.load_model(SHIPPED)
+    x = _features(labelled, traits, measurements)
+    p_bad = model.p_bad(x)
+    assert ((p_bad >= 0) & (p_bad <= 1)).all()
+    for leaf, pb in zip(traits.leaves, p_bad):
+        rules = leaf_trust(leaf, labelled.evidence.get(leaf.leaf_id))
+        # the lower of the two confidences, and the model named when it is the doubt
+        assert leaf.confidence == pytest.approx(min(rules.confidence, round(1 - pb, 3)))
+        assert ("model" in leaf.confidence_reasons.split(";")) == (1 - pb < LOW_CONFIDENCE)
+        assert leaf.quality_flag == ("check" if leaf.confidence < LOW_CONFIDENCE else "ok")
+    for w in report.warnings_about(code="low-confidence"):
+        leaf = next(lf for lf in traits.leaves if lf.leaf_id == w.leaf)
+        if "model" in leaf.confidence_reasons:
+            assert "trust model" in w.message
+
+
+def test_a_missing_model_is_named_when_the_recipe_is_read():
+    with pytest.raises(ValidationError, match="no_such_model.json.gz.*train_trust_model"):
+        LeafGeometryParams(trust_model="no_such_model.json.gz")
+    from plantscan_leaves.segment import CurvatureRegionsParams
+
+    with pytest.raises(ValidationError, match="nope.json.gz.*train_piece_model"):
+        CurvatureRegionsParams(piece_model="nope.json.gz")
+    with pytest.raises(ValidationError, match="/tmp/absent/m.json.gz.*train_stem_part_model"):
+        CurvatureRegionsParams(stem_part_model="/tmp/absent/m.json.gz")
