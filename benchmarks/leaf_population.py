@@ -166,6 +166,7 @@ def evaluate_variant(name: str, recipe_dir: Path, segmenter: str | None, runs: P
     (a run cut short goes on where it stopped)."""
     plants, leaves = [], []
     confusion: dict[tuple[str, bool], int] = {}
+    by_family: dict[str, dict[tuple[str, bool], int]] = {}
     for family in families:
         sections = leaf_recipe(recipe_dir, family, segmenter)
         for run_dir in sorted((runs / family).glob("seed-*")):
@@ -200,6 +201,8 @@ def evaluate_variant(name: str, recipe_dir: Path, segmenter: str | None, runs: P
             for m, kind in leaf_kinds(evaluation).items():
                 key = (kind, flags.get(m) == "check")
                 confusion[key] = confusion.get(key, 0) + 1
+                fam = by_family.setdefault(family, {})
+                fam[key] = fam.get(key, 0) + 1
             for lr in lrows:
                 lr["quality_flag"] = flags.get(lr["measured_id"], "")
             errs = [max(abs(lr[f"{n}_rel_error"]) for n in pop.TRAITS) for lr in lrows]
@@ -210,7 +213,45 @@ def evaluate_variant(name: str, recipe_dir: Path, segmenter: str | None, runs: P
                   f"extra {row.get('extra')} merged {row.get('merged')} split {row.get('split')}"
                   f" flag {row['quality_flag']} seg {timing['segment_wall_s']:.1f}s "
                   f"meas {timing['measure_wall_s']:.1f}s", flush=True)
-    return plants, leaves, {**trust_figures(leaves, plants), "confusion": confusion}
+    return plants, leaves, {**trust_figures(leaves, plants), "confusion": confusion,
+                            "by_family": by_family}
+
+
+def trust_line(trust: dict) -> str:
+    """The issue's trust figures in one sentence."""
+    def pct(v):
+        return "–" if v != v else f"{100 * v:.0f} %"  # NaN: nothing to count
+
+    return (f"{trust['off']} of {trust['leaves']} matched leaves off by more than 10 % on "
+            f"some trait, {pct(trust['off_marked'])} of them low-confidence; {trust['low']} "
+            f"low-confidence leaves, {pct(trust['low_but_close'])} of them within 5 % on "
+            f"every trait; plants ok / check / fail {trust['flags']['ok']} / "
+            f"{trust['flags']['check']} / {trust['flags']['fail']}, "
+            f"{pct(trust['ok_with_leaf_off_15'])} of the ok plants with a leaf off by more "
+            "than 15 %.")
+
+
+def family_trust_table(plants: list[dict], leaves: list[dict], trust: dict) -> str:
+    """Markdown: the trust figures and the bad leaves flagged, per family."""
+    lines = ["| family | matched leaves | off > 10 % | off flagged | low-confidence | "
+             "low but within 5 % | bad leaves flagged (off, merged, split, extra) | "
+             "plants ok / check / fail | ok plants with a leaf off > 15 % |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for family, counts in sorted(trust["by_family"].items()):
+        t = trust_figures([lf for lf in leaves if lf["family"] == family],
+                          [p for p in plants if p["family"] == family])
+        bad = [k for k, _ in CONFUSION_ROWS if k not in ("accurate", "fair")]
+        b_low = sum(counts.get((k, True), 0) for k in bad)
+        b_all = b_low + sum(counts.get((k, False), 0) for k in bad)
+
+        def pct(v):
+            return "–" if v != v else f"{100 * v:.0f} %"
+
+        lines.append(f"| {family} | {t['leaves']} | {t['off']} | {pct(t['off_marked'])} | "
+                     f"{t['low']} | {pct(t['low_but_close'])} | {b_low} of {b_all} | "
+                     f"{t['flags']['ok']} / {t['flags']['check']} / {t['flags']['fail']} | "
+                     f"{pct(t['ok_with_leaf_off_15'])} |")
+    return "\n".join(lines)
 
 
 def _leaf_flags(run_dir: Path) -> dict[int, str]:
@@ -247,14 +288,8 @@ def main(argv: list[str] | None = None) -> int:
         pop.write_csv(leaves, args.work / f"{name}-leaves.csv")
         seg = np.array([p["segment_wall_s"] + p["measure_wall_s"] for p in plants])
         sections += [f"### `{segmenter}` ({name})", "", pop.tabulate(plants, leaves), "",
-                     f"Trust: {trust['off']} of {trust['leaves']} matched leaves off by more "
-                     f"than 10 % on some trait, {100 * trust['off_marked']:.0f} % of them "
-                     f"low-confidence; {trust['low']} low-confidence leaves, "
-                     f"{100 * trust['low_but_close']:.0f} % of them within 5 % on every trait; "
-                     f"plants ok / check / fail {trust['flags']['ok']} / "
-                     f"{trust['flags']['check']} / {trust['flags']['fail']}, "
-                     f"{100 * trust['ok_with_leaf_off_15']:.0f} % of the ok plants with a leaf "
-                     "off by more than 15 %.", "",
+                     f"Trust: {trust_line(trust)}", "",
+                     "Trust per family:", "", family_trust_table(plants, leaves, trust), "",
                      "Every measured leaf by what it is (against the truth) and whether the "
                      "trust flag marked it low-confidence:", "",
                      confusion_table(trust["confusion"]), "",

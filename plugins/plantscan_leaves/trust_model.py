@@ -31,6 +31,9 @@ FEATURE_NAMES = (
     "fill",                # area / (length x width)
     "outline",             # perimeter / length
     "compactness",         # perimeter^2 / area
+    "outline_vs_ellipse",  # perimeter / the perimeter of the length x width ellipse
+    "extent",              # the leaf's longest extent (principal axis) / length
+    "base_to_stem",        # base point's distance to the nearest stem surface / length
     "chord",               # straight base-tip distance / length (how bent the midrib)
     "thick_share",         # the measurer's share of the area on thick hull
     "thickness_units",     # the leaf's median hull thickness, mesh units (voxels)
@@ -54,6 +57,9 @@ FEATURE_TEXT = {
     "fill": "its area for its length and width",
     "outline": "its perimeter for its length",
     "compactness": "its outline for its area",
+    "outline_vs_ellipse": "its perimeter for its length and width",
+    "extent": "its length against its size",
+    "base_to_stem": "how far its base is from the stem",
     "chord": "how bent its midrib is",
     "thick_share": "thick hull (phantom volume) on it",
     "thickness_units": "its hull thickness",
@@ -113,6 +119,14 @@ def leaf_features(traits, measurements, labelled, unit_mm: float) -> np.ndarray:
     for a, b in ((la, lb), (lb, la)):
         ok = (a >= 0) & (b >= 0)
         np.add.at(edge, (a[ok], kind_code[b[ok]]), 1.0)
+    stem_tree = None
+    if stem and np.isin(labels, stem).any():
+        from scipy.spatial import cKDTree
+
+        on_stem = np.zeros(len(v), bool)
+        on_stem[mesh.faces[np.isin(labels, stem)].ravel()] = True
+        stem_tree = cKDTree(v[on_stem])
+    extents = _extents(mesh, labels, [m.traits.leaf_id for m in measurements])
     areas = np.array([m.traits.area_mm2 for m in measurements], float)
     total = float(traits.plant.get("total_leaf_area_mm2", areas.sum())) or float(areas.sum())
     median_area = float(np.median(areas)) if len(areas) else 1.0
@@ -129,6 +143,10 @@ def leaf_features(traits, measurements, labelled, unit_mm: float) -> np.ndarray:
             area / (length * width) if length * width > 0 else np.nan,
             perim / length if length > 0 else np.nan,
             perim * perim / area if area > 0 else np.nan,
+            perim / _ellipse_perimeter(length, width) if length > 0 else np.nan,
+            extents[i] / length if length > 0 else np.nan,
+            (float(stem_tree.query(base)[0]) / length if stem_tree is not None and length > 0
+             else np.nan),
             float(np.linalg.norm(tip - base)) / length if length > 0 else np.nan,
             t.thick_share,
             m.info.get("median_thickness_mm", np.nan) / unit_mm,
@@ -146,6 +164,29 @@ def leaf_features(traits, measurements, labelled, unit_mm: float) -> np.ndarray:
             ev.get("weakest_merge", 1.0),
         )
     return x
+
+
+def _ellipse_perimeter(length: float, width: float) -> float:
+    """Ramanujan's perimeter of the ellipse with axes ``length`` and ``width``."""
+    a, b = length / 2.0, width / 2.0
+    h = ((a - b) / (a + b)) ** 2 if a + b > 0 else 0.0
+    return float(np.pi * (a + b) * (1.0 + 3.0 * h / (10.0 + np.sqrt(4.0 - 3.0 * h))))
+
+
+def _extents(mesh, labels: np.ndarray, leaf_ids: list[int]) -> np.ndarray:
+    """Each leaf's range along its vertices' principal axis, mm."""
+    out = np.full(len(leaf_ids), np.nan)
+    order = np.argsort(labels, kind="stable")
+    bounds = np.searchsorted(labels[order], [(i, i + 1) for i in leaf_ids])
+    for k, (lo, hi) in enumerate(bounds):
+        if hi - lo < 3:
+            continue
+        pts = mesh.vertices[np.unique(mesh.faces[order[lo:hi]])]
+        c = pts - pts.mean(axis=0)
+        axis = np.linalg.eigh(c.T @ c)[1][:, 2]
+        proj = c @ axis
+        out[k] = float(proj.max() - proj.min())
+    return out
 
 
 @dataclass

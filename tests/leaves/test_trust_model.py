@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from plantscan_leaves import trust_model as tm
@@ -56,11 +58,32 @@ def test_edge_contact_shares(measured):
     assert (x[:, c[0]] > 0.9).all()
 
 
-def test_shipped_model_is_trained_on_development_seeds_only():
-    model = tm.load_model(SHIPPED)
-    seeds = [s for ss in model.config["plants"].values() for s in ss]
-    assert seeds and max(seeds) < 1000  # validation seeds (>= 1000) are never trained on
-    assert model.config["features"] == list(tm.FEATURE_NAMES)
+def test_shipped_models_are_trained_on_development_seeds_only():
+    from importlib import resources
+
+    names = sorted(f.name for f in (resources.files("plantscan_leaves") / "models").iterdir()
+                   if f.name.startswith("trust_model_"))
+    assert SHIPPED in names and "trust_model_all.json.gz" in names
+    for name in names:
+        model = tm.load_model(name)
+        seeds = [s for ss in model.config["plants"].values() for s in ss]
+        assert seeds and max(seeds) < 1000, name  # validation seeds (>= 1000): never
+        assert model.config["features"] == list(tm.FEATURE_NAMES), name
+
+
+def test_every_family_recipe_names_a_shipped_trust_model():
+    # one model per family recipe (the seedling's: the all-family one), read when the
+    # recipe is checked
+    from plantscan_core.recipe import read_recipe_file
+
+    recipes = sorted((Path(__file__).parents[2] / "recipes").glob("*.yaml"))
+    families = ("dicot", "grass", "branched", "rosette", "seedling")
+    named = {r.stem: (read_recipe_file(r)["measure"].get("params") or {}).get("trust_model")
+             for r in recipes if r.stem in families}
+    assert set(named) == set(families)
+    for family, name in named.items():
+        assert name is not None, family
+        LeafGeometryParams(trust_model=name)  # found (the validator names a missing one)
 
 
 def test_model_adds_doubt_never_removes_it():
