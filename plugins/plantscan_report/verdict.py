@@ -203,7 +203,8 @@ def low_confidence(leaf: Any) -> bool:
 # few words for the table; another measurer's codes are shown as they are.
 _REASON_WORDS = {"phantom": "phantom volume", "outline": "perimeter too short for its length",
                  "rejoined": "rejoined from pieces", "small": "few voxels across",
-                 "shape": "area does not fit length × width"}
+                 "shape": "area does not fit length × width",
+                 "model": "leaves like it measured > 10 % off (trust model)"}
 # The warning that repeats a leaf's confidence reasons as a sentence (measure's report).
 _CONFIDENCE_WARNING = "low-confidence"
 

@@ -187,3 +187,17 @@ def test_no_number_on_the_page_is_in_scientific_notation(synthetic_run):
     cells = re.sub(r' class="[^"]*"', "", truth_table)
     assert "<td>total leaf area</td><td>174\u2009012 mm²</td><td>170\u2009004 mm²</td>" in cells
     assert "<td>0.00001</td>" in re.sub(r' class="[^"]*"', "", html)  # d2, 5 decimals
+
+
+def test_every_measurer_reason_code_has_words():
+    # a reason code the leaf-geometry measurer can write (plantscan_leaves/trust.py, the
+    # trust model's "model" among them) reaches the report's table in words, not as a code
+    from plantscan_leaves.trust import REASON_TEXT
+
+    from plantscan_core.data import LeafTraits
+
+    for code in [*REASON_TEXT, "model"]:
+        leaf = LeafTraits(1, 10.0, 2.0, 15.0, 25.0, confidence=0.3, confidence_reasons=code,
+                          quality_flag="check")
+        words = trust.leaf_reasons(leaf, [])
+        assert words and words[0] != code, code
