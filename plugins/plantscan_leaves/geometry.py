@@ -618,6 +618,8 @@ class _MeshCache:
 
 _UNITS = _MeshCache(8)
 _SCENES = _MeshCache(1)  # an Embree scene of a 1.7 M-face plant holds a few hundred MB
+_TOPOLOGIES = _MeshCache(1)  # ~250 MB at 1.7 M faces
+_NO_VERTICES = np.zeros((1, 3))  # the key of a topology: its faces alone
 
 
 def forget_meshes() -> None:
@@ -625,6 +627,22 @@ def forget_meshes() -> None:
     every round from scratch."""
     _UNITS.values.clear()
     _SCENES.values.clear()
+    _TOPOLOGIES.values.clear()
+
+
+def mesh_topology(faces: np.ndarray) -> MeshTopology:
+    """``topology(faces)`` remembered for the last mesh (keyed by the faces alone, as
+    ``mesh_key``): the segmenter and the measurer's trust features ask for the same plant's
+    (0.18 s at 1.7 M faces, against 0.02 s for the key).  Its arrays are read-only: they
+    are shared."""
+    def make() -> MeshTopology:
+        topo = topology(faces)
+        for a in (topo.edges, topo.face_edges, topo.edge_face_count, topo.face_pairs,
+                  topo.pair_edge):
+            a.setflags(write=False)
+        return topo
+
+    return _TOPOLOGIES.get(_NO_VERTICES, faces, make)
 
 
 def mesh_unit(vertices: np.ndarray, faces: np.ndarray) -> float:

@@ -622,7 +622,7 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None,
         log.warning(msg)
         report.warn("empty-mesh", msg)
         return LabelledMesh(mesh, np.zeros(0, np.int32), {}), report
-    topo = geo.topology(mesh.faces)
+    topo = geo.mesh_topology(mesh.faces)
     if topo.non_manifold_edges:
         msg = (f"mesh has {topo.non_manifold_edges} non-manifold edges (used by more than two "
                "faces); they are treated as ordinary connections")

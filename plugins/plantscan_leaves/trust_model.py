@@ -106,7 +106,7 @@ def leaf_features(traits, measurements, labelled, unit_mm: float) -> np.ndarray:
         axis = np.median(v[:, :2], axis=0)
     radius = max(float(np.hypot(*(v[:, :2] - axis).T).max()), 1e-9)
     # what each leaf's edge touches: face pairs across a label change
-    pairs = geo.topology(mesh.faces).face_pairs
+    pairs = geo.mesh_topology(mesh.faces).face_pairs
     la, lb = labels[pairs[:, 0]], labels[pairs[:, 1]]
     cross = la != lb
     la, lb = la[cross], lb[cross]
@@ -178,10 +178,13 @@ def _extents(mesh, labels: np.ndarray, leaf_ids: list[int]) -> np.ndarray:
     out = np.full(len(leaf_ids), np.nan)
     order = np.argsort(labels, kind="stable")
     bounds = np.searchsorted(labels[order], [(i, i + 1) for i in leaf_ids])
+    used = np.zeros(len(mesh.vertices), bool)
     for k, (lo, hi) in enumerate(bounds):
         if hi - lo < 3:
             continue
-        pts = mesh.vertices[np.unique(mesh.faces[order[lo:hi]])]
+        used[:] = False
+        used[mesh.faces[order[lo:hi]].ravel()] = True  # a mask, not np.unique: no sort
+        pts = mesh.vertices[used]
         c = pts - pts.mean(axis=0)
         axis = np.linalg.eigh(c.T @ c)[1][:, 2]
         proj = c @ axis

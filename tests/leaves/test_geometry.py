@@ -137,6 +137,22 @@ def test_per_mesh_caches_key_on_content():
     assert raycasting_scene(v, f) is not scene
 
 
+def test_shared_topology_is_the_topology_and_read_only():
+    # the segmenter and the trust features share one topology per surface (its faces):
+    # the same arrays as ``topology``, and nobody may edit what the other reads
+    from plantscan_leaves.geometry import forget_meshes, mesh_topology, topology
+
+    mesh = ph.ellipse_slab_mesh(20.0, 10.0, 2.0, voxel_mm=0.5)
+    forget_meshes()
+    shared, plain = mesh_topology(mesh.faces), topology(mesh.faces)
+    assert mesh_topology(mesh.faces.copy()) is shared  # a copy of the faces hits
+    for name in ("edges", "face_edges", "edge_face_count", "face_pairs", "pair_edge"):
+        np.testing.assert_array_equal(getattr(shared, name), getattr(plain, name))
+        with pytest.raises(ValueError):
+            getattr(shared, name)[0] = 0
+    assert mesh_topology(mesh.faces[::-1].copy()) is not shared
+
+
 @pytest.mark.parametrize("case", ["slab", "open", "non-manifold", "shuffled"])
 def test_compiled_topology_matches_the_reference(case):
     # the same arrays, in the same order, as the numpy reference: every pass downstream
