@@ -191,15 +191,20 @@ def plant_pieces(run_dir: Path, params: dict, cache: Path) -> dict:
     return d
 
 
-def train(plants: list[dict]):
+def fit_booster(plants: list[dict], feature_names, params: dict, rounds: int):
+    """LightGBM on the plants' ``features`` rows and ``classes`` (every training script's
+    fit: the same data in the same order, so a model is reproducible to the byte)."""
     import lightgbm as lgb
 
     x = np.vstack([d["features"] for d in plants]).astype(np.float64)
     y = np.concatenate([d["classes"] for d in plants])
+    return lgb.train(params, lgb.Dataset(x, y, feature_name=list(feature_names)), rounds)
+
+
+def train(plants: list[dict]):
     # unweighted: balancing the classes (weights 1/frequency, or its square root) made the
     # rare ones take real leaves (leave one plant out, dev seeds 0-7: 5-9 leaves lost, not 2)
-    data = lgb.Dataset(x, y, feature_name=list(pc.FEATURE_NAMES))
-    return lgb.train(BOOSTER_PARAMS, data, ROUNDS)
+    return fit_booster(plants, pc.FEATURE_NAMES, BOOSTER_PARAMS, ROUNDS)
 
 
 def evaluate_labels(run_dir: Path, labels_verdict: pc.Verdict, out: Path, measure_params):
@@ -278,6 +283,9 @@ def parse_plants(specs: list[str]) -> dict[str, list[int]]:
             raise SystemExit(f"--plants {spec!r}: FAMILY=SEEDS with FAMILY one of "
                              f"{', '.join(pop.FAMILIES)}")
         out[family] = pop.parse_seeds(seeds)
+        if any(s >= 1000 for s in out[family]):
+            raise SystemExit(f"--plants {spec!r}: seeds >= 1000 are validation seeds, never "
+                             "trained on")
     return out
 
 

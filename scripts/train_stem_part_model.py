@@ -32,7 +32,12 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "scripts"))
 
 from plantscan_leaves import stem_parts as sp  # noqa: E402
-from train_piece_model import segment_params, truth_dir_of  # noqa: E402
+from train_piece_model import (  # noqa: E402
+    fit_booster,
+    parse_plants,
+    segment_params,
+    truth_dir_of,
+)
 
 ON_LEAF_SHARE = 0.5  # a part mostly on truth leaf surface is a blade
 BOOSTER_PARAMS = dict(objective="binary", learning_rate=0.1, num_leaves=4, min_data_in_leaf=10,
@@ -111,23 +116,7 @@ def plant_parts(run_dir: Path, params: dict, cache: Path) -> dict:
 
 
 def train(plants: list[dict]):
-    import lightgbm as lgb
-
-    x = np.vstack([d["features"] for d in plants]).astype(np.float64)
-    y = np.concatenate([d["classes"] for d in plants])
-    return lgb.train(BOOSTER_PARAMS, lgb.Dataset(x, y, feature_name=list(sp.FEATURE_NAMES)),
-                     ROUNDS)
-
-
-def parse_plants(items: list[str]) -> dict[str, list[int]]:
-    out: dict[str, list[int]] = {}
-    for item in items:
-        family, seeds = item.split("=", 1)
-        lo, _, hi = seeds.partition("-")
-        out[family] = list(range(int(lo), int(hi or lo) + 1))
-        if any(s >= 1000 for s in out[family]):
-            raise SystemExit(f"{item}: seeds >= 1000 are validation seeds, never trained on")
-    return out
+    return fit_booster(plants, sp.FEATURE_NAMES, BOOSTER_PARAMS, ROUNDS)
 
 
 def main(argv=None) -> int:

@@ -34,8 +34,7 @@ sys.path.insert(0, str(REPO / "scripts"))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
 from plantscan_leaves import trust_model as tm  # noqa: E402
-from train_piece_model import truth_dir_of  # noqa: E402
-from train_stem_part_model import parse_plants  # noqa: E402
+from train_piece_model import fit_booster, parse_plants, truth_dir_of  # noqa: E402
 
 GOOD = ("accurate", "fair")  # leaf_population.leaf_kinds: a truth leaf within 10 %
 BOOSTER_PARAMS = dict(objective="binary", learning_rate=0.05, num_leaves=4, min_data_in_leaf=8,
@@ -123,12 +122,7 @@ def plant_leaves(run_dir: Path, sections: dict, cache: Path) -> dict:
 
 
 def train(plants: list[dict]):
-    import lightgbm as lgb
-
-    x = np.vstack([d["features"] for d in plants]).astype(np.float64)
-    y = np.concatenate([d["classes"] for d in plants])
-    return lgb.train(BOOSTER_PARAMS, lgb.Dataset(x, y, feature_name=list(tm.FEATURE_NAMES)),
-                     ROUNDS)
+    return fit_booster(plants, tm.FEATURE_NAMES, BOOSTER_PARAMS, ROUNDS)
 
 
 def flag_figures(bad: np.ndarray, accurate: np.ndarray, low: np.ndarray) -> str:
