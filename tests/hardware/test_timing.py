@@ -122,7 +122,19 @@ def test_the_virtual_rig_is_modelled_by_its_render_time():
     assert not any(u.startswith("camera") for u in small.unmodelled), small.unmodelled
     plant = next(r for r in small.roles if r.role == "plant")
     assert plant.images == 72 and plant.capture_s > 0
-    # 4.1x the pixels: each image's fixed part stays, the per-pixel part grows. Above 1.5x:
-    # the estimate must follow the image size (the bug was a constant, 0 s); below 4.1x: it
-    # cannot grow faster than the pixels, since the motion time does not grow at all.
-    assert 1.5 * small.total_s < large.total_s < 4.1 * small.total_s
+    # Each stop costs its render time by the camera's own model (the cameras of a stop
+    # render in parallel), and the motion does not depend on the image size: so the
+    # estimate must grow by exactly stops x the model's per-image difference (the bug was
+    # a constant 0 s; a per-stop sum of both cameras would double it).
+    from plantscan_sim.plugin import SimCamera
+    from plantscan_sim.rig import SimCameraParams
+
+    for r_small, r_large in zip(small.roles, large.roles):
+        assert (r_small.role, r_small.stops) == (r_large.role, r_large.stops)
+        assert r_large.move_s == pytest.approx(r_small.move_s, abs=1e-9)
+        per_image = [SimCamera.capture_time_s(SimCameraParams(), size, r_small.role)
+                     for size in ((640, 427), (1296, 864))]
+        assert r_small.capture_s == pytest.approx(r_small.stops * per_image[0], rel=1e-9)
+        assert r_large.capture_s - r_small.capture_s == pytest.approx(
+            r_small.stops * (per_image[1] - per_image[0]), rel=1e-9)
+    assert large.total_s > 1.5 * small.total_s
