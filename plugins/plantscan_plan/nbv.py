@@ -22,7 +22,9 @@ The planner finds it and chooses the stops whose views would carve it:
    unsure middle predicts a solid, not a window: certain voxels miss the
    middles of leaves seen only face-on, and a filled ring is the safe guess).
    An unsure voxel that projects outside it, inside the image, is predicted
-   carved by that view.
+   carved by that view.  Only the certain voxels' shell (``shell``: those with
+   a 6-neighbour that is not certain) is projected: the same silhouettes, pixel
+   for pixel (tested), at a fifth of the points on a potted dicot.
 3. **Lazy greedy.**  The hull removes a voxel outside in more than ``k`` views,
    so an unsure voxel already outside in ``c`` base views needs ``k + 1 - c``
    more.  The objective credits each unsure voxel ``min(need, n) / need`` of
@@ -104,6 +106,28 @@ def pooled(volume: Volume, resolution: int) -> PlanningGrid:
     # the pooled voxel's centre: the middle of the f^3 block it pools
     origin = np.asarray(volume.origin, float) + 0.5 * (f - 1) * float(volume.voxel_size)
     return PlanningGrid(np.argwhere(occ), origin, s)
+
+
+def shell(index: np.ndarray, solid: np.ndarray) -> np.ndarray:
+    """(N,) bool: the ``solid`` voxels (of grid indices ``index`` (N, 3)) with a 6-neighbour
+    that is not solid: what a projection of the solid needs (step 2).
+
+    The pot's cylinder is most of the certain voxels (~90 % on a dicot at 128 voxels) and
+    only its skin shows in a view; the hole filling of ``predicted_silhouette`` covers
+    the inside of the projected skin.
+    """
+    from scipy.ndimage import binary_erosion
+
+    out = np.zeros(len(index), bool)
+    if not solid.any():
+        return out
+    lo = index[solid].min(axis=0)
+    at = index[solid] - lo
+    grid = np.zeros(at.max(axis=0) + 1, bool)
+    grid[tuple(at.T)] = True
+    inner = binary_erosion(grid, border_value=0)  # 6-connected: the cross structure
+    out[np.flatnonzero(solid)] = ~inner[tuple(at.T)]
+    return out
 
 
 def in_pot(centres: np.ndarray, cylinders, margin_mm: float) -> np.ndarray:
@@ -334,7 +358,9 @@ class Planner:
                         unsure_volume_mm3=float(targets.weight_mm3.sum()), figures=figures)
         if len(targets.centres) and request.candidates and request.max_stops > 0:
             t1 = time.perf_counter()
-            predictions = self.predictions(grid.centres[certain], targets, grid.voxel_size,
+            skin = shell(grid.index, certain)
+            figures["projected_voxels"] = int(skin.sum())
+            predictions = self.predictions(grid.centres[skin], targets, grid.voxel_size,
                                            calibration, request)
             figures["predict_s"] = round(time.perf_counter() - t1, 3)
             figures["candidates"] = len(predictions)

@@ -125,3 +125,28 @@ def test_planner_carves_the_gap_between_stacked_plates(scene):
     assert planned < 0.7 * random_left
     print(f"phantom {phantom_before:.0f} mm3 -> planned {planned:.0f}, random {random_left:.0f}; "
           f"plate share {plate_share:.3f}; planner {cpu:.1f} s CPU, {plan.figures}")
+
+
+def test_the_shell_of_a_solid_predicts_the_solids_silhouette(scene):
+    # The planner projects only the certain voxels' shell (the pot's cylinder is ~90 % of
+    # them): in every view the predicted silhouette must be the whole solid's, pixel for
+    # pixel (the hole filling covers the inside of the projected skin).
+    _, calibration = scene
+    n = 24  # a 24^3 block of 4 mm voxels and a thin plate beside it
+    index = np.argwhere(np.ones((n, n, n), bool))
+    plate = np.argwhere(np.ones((n, n, 1), bool)) + [n + 4, 0, 0]
+    index = np.concatenate([index, plate])
+    solid = np.ones(len(index), bool)
+    solid[::97] = False  # a few unsure voxels inside: the shell is around them too
+    skin = nbv.shell(index, solid)
+    grid = nbv.PlanningGrid(index, np.array([-100.0, -60.0, 120.0]), 4.0)
+    # the block's surface, the plate whole, and each unsure voxel's solid neighbours
+    assert len(plate) + (n ** 3 - (n - 2) ** 3) <= skin.sum() < 0.5 * solid.sum()
+    assert not skin[~solid].any()
+    for camera, tilt, pan in (("cam0", 0.0, 0.0), ("cam1", 0.0, 130.0), ("cam0", 10.0, 250.0)):
+        cam = calibration.camera_at_stop(camera, tilt, pan)
+        raster = nbv._Raster.of(cam, grid.voxel_size, grid.centres)
+        whole = nbv.predicted_silhouette(raster, grid.centres[solid], 1)
+        assert whole.sum() > 100
+        np.testing.assert_array_equal(
+            nbv.predicted_silhouette(raster, grid.centres[skin], 1), whole)
