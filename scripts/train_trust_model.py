@@ -42,6 +42,12 @@ BOOSTER_PARAMS = dict(objective="binary", learning_rate=0.05, num_leaves=4, min_
                       lambda_l2=2.0, num_threads=1, verbose=-1, seed=0, deterministic=True,
                       force_row_wise=True)
 ROUNDS = 150
+# the low-confidence cut on p_bad, chosen per model on its development plants (choose_cut):
+# the issue's trust targets are >= 90 % of the off leaves flagged and <= 25 % of the flagged
+# within 5 %; 15 % keeps a margin under the latter for plants the model never saw
+CUTS = (0.5, 0.45, 0.4, 0.35, 0.3, 0.25, 0.2, 0.15, 0.1, 0.05)
+CUT_FLAGGED = 0.9
+CUT_ACCURATE = 0.15
 # the shipped models and the development plants each is trained on: one per family whose
 # recipe names it, and one on every family (the seedling's recipe: its 16 dev plants hold
 # 13 bad leaves; a seedling-only model flagged 2 of 5 off validation leaves, the all-family
@@ -134,20 +140,46 @@ def flag_figures(bad: np.ndarray, accurate: np.ndarray, low: np.ndarray) -> str:
             f"{fa}/{f} ({100 * fa / max(f, 1):.0f} %)")
 
 
-def leave_one_out(plants: list[dict], names: list[str]) -> str:
-    """Each plant judged by a model trained on the others: rules, model, both."""
+def loo_p_bad(plants: list[dict]) -> np.ndarray:
+    """Every leaf's p_bad by a model trained on the other plants (all leaves, in order)."""
     p_bad = []
     for i in range(len(plants)):
         booster = train([d for j, d in enumerate(plants) if j != i])
         p_bad.append(booster.predict(plants[i]["features"].astype(np.float64), num_threads=1))
+    return np.concatenate(p_bad)
+
+
+def choose_cut(p_bad: np.ndarray, bad: np.ndarray, accurate: np.ndarray, rules: np.ndarray
+               ) -> float:
+    """The p_bad at which the shipped model calls a leaf low-confidence, from the
+    development plants left out one at a time (never the validation seeds): the highest of
+    ``CUTS`` at which the rules and the model together flag ``CUT_FLAGGED`` of the bad
+    leaves, as long as at most ``CUT_ACCURATE`` of the flagged leaves are accurate (within
+    5 %); when no cut gets there within that bound, the lowest cut within it."""
+    within = []
+    for cut in CUTS:
+        low = rules | (p_bad >= cut)
+        if (accurate & low).sum() > CUT_ACCURATE * max(low.sum(), 1):
+            break
+        within.append(cut)
+        if (bad & low).sum() >= CUT_FLAGGED * bad.sum():
+            return cut
+    return within[-1] if within else CUTS[0]
+
+
+def leave_one_out(plants: list[dict], names: list[str], p_bad: np.ndarray | None = None
+                  ) -> str:
+    """Each plant judged by a model trained on the others: rules, model, both."""
+    p_bad = loo_p_bad(plants) if p_bad is None else p_bad
     bad = np.concatenate([d["classes"] for d in plants]).astype(bool)
     acc = np.concatenate([d["accurate"] for d in plants])
     rules = np.concatenate([d["rules_low"] for d in plants])
-    model = np.concatenate(p_bad) >= 0.5
+    cut = choose_cut(p_bad, bad, acc, rules)
     lines = [f"leaves {len(bad)} of {len(plants)} plants ({', '.join(names)}), bad {bad.sum()}",
              f"rules: {flag_figures(bad, acc, rules)}",
-             f"model: {flag_figures(bad, acc, model)}",
-             f"both:  {flag_figures(bad, acc, rules | model)}"]
+             f"model at 0.5: {flag_figures(bad, acc, p_bad >= 0.5)}",
+             f"both at 0.5:  {flag_figures(bad, acc, rules | (p_bad >= 0.5))}",
+             f"both at the chosen cut {cut:g}: {flag_figures(bad, acc, rules | (p_bad >= cut))}"]
     return "\n".join(lines)
 
 
@@ -187,10 +219,18 @@ def main(argv=None) -> int:
     booster = train(data)
     from plantscan_leaves.pieces import save_model
 
-    save_model(booster, training_config(plants_of), out_file, tm.FEATURE_NAMES, tm.CLASS_NAMES)
-    print(f"model written to {out_file} ({time.time() - t0:.0f} s)")
+    p_loo = loo_p_bad(data)
+    cut = choose_cut(p_loo, *(np.concatenate([d[k] for d in data]).astype(bool)
+                              for k in ("classes", "accurate", "rules_low")))
+    config = {**training_config(plants_of), "cut": cut,
+              "cut_rule": f"highest of {list(CUTS)} at which the rules and the model flag "
+                          f">= {CUT_FLAGGED:.0%} of the bad development leaves left out one "
+                          f"plant at a time, with <= {CUT_ACCURATE:.0%} of the flagged "
+                          "accurate; else the lowest within that bound"}
+    save_model(booster, config, out_file, tm.FEATURE_NAMES, tm.CLASS_NAMES)
+    print(f"model written to {out_file}, cut {cut:g} ({time.time() - t0:.0f} s)")
     if args.loo:
-        print(leave_one_out(data, names))
+        print(leave_one_out(data, names, p_loo))
     return 0
 
 

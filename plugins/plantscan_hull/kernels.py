@@ -498,11 +498,11 @@ if HAVE_NUMBA:
             decision[i] = _decide(n_out, n_in, n_off, na, n_on_amb, max_off, cc)
         return count
 
-    @njit(cache=True)  # serial: cheap, and parallel compiles slowly
+    @njit(cache=True, parallel=True)  # on both cores: the other one idled here (#28)
     def _gather_lists(sel, counts, out_start):
         # The lists of the cells ``sel``: the first n_amb entries of each one's scratch.
         views = np.empty(out_start[-1], dtype=np.int16)
-        for t in range(sel.shape[0]):
+        for t in prange(sel.shape[0]):
             a = counts.amb_start[sel[t]]
             o = out_start[t]
             for q in range(counts.n_amb[sel[t]]):
@@ -544,7 +544,7 @@ if HAVE_NUMBA:
                     for e in range(min(size, nz - z0)):
                         values[row, a0 + a, b0 + b, e0 + e] = value
 
-    @njit(cache=True)  # serial: cheap, and parallel compiles slowly
+    @njit(cache=True, parallel=True)  # on both cores: the other one idled here (#28)
     def _scatter_fine_blocked(index, values, shape, cells, vals, valid, thin_value, keep_thin):
         # The fine voxels are the 8 children of the split 2-voxel cells with corners
         # ``cells`` (P, 3) (order of ``carve._children``; never materialised: 0.7 GB of
@@ -556,14 +556,15 @@ if HAVE_NUMBA:
         bs = values.shape[1]
         nx, ny, nz = shape
         n = cells.shape[0]
-        for p in range(n):
+        # each loop writes only its own voxels (the three run one after the other)
+        for p in prange(n):
             row = index[cells[p, 0] // bs, cells[p, 1] // bs, cells[p, 2] // bs]
             for ch in range(8):
                 if valid[p * 8 + ch]:
                     values[row, cells[p, 0] % bs + (ch >> 2), cells[p, 1] % bs + ((ch >> 1) & 1),
                            cells[p, 2] % bs + (ch & 1)] = vals[p * 8 + ch]
         rescue = np.zeros(n * 8, dtype=np.bool_)
-        for p in range(n):
+        for p in prange(n):
             for ch in range(8):
                 val = vals[p * 8 + ch]
                 if not (valid[p * 8 + ch] and val > -0.5 and val <= 0.0):
@@ -579,7 +580,7 @@ if HAVE_NUMBA:
                         or (c + 1 < nz and _block_get(index, values, bs, a, b, c + 1) > 0))
                 rescue[p * 8 + ch] = keep_thin and not near
         count = 0
-        for p in range(n):
+        for p in prange(n):
             row = index[cells[p, 0] // bs, cells[p, 1] // bs, cells[p, 2] // bs]
             for ch in range(8):
                 if not valid[p * 8 + ch]:

@@ -1185,7 +1185,7 @@ def _judge(traits: Traits, measurements: list[LeafMeasurement], labelled: Labell
         x = tm.leaf_features(traits, measurements, labelled, unit_mm
                              or geo.mesh_unit(labelled.mesh.vertices, labelled.mesh.faces))
         trusts = [model_trust(t, pb, why)
-                  for t, pb, why in zip(trusts, model.p_bad(x), model.why(x))]
+                  for t, pb, why in zip(trusts, model.doubt(x), model.why(x))]
     for m, t in zip(measurements, trusts):
         leaf = m.traits
         leaf.confidence, leaf.confidence_reasons = t.confidence, ";".join(t.reasons)

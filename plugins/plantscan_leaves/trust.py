@@ -89,7 +89,8 @@ REASON_TEXT = {
 def model_trust(rules: Trust, p_bad: float, why: list[str]) -> Trust:
     """The rules' trust with a trust model's (``plantscan_leaves.trust_model``): the lower
     confidence of the two; the reason ``model`` when the model's is under ``LOW_CONFIDENCE``
-    (``why``: the features that raised its doubt most, for the message)."""
+    (``why``: the features that raised its doubt most, for the message).  ``p_bad``: the
+    model's doubt (``TrustModel.doubt``: its p_bad rescaled so its cut falls on 0.5)."""
     conf = round(1.0 - float(p_bad), 3)
     if conf >= LOW_CONFIDENCE:
         return Trust(min(rules.confidence, conf), rules.reasons)

@@ -204,6 +204,19 @@ class TrustModel:
             return np.zeros(0)
         return np.asarray(self.booster.predict(np.asarray(x, np.float64), num_threads=1))
 
+    @property
+    def cut(self) -> float:
+        """The p_bad at which a leaf is low-confidence, chosen on the development plants
+        (``scripts/train_trust_model.py``, ``choose_cut``); 0.5 for a model without one."""
+        return float(self.config.get("cut", 0.5))
+
+    def doubt(self, x: np.ndarray) -> np.ndarray:
+        """(n,) ``p_bad`` rescaled so that the model's ``cut`` falls on 0.5 (piecewise
+        linear, monotone, 0 and 1 kept): 1 - doubt is the leaf's confidence, low under 0.5
+        exactly when p_bad reaches the cut."""
+        p, c = self.p_bad(x), self.cut
+        return np.where(p < c, 0.5 * p / c, 0.5 + 0.5 * (p - c) / (1.0 - c))
+
     def why(self, x: np.ndarray, top: int = 2) -> list[list[str]]:
         """Per leaf, the ``top`` features that raised ``p_bad`` most (SHAP contributions)."""
         if not len(x):

@@ -86,6 +86,28 @@ def test_every_family_recipe_names_a_shipped_trust_model():
         LeafGeometryParams(trust_model=name)  # found (the validator names a missing one)
 
 
+def test_each_model_carries_its_cut_and_doubt_puts_it_at_one_half():
+    # the low-confidence cut on p_bad is chosen per model on its development plants
+    # (scripts/train_trust_model.py choose_cut); doubt maps it onto the confidence's 0.5
+    for name in ("trust_model_dicot.json.gz", "trust_model_grass.json.gz",
+                 "trust_model_branched.json.gz", "trust_model_all.json.gz"):
+        model = tm.load_model(name)
+        assert 0.05 <= model.cut <= 0.5, name
+        assert "cut_rule" in model.config, name
+    model = tm.load_model("trust_model_dicot.json.gz")
+    assert model.cut < 0.5  # its development plants need a lower cut (docs/leaves.md)
+    p = np.array([0.0, model.cut / 2, model.cut, 0.7, 1.0])
+
+    class Fixed(tm.TrustModel):
+        def p_bad(self, x):
+            return p
+
+    d = Fixed(model.booster, model.config, model.config_sha256).doubt(np.zeros((5, 1)))
+    np.testing.assert_allclose(d, [0.0, 0.25, 0.5, 0.5 + 0.5 * (0.7 - model.cut)
+                                   / (1 - model.cut), 1.0])
+    assert (np.diff(d) > 0).all()
+
+
 def test_model_adds_doubt_never_removes_it():
     ruled = Trust(0.3, ["phantom"])
     assert model_trust(ruled, 0.1, []).confidence == 0.3  # the rules' doubt stays
@@ -97,19 +119,22 @@ def test_model_adds_doubt_never_removes_it():
     assert not model_trust(Trust(1.0), 0.2, ["aspect"]).low
 
 
-def test_measure_with_the_shipped_model(measured):
+@pytest.mark.parametrize("name", [SHIPPED, "trust_model_dicot.json.gz"])
+def test_measure_with_the_shipped_model(measured, name):
+    # grass's cut is 0.5, the dicot's lower (chosen on its development plants)
     labelled, _, _ = measured
     traits, measurements, report = measure_plant(labelled,
-                                                 LeafGeometryParams(trust_model=SHIPPED))
-    model = tm.load_model(SHIPPED)
+                                                 LeafGeometryParams(trust_model=name))
+    model = tm.load_model(name)
     x = _features(labelled, traits, measurements)
-    p_bad = model.p_bad(x)
+    p_bad, doubt = model.p_bad(x), model.doubt(x)
     assert ((p_bad >= 0) & (p_bad <= 1)).all()
-    for leaf, pb in zip(traits.leaves, p_bad):
+    for leaf, pb, d in zip(traits.leaves, p_bad, doubt):
         rules = leaf_trust(leaf, labelled.evidence.get(leaf.leaf_id))
-        # the lower of the two confidences, and the model named when it is the doubt
-        assert leaf.confidence == pytest.approx(min(rules.confidence, round(1 - pb, 3)))
-        assert ("model" in leaf.confidence_reasons.split(";")) == (1 - pb < LOW_CONFIDENCE)
+        # the lower of the two confidences, and the model named when it is the doubt:
+        # exactly when its p_bad reaches the model's cut
+        assert leaf.confidence == pytest.approx(min(rules.confidence, round(1 - d, 3)))
+        assert ("model" in leaf.confidence_reasons.split(";")) == (pb >= model.cut)
         assert leaf.quality_flag == ("check" if leaf.confidence < LOW_CONFIDENCE else "ok")
     for w in report.warnings_about(code="low-confidence"):
         leaf = next(lf for lf in traits.leaves if lf.leaf_id == w.leaf)
