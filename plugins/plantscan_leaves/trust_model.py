@@ -213,7 +213,8 @@ class TrustModel:
     def doubt(self, x: np.ndarray) -> np.ndarray:
         """(n,) ``p_bad`` rescaled so that the model's ``cut`` falls on 0.5 (piecewise
         linear, monotone, 0 and 1 kept): 1 - doubt is the leaf's confidence, low under 0.5
-        exactly when p_bad reaches the cut."""
+        when p_bad reaches the cut (the confidence is kept to 3 decimals: a p_bad within
+        0.002 of the cut may round to 0.500, not low)."""
         p, c = self.p_bad(x), self.cut
         return np.where(p < c, 0.5 * p / c, 0.5 + 0.5 * (p - c) / (1.0 - c))
 

@@ -132,9 +132,12 @@ def test_measure_with_the_shipped_model(measured, name):
     for leaf, pb, d in zip(traits.leaves, p_bad, doubt):
         rules = leaf_trust(leaf, labelled.evidence.get(leaf.leaf_id))
         # the lower of the two confidences, and the model named when it is the doubt:
-        # exactly when its p_bad reaches the model's cut
+        # when its p_bad reaches the model's cut (to the confidence's 3 decimals)
         assert leaf.confidence == pytest.approx(min(rules.confidence, round(1 - d, 3)))
-        assert ("model" in leaf.confidence_reasons.split(";")) == (pb >= model.cut)
+        assert ("model" in leaf.confidence_reasons.split(";")) == (round(1 - d, 3)
+                                                                   < LOW_CONFIDENCE)
+        if abs(pb - model.cut) > 0.002:
+            assert ("model" in leaf.confidence_reasons.split(";")) == (pb >= model.cut)
         assert leaf.quality_flag == ("check" if leaf.confidence < LOW_CONFIDENCE else "ok")
     for w in report.warnings_about(code="low-confidence"):
         leaf = next(lf for lf in traits.leaves if lf.leaf_id == w.leaf)
