@@ -146,7 +146,10 @@ acquire(recipe, out, m, raw_recipe=raw, resume=(out / "scan.yaml").exists())
 @pytest.mark.slow
 def test_sigkill_at_random_points_then_resume(manager, tmp_path):
     """Kill the scanning process 10 times at random moments; resume; exactly the protocol."""
-    raw, recipe = _recipe(manager, tilts=(0.0, 20.0), n_angles=8)
+    # 24 stops per tilt: enough images that ten runs, each killed up to 0.08 s after its
+    # first new image, cannot finish the scan even on an idle, fast machine (with 8 the
+    # tenth run finished there once)
+    raw, recipe = _recipe(manager, tilts=(0.0, 20.0), n_angles=24)
     out = tmp_path / "s"
     script = _RUNNER.format(here=str(HERE), raw=json.dumps(raw), out=str(out))
     env = {**os.environ, "HWFAKES": json.dumps({"delay_s": 0.01})}
