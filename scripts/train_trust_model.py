@@ -140,6 +140,12 @@ def flag_figures(bad: np.ndarray, accurate: np.ndarray, low: np.ndarray) -> str:
             f"{fa}/{f} ({100 * fa / max(f, 1):.0f} %)")
 
 
+def _flags(plants: list[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(bad, accurate, rules_low) of every leaf of ``plants``, in order."""
+    return tuple(np.concatenate([d[k] for d in plants]).astype(bool)
+                 for k in ("classes", "accurate", "rules_low"))
+
+
 def loo_p_bad(plants: list[dict]) -> np.ndarray:
     """Every leaf's p_bad by a model trained on the other plants (all leaves, in order)."""
     p_bad = []
@@ -167,14 +173,10 @@ def choose_cut(p_bad: np.ndarray, bad: np.ndarray, accurate: np.ndarray, rules: 
     return within[-1] if within else CUTS[0]
 
 
-def leave_one_out(plants: list[dict], names: list[str], p_bad: np.ndarray | None = None
-                  ) -> str:
-    """Each plant judged by a model trained on the others: rules, model, both."""
-    p_bad = loo_p_bad(plants) if p_bad is None else p_bad
-    bad = np.concatenate([d["classes"] for d in plants]).astype(bool)
-    acc = np.concatenate([d["accurate"] for d in plants])
-    rules = np.concatenate([d["rules_low"] for d in plants])
-    cut = choose_cut(p_bad, bad, acc, rules)
+def leave_one_out(plants: list[dict], names: list[str], p_bad: np.ndarray, cut: float) -> str:
+    """Each plant judged by a model trained on the others (``p_bad``: ``loo_p_bad``):
+    rules, model, both, at 0.5 and at the model's ``cut``."""
+    bad, acc, rules = _flags(plants)
     lines = [f"leaves {len(bad)} of {len(plants)} plants ({', '.join(names)}), bad {bad.sum()}",
              f"rules: {flag_figures(bad, acc, rules)}",
              f"model at 0.5: {flag_figures(bad, acc, p_bad >= 0.5)}",
@@ -220,8 +222,7 @@ def main(argv=None) -> int:
     from plantscan_leaves.pieces import save_model
 
     p_loo = loo_p_bad(data)
-    cut = choose_cut(p_loo, *(np.concatenate([d[k] for d in data]).astype(bool)
-                              for k in ("classes", "accurate", "rules_low")))
+    cut = choose_cut(p_loo, *_flags(data))
     config = {**training_config(plants_of), "cut": cut,
               "cut_rule": f"highest of {list(CUTS)} at which the rules and the model flag "
                           f">= {CUT_FLAGGED:.0%} of the bad development leaves left out one "
@@ -230,7 +231,7 @@ def main(argv=None) -> int:
     save_model(booster, config, out_file, tm.FEATURE_NAMES, tm.CLASS_NAMES)
     print(f"model written to {out_file}, cut {cut:g} ({time.time() - t0:.0f} s)")
     if args.loo:
-        print(leave_one_out(data, names, p_loo))
+        print(leave_one_out(data, names, p_loo, cut))
     return 0
 
 
