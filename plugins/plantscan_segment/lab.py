@@ -52,6 +52,19 @@ __all__ = ["LabShadowSegmenter", "lab_shadow_mask", "lab_shadow_score", "chromat
 
 # How many plates one segmenter keeps converted: a scan has one per camera and tilt.
 _PLATES_KEPT = 16
+# The region pass (plant_region, lab_shadow_mask_in_region): pictures in 4 x 4 blocks; a
+# block whose B, G or R mean differs from the plate's by more than 6 DN is where the plant
+# may be (a 1 px stem of 40 DN averages 10 over its blocks; the virtual scanner's noise
+# averages under 1); the box widened by 16 px; a mask pixel within 5 px of a side that is
+# not the image's (the outer 4 px are scored with the box's own neighbours) means the box
+# cut the plant: that side moves out by 8 % of the image and the box is scored again. A
+# box over 70 % of the image is not worth cropping: the whole image is scored.
+REGION_FACTOR = 4
+REGION_DIFF_DN = 6
+REGION_MARGIN_PX = 16
+REGION_RING_PX = 5
+REGION_MAX_SHARE = 0.7
+REGION_GROW = 0.08
 # Pixels per band of rows in lab_shadow_mask: the band's ~12 float32/uint8 planes stay
 # within a core's share of the CPU cache (measured in docs/benchmarks/segmentation.md).
 _BAND_PIXELS = 131072
@@ -81,6 +94,7 @@ class PlateTerms:
     down: np.ndarray
     shadow_lum_min: np.ndarray
     shadow_lum_max: np.ndarray
+    small: np.ndarray | None = None
 
     @classmethod
     def build(cls, background: np.ndarray, ratio_min: float, ratio_max: float) -> PlateTerms:
@@ -88,7 +102,20 @@ class PlateTerms:
         right, down = _ratios(lum)
         lo, hi = _shadow_luminance_tables(ratio_min, ratio_max)
         return cls(background, background.copy(), lum, a, b, right, down,
-                   cv2.LUT(lum, lo), cv2.LUT(lum, hi))
+                   cv2.LUT(lum, lo), cv2.LUT(lum, hi), _reduced(background))
+
+    def crop(self, rows: slice, cols: slice) -> PlateTerms:
+        """The terms of the plate's pixels ``[rows, cols]`` (views, no copy).
+
+        The ratios keep the plate's own right and lower neighbours at the crop's
+        last column and row, where the cropped image repeats its own: those
+        pixels are not the whole image's (:func:`lab_shadow_mask_in_region`
+        checks that no plant pixel lies there).
+        """
+        return PlateTerms(self.source[rows, cols], self.pixels[rows, cols],
+                          *(plane[rows, cols] for plane in (
+                              self.lum, self.a, self.b, self.right, self.down,
+                              self.shadow_lum_min, self.shadow_lum_max)))
 
     def matches(self, background: np.ndarray) -> bool:
         return (background is self.source and background.shape == self.pixels.shape
@@ -212,8 +239,109 @@ def fill_holes_fast(mask: np.ndarray, max_px: int) -> np.ndarray:
     return out
 
 
+def _reduced(image: np.ndarray) -> np.ndarray:
+    """``image`` (H, W, 3) in blocks of ``REGION_FACTOR``² pixels, each its mean colour.
+
+    (ceil(H / f), ceil(W / f), 3) uint8: the last row and column average the
+    1..f - 1 rows or columns the division leaves over, so every pixel is in a block.
+    """
+    f = REGION_FACTOR
+    height, width = image.shape[:2]
+    h, w = height // f, width // f
+    out = np.empty((-(-height // f), -(-width // f), 3), np.uint8)
+    if h and w:
+        out[:h, :w] = cv2.resize(image[:f * h, :f * w], (w, h), interpolation=cv2.INTER_AREA)
+    if h < out.shape[0] and w:
+        out[h:, :w] = cv2.resize(image[f * h:, :f * w], (w, 1), interpolation=cv2.INTER_AREA)
+    if w < out.shape[1] and h:
+        out[:h, w:] = cv2.resize(image[:f * h, f * w:], (1, h), interpolation=cv2.INTER_AREA)
+    if h < out.shape[0] and w < out.shape[1]:
+        out[h:, w:] = image[f * h:, f * w:].reshape(-1, 3).mean(axis=0).round()
+    return out
+
+
+def plant_region(image: np.ndarray, plate: PlateTerms) -> tuple[slice, slice] | None:
+    """Where the plant can be in ``image``: a box of full-size rows and columns, or None.
+
+    The region pass (issue #28): both pictures in blocks of ``REGION_FACTOR``²
+    pixels (:func:`_reduced`); a block whose B, G or R differs from the plate's
+    by more than ``REGION_DIFF_DN`` is a candidate, cast shadows included (told
+    from the plate by chromaticity in the reduced pictures, the dashes of a
+    sub-pixel stem in a shadow were lost too: measured in docs/segmentation.md);
+    the candidates' bounding box, scaled up and widened by
+    ``REGION_MARGIN_PX``. None when nothing differs. The box only says where the
+    full test runs: a plant cut by it is caught by
+    :func:`lab_shadow_mask_in_region`.
+    """
+    small = _reduced(image)
+    if plate.small is None or plate.small.shape != small.shape:
+        raise DataError("lab-shadow: the plate's reduced picture does not match the image's")
+    diff = cv2.absdiff(small, plate.small)
+    candidates = diff.max(axis=2) > REGION_DIFF_DN
+    x, y, w, h = cv2.boundingRect(candidates.view(np.uint8))
+    if w == 0:
+        return None
+    height, width = image.shape[:2]
+    f, m = REGION_FACTOR, REGION_MARGIN_PX
+    # A reduced pixel (x, y) is the block of full rows f*y .. f*y + f - 1 and columns alike.
+    return (slice(max(0, f * y - m), min(height, f * (y + h) + m)),
+            slice(max(0, f * x - m), min(width, f * (x + w) + m)))
+
+
+def _cut_sides(mask: np.ndarray, rows: slice, cols: slice, shape) -> tuple[bool, ...]:
+    """Top, bottom, left, right: a plant pixel within ``REGION_RING_PX`` of that side of the box.
+
+    A side on the image's own edge is never cut (the box's pixels there are the image's).
+    """
+    r = REGION_RING_PX
+    return (rows.start > 0 and bool(mask[:r].any()),
+            rows.stop < shape[0] and bool(mask[-r:].any()),
+            cols.start > 0 and bool(mask[:, :r].any()),
+            cols.stop < shape[1] and bool(mask[:, -r:].any()))
+
+
+def lab_shadow_mask_in_region(image: np.ndarray, background: np.ndarray, p,
+                              plate: PlateTerms) -> tuple[np.ndarray, int, int]:
+    """:func:`lab_shadow_mask` scored only inside :func:`plant_region`'s box.
+
+    Returns ``(mask, pixels scored, times the box was widened)``. The box's
+    pixels at least ``REGION_RING_PX - 1`` from its edge are scored exactly as
+    in the whole image (the score looks one pixel right and below, the edge
+    test one more around, the blob clean-up two more), and the hole filling is
+    the same while the box's edge is background. A mask pixel within
+    ``REGION_RING_PX`` of a side that is not the image's is a plant the box cut
+    (a plant crossing the side passes through the exactly scored pixels next to
+    the ring): that side moves out by ``REGION_GROW`` of the image and the box
+    is scored again, until no side is cut. So the mask equals the whole image's
+    (tested on the virtual scanner's views) unless a separate piece of plant,
+    faint in the reduced pictures, lies wholly outside the box.
+    """
+    shape = image.shape[:2]
+    region = plant_region(image, plate)
+    if region is None:
+        return np.zeros(shape, bool), 0, 0
+    rows, cols = region
+    scored, grown = 0, 0
+    grow_r, grow_c = max(1, int(REGION_GROW * shape[0])), max(1, int(REGION_GROW * shape[1]))
+    limit = REGION_MAX_SHARE * shape[0] * shape[1]
+    while (box := (rows.stop - rows.start) * (cols.stop - cols.start)) < limit:
+        scored += box
+        inner = lab_shadow_mask(image[rows, cols], background[rows, cols], p,
+                                plate.crop(rows, cols), full_shape=shape)
+        top, bottom, left, right = _cut_sides(inner, rows, cols, shape)
+        if not (top or bottom or left or right):
+            mask = np.zeros(shape, bool)
+            mask[rows, cols] = inner
+            return mask, scored, grown
+        rows = slice(max(0, rows.start - grow_r * top), min(shape[0], rows.stop + grow_r * bottom))
+        cols = slice(max(0, cols.start - grow_c * left), min(shape[1], cols.stop + grow_c * right))
+        grown += 1
+    return lab_shadow_mask(image, background, p, plate), scored + shape[0] * shape[1], grown
+
+
 def lab_shadow_mask(image: np.ndarray, background: np.ndarray, p,
-                    plate: PlateTerms | None = None, band_rows: int | None = None) -> np.ndarray:
+                    plate: PlateTerms | None = None, band_rows: int | None = None,
+                    full_shape: tuple[int, int] | None = None) -> np.ndarray:
     """``lab-shadow``'s mask: (H, W) bool, True = plant or pot.
 
     The same decisions as :func:`lab_shadow_mask_reference` (tested equal on
@@ -231,6 +359,8 @@ def lab_shadow_mask(image: np.ndarray, background: np.ndarray, p,
     p : ``LabShadowSegmenter.Params``
     plate : ``PlateTerms.build(background, ...)`` when the caller keeps it
     band_rows : rows per band (default: ~``_BAND_PIXELS`` pixels per band)
+    full_shape : (H, W) of the whole image when ``image`` is a crop of it (the
+        largest hole filled is a fraction of the whole image's area)
     """
     if plate is None:
         plate = PlateTerms.build(background, p.shadow_ratio_min, p.shadow_ratio_max)
@@ -242,7 +372,7 @@ def lab_shadow_mask(image: np.ndarray, background: np.ndarray, p,
         bottom = min(top + band_rows, height)
         mask[top:bottom] = _band_mask(image, background, plate, p, alpha_delta, top, bottom)
     return fill_holes_fast(remove_tiny_blobs(mask, p.min_blob_px),
-                           hole_px(mask.shape, p.max_hole_fraction))
+                           hole_px(full_shape or mask.shape, p.max_hole_fraction))
 
 
 def _band_mask(image, background, plate: PlateTerms, p, alpha_delta, top: int,
@@ -357,6 +487,11 @@ class LabShadowSegmenter(Segmenter):
             description="plate: the scan's background view of the same camera and tilt; "
             "median: per-pixel median of the plant views of that camera and tilt "
             "(scans without a plate)")
+        region: Literal["plant", "whole"] = Field(
+            default="plant", description="plant: a 1/4-size pass finds the box where the plant "
+            "can be and only that box is scored (the same masks; a mask reaching the box's "
+            "edge is scored again on the whole image); whole: every pixel is scored "
+            "(docs/segmentation.md)")
         implementation: Literal["fast", "reference"] = Field(
             default="fast", description="reference: the plain float32 code path the fast one "
             "is tested against (same masks, ~5x slower; docs/segmentation.md)")
@@ -429,4 +564,11 @@ class LabShadowSegmenter(Segmenter):
                             f"{image.shape[0]}")
         if p.implementation == "reference":
             return lab_shadow_mask_reference(image, background, p)
-        return lab_shadow_mask(image, background, p, self._plate_terms(background))
+        plate = self._plate_terms(background)
+        if p.region == "whole":
+            return lab_shadow_mask(image, background, p, plate)
+        mask, scored, grown = lab_shadow_mask_in_region(image, background, p, plate)
+        self.report.count("pixels_scored", scored)
+        self.report.count("pixels_total", image.shape[0] * image.shape[1])
+        self.report.count("region_widened", grown)
+        return mask

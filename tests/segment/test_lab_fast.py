@@ -147,3 +147,46 @@ def test_chromaticity_on_candidate_boxes_of_any_shape():
         expected[2, 3] = False
         _suppress_chromatic_candidates(shadow, image, plate, 0.06)
         assert np.array_equal(shadow, expected), box
+
+
+@pytest.mark.parametrize("preset", ["plastic-dicot", "wheat"])
+def test_scoring_the_plant_region_gives_the_whole_image_masks(sim_scans, preset):
+    # Exactly equal: the region only skips pixels the whole image's test calls background.
+    whole = LabShadowSegmenter(LabShadowSegmenter.Params(region="whole"))
+    region = LabShadowSegmenter()
+    for image, plate in _plant_views(sim_scans[preset]):
+        assert np.array_equal(region.segment(image, plate), whole.segment(image, plate))
+    counts = region.report.counts
+    # The work saved, as a count: the plant and its shadow fill about half of these frames.
+    assert 0 < counts["pixels_scored"] < 0.8 * counts["pixels_total"]
+
+
+def _leaf_on_plate(shape=(240, 320)):
+    rng = np.random.default_rng(5)
+    plate = np.clip(rng.normal(170, 2, (*shape, 3)), 0, 255).astype(np.uint8)
+    image = plate.copy()
+    image[100:160, 120:200] = (40, 140, 60)      # a leaf, found by the reduced pass
+    return image, plate
+
+
+def test_a_plant_the_region_cut_is_scored_again_in_a_wider_box():
+    image, plate = _leaf_on_plate()
+    # A 1 px stem running right from the leaf to near the image's edge, too faint in the
+    # reduced pictures (1/4 of its 4 x 4 blocks, under REGION_DIFF_DN) for the box to hold it.
+    image[130, 200:300] = (150, 175, 155)
+    p = LabShadowSegmenter.Params()
+    whole = lab_shadow_mask(image, plate, p)
+    assert whole[130, 200:300].sum() > 80                   # the stem is plant at full size
+    rows, cols = lab.plant_region(image, lab.PlateTerms.build(plate, 0.5, 0.98))
+    assert cols.stop < 280                                  # ... and outside the first box
+    mask, scored, widened = lab.lab_shadow_mask_in_region(
+        image, plate, p, lab.PlateTerms.build(plate, 0.5, 0.98))
+    assert widened >= 1 and np.array_equal(mask, whole)
+
+
+def test_an_empty_view_scores_no_pixel_at_full_size():
+    image, plate = _leaf_on_plate()
+    seg = LabShadowSegmenter()
+    assert not seg.segment(plate.copy(), plate).any()
+    assert seg.report.counts["pixels_scored"] == 0
+    assert seg.segment(image, plate).sum() == 60 * 80
