@@ -276,11 +276,13 @@ def plant_region(image: np.ndarray, plate: PlateTerms) -> tuple[slice, slice] | 
     small = _reduced(image)
     if plate.small is None or plate.small.shape != small.shape:
         raise DataError("lab-shadow: the plate's reduced picture does not match the image's")
-    diff = cv2.absdiff(small, plate.small)
-    candidates = diff.max(axis=2) > REGION_DIFF_DN
-    x, y, w, h = cv2.boundingRect(candidates.view(np.uint8))
+    # Each channel compared on its own: the candidates' box over the (h, 3 w) channel grid,
+    # its columns divided by 3 (a reduction over the channel axis costs 10x more).
+    diff = cv2.absdiff(small, plate.small).reshape(small.shape[0], -1)
+    x, y, w, h = cv2.boundingRect(cv2.compare(diff, REGION_DIFF_DN, cv2.CMP_GT))
     if w == 0:
         return None
+    x, w = x // 3, (x + w - 1) // 3 - x // 3 + 1
     height, width = image.shape[:2]
     f, m = REGION_FACTOR, REGION_MARGIN_PX
     # A reduced pixel (x, y) is the block of full rows f*y .. f*y + f - 1 and columns alike.
