@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
@@ -23,3 +24,23 @@ def thread_map(fn: Callable[..., Any], *iterables: Iterable[Any]) -> list[Any]:
         return [fn(*args) for args in items]
     with ThreadPoolExecutor(workers) as pool:
         return list(pool.map(lambda args: fn(*args), items))
+
+
+@contextlib.contextmanager
+def opencv_threads(n: int) -> Iterator[None]:
+    """OpenCV's own thread pool at ``n`` threads for the block (restored after).
+
+    Our pools already run one image per core: OpenCV splitting each call over
+    its own threads as well only adds waiting. On the 18 MP paper-360 scan (4.5
+    MP masks) ``lab-shadow`` cost 96 ms CPU per view with OpenCV's two threads
+    under a 2-thread pool, 73 ms with one (docs/benchmarks/end_to_end.md); the
+    results are the same (OpenCV's parallel loops split the rows, not the sums).
+    """
+    import cv2
+
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(n)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(before)

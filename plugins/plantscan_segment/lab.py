@@ -52,18 +52,18 @@ __all__ = ["LabShadowSegmenter", "lab_shadow_mask", "lab_shadow_score", "chromat
 
 # How many plates one segmenter keeps converted: a scan has one per camera and tilt.
 _PLATES_KEPT = 16
-# The region pass (plant_region, lab_shadow_mask_in_region): pictures in 4 x 4 blocks; a
+# The region pass (plant_blocks, lab_shadow_mask_in_region): pictures in 4 x 4 blocks; a
 # block whose B, G or R mean differs from the plate's by more than 6 DN is where the plant
 # may be (a 1 px stem of 40 DN averages 10 over its blocks; the virtual scanner's noise
-# averages under 1); the box widened by 16 px; a mask pixel within 5 px of a side that is
-# not the image's (the outer 4 px are scored with the box's own neighbours) means the box
-# cut the plant: that side moves out by 8 % of the image and the box is scored again. A
-# box over 70 % of the image is not worth cropping: the whole image is scored.
+# averages under 1); each band of rows scores the columns of the blocks within 16 px of it,
+# widened by 16 px; a mask pixel within 5 px of a cut (the outer 2 px are scored with the
+# band's own neighbours) means the cut went through the plant: that side moves out by 8 %
+# of the image's width, or the neighbouring band scores the columns, and it is scored again.
 REGION_FACTOR = 4
 REGION_DIFF_DN = 6
 REGION_MARGIN_PX = 16
 REGION_RING_PX = 5
-REGION_MAX_SHARE = 0.7
+REGION_EXACT_PX = 2
 REGION_GROW = 0.08
 # Pixels per band of rows in lab_shadow_mask: the band's ~12 float32/uint8 planes stay
 # within a core's share of the CPU cache (measured in docs/benchmarks/segmentation.md).
@@ -260,90 +260,118 @@ def _reduced(image: np.ndarray) -> np.ndarray:
     return out
 
 
-def plant_region(image: np.ndarray, plate: PlateTerms) -> tuple[slice, slice] | None:
-    """Where the plant can be in ``image``: a box of full-size rows and columns, or None.
+def plant_blocks(image: np.ndarray, plate: PlateTerms) -> np.ndarray:
+    """Where the plant can be: (ceil(H / f), ceil(W / f)) bool over blocks of f x f pixels.
 
-    The region pass (issue #28): both pictures in blocks of ``REGION_FACTOR``²
-    pixels (:func:`_reduced`); a block whose B, G or R differs from the plate's
-    by more than ``REGION_DIFF_DN`` is a candidate, cast shadows included (told
-    from the plate by chromaticity in the reduced pictures, the dashes of a
-    sub-pixel stem in a shadow were lost too: measured in docs/segmentation.md);
-    the candidates' bounding box, scaled up and widened by
-    ``REGION_MARGIN_PX``. None when nothing differs. The box only says where the
-    full test runs: a plant cut by it is caught by
-    :func:`lab_shadow_mask_in_region`.
+    The region pass (issue #28), f = ``REGION_FACTOR``: a block whose mean B, G
+    or R differs from the plate's by more than ``REGION_DIFF_DN`` is a
+    candidate, cast shadows included (told from the plate by chromaticity in the
+    reduced pictures, the dashes of a sub-pixel stem in a shadow were lost too:
+    docs/segmentation.md). It only says where the full test runs: a plant cut
+    by it is caught by :func:`lab_shadow_mask_in_region`.
     """
     small = _reduced(image)
     if plate.small is None or plate.small.shape != small.shape:
         raise DataError("lab-shadow: the plate's reduced picture does not match the image's")
-    # Each channel compared on its own: the candidates' box over the (h, 3 w) channel grid,
-    # its columns divided by 3 (a reduction over the channel axis costs 10x more).
+    # Each channel compared on its own over the (h, 3 w) channel grid, then any of the three
+    # (a reduction over the channel axis of the 3-D array costs 10x more).
     diff = cv2.absdiff(small, plate.small).reshape(small.shape[0], -1)
-    x, y, w, h = cv2.boundingRect(cv2.compare(diff, REGION_DIFF_DN, cv2.CMP_GT))
-    if w == 0:
-        return None
-    x, w = x // 3, (x + w - 1) // 3 - x // 3 + 1
-    height, width = image.shape[:2]
-    f, m = REGION_FACTOR, REGION_MARGIN_PX
-    # A reduced pixel (x, y) is the block of full rows f*y .. f*y + f - 1 and columns alike.
-    return (slice(max(0, f * y - m), min(height, f * (y + h) + m)),
-            slice(max(0, f * x - m), min(width, f * (x + w) + m)))
+    over = cv2.compare(diff, REGION_DIFF_DN, cv2.CMP_GT).reshape(small.shape)
+    return cv2.max(cv2.max(over[..., 0], over[..., 1]), over[..., 2]).view(bool)
 
 
-def _cut_sides(mask: np.ndarray, rows: slice, cols: slice, shape) -> tuple[bool, ...]:
-    """Top, bottom, left, right: a plant pixel within ``REGION_RING_PX`` of that side of the box.
+def _band_columns(blocks: np.ndarray, top: int, bottom: int, width: int) -> list[int] | None:
+    """Columns ``[lo, hi]`` of full-size rows ``top:bottom`` that may hold plant, or None.
 
-    A side on the image's own edge is never cut (the box's pixels there are the image's).
+    The candidate blocks of those rows and of ``REGION_MARGIN_PX`` above and
+    below, their columns widened by ``REGION_MARGIN_PX``.
     """
-    r = REGION_RING_PX
-    return (rows.start > 0 and bool(mask[:r].any()),
-            rows.stop < shape[0] and bool(mask[-r:].any()),
-            cols.start > 0 and bool(mask[:, :r].any()),
-            cols.stop < shape[1] and bool(mask[:, -r:].any()))
+    f, m = REGION_FACTOR, REGION_MARGIN_PX
+    rows = blocks[max(0, (top - m) // f):(bottom - 1 + m) // f + 1]
+    cols = np.flatnonzero(rows.any(axis=0))
+    if cols.size == 0:
+        return None
+    return [max(0, f * int(cols[0]) - m), min(width, f * (int(cols[-1]) + 1) + m)]
 
 
 def lab_shadow_mask_in_region(image: np.ndarray, background: np.ndarray, p,
                               plate: PlateTerms) -> tuple[np.ndarray, int, int]:
-    """:func:`lab_shadow_mask` scored only inside :func:`plant_region`'s box.
+    """:func:`lab_shadow_mask`, each band of rows scored only where the plant can be.
 
-    Returns ``(mask, pixels scored, times the box was widened)``. The box's
-    pixels at least ``REGION_RING_PX - 1`` from its edge are scored exactly as
-    in the whole image (the score looks one pixel right and below, the edge
-    test one more around, the blob clean-up two more), and the hole filling is
-    the same while the box's edge is background. A mask pixel within
-    ``REGION_RING_PX`` of a side that is not the image's is a plant the box cut
-    (a plant crossing the side passes through the exactly scored pixels next to
-    the ring): that side moves out by ``REGION_GROW`` of the image and the box
-    is scored again, until no side is cut. So the mask equals the whole image's
-    (tested on the virtual scanner's views) unless a separate piece of plant,
-    faint in the reduced pictures, lies wholly outside the box.
+    Returns ``(mask, pixels scored, times a band's columns were widened)``.
+    Each band of rows is scored in the columns :func:`_band_columns` gives it
+    (bands without a candidate block are not scored). A band's pixels at
+    least ``REGION_RING_PX - 1`` from a cut side are scored exactly as in the
+    whole image (the score looks one pixel right, the edge test one more
+    around: at most ``REGION_EXACT_PX`` pixels next to a cut differ; the rows
+    above and below are the band's own overlap, as in the whole image), and
+    the blob and hole clean-ups run on the whole mask afterwards, as there. A
+    plant crossing a cut therefore shows in the exactly scored pixels next to it:
+
+    * a mask pixel within ``REGION_RING_PX`` of a cut side of its band: that
+      side moves out by ``REGION_GROW`` of the image's width, the band is scored
+      again;
+    * a mask pixel in a band's first or last ``REGION_RING_PX`` rows whose
+      column's 8-neighbours the neighbouring band did not score at least
+      ``REGION_EXACT_PX`` inside its cut sides (where its pixels are exact, so
+      a plant going on sideways from there meets its ring): the neighbour's
+      columns grow to hold them and it is scored (again).
+
+    Until nothing moves. So the mask equals the whole image's (tested on the
+    virtual scanner's views) unless a separate piece of plant, faint in the
+    reduced pictures, lies wholly outside the scored columns.
     """
-    shape = image.shape[:2]
-    region = plant_region(image, plate)
-    if region is None:
-        return np.zeros(shape, bool), 0, 0
-    rows, cols = region
-    scored, grown = 0, 0
-    grow_r, grow_c = max(1, int(REGION_GROW * shape[0])), max(1, int(REGION_GROW * shape[1]))
-    limit = REGION_MAX_SHARE * shape[0] * shape[1]
-    while (box := (rows.stop - rows.start) * (cols.stop - cols.start)) < limit:
-        scored += box
-        inner = lab_shadow_mask(image[rows, cols], background[rows, cols], p,
-                                plate.crop(rows, cols), full_shape=shape)
-        top, bottom, left, right = _cut_sides(inner, rows, cols, shape)
-        if not (top or bottom or left or right):
-            mask = np.zeros(shape, bool)
-            mask[rows, cols] = inner
-            return mask, scored, grown
-        rows = slice(max(0, rows.start - grow_r * top), min(shape[0], rows.stop + grow_r * bottom))
-        cols = slice(max(0, cols.start - grow_c * left), min(shape[1], cols.stop + grow_c * right))
-        grown += 1
-    return lab_shadow_mask(image, background, p, plate), scored + shape[0] * shape[1], grown
+    height, width = image.shape[:2]
+    blocks = plant_blocks(image, plate)
+    band_rows = max(8, _BAND_PIXELS // width)
+    tops = list(range(0, height, band_rows))
+    spans = [(t, min(t + band_rows, height)) for t in tops]
+    want = [_band_columns(blocks, t, b, width) for t, b in spans]
+    done: list[list[int] | None] = [None] * len(spans)
+    mask = np.zeros((height, width), bool)
+    alpha_delta = np.arange(256, dtype=np.float32) * np.float32(p.alpha)
+    r, grow = REGION_RING_PX, max(1, int(REGION_GROW * width))
+    scored = widened = 0
+
+    def need(k: int, lo: int, hi: int) -> None:
+        """Band ``k`` must score columns ``lo:hi``."""
+        nonlocal widened
+        lo, hi = max(0, lo), min(width, hi)
+        cur = want[k]
+        if cur is None:
+            want[k] = [lo, hi]
+        elif lo < cur[0] or hi > cur[1]:
+            want[k] = [min(cur[0], lo), max(cur[1], hi)]
+            widened += 1
+
+    while True:
+        todo = [k for k in range(len(spans)) if want[k] is not None and want[k] != done[k]]
+        if not todo:
+            break
+        for k in todo:
+            (top, bottom), (lo, hi) = spans[k], want[k]
+            cols = slice(lo, hi)
+            band = _band_mask(image[:, cols], background[:, cols],
+                              plate.crop(slice(None), cols), p, alpha_delta, top, bottom)
+            mask[top:bottom] = False
+            mask[top:bottom, cols] = band
+            done[k] = [lo, hi]
+            scored += (bottom - top) * (hi - lo)
+            if lo > 0 and band[:, :r].any():
+                need(k, lo - grow, lo)
+            if hi < width and band[:, -r:].any():
+                need(k, hi, hi + grow)
+            for edge, other in ((band[:r], k - 1), (band[-r:], k + 1)):
+                if 0 <= other < len(spans):
+                    xs = np.flatnonzero(edge.any(axis=0))
+                    if xs.size:  # the plant goes on next to these columns: exactly scored
+                        need(other, lo + int(xs[0]) - 1 - REGION_EXACT_PX,
+                             lo + int(xs[-1]) + 2 + REGION_EXACT_PX)
+    return _clean_up(mask, p, (height, width)), scored, widened
 
 
 def lab_shadow_mask(image: np.ndarray, background: np.ndarray, p,
-                    plate: PlateTerms | None = None, band_rows: int | None = None,
-                    full_shape: tuple[int, int] | None = None) -> np.ndarray:
+                    plate: PlateTerms | None = None, band_rows: int | None = None) -> np.ndarray:
     """``lab-shadow``'s mask: (H, W) bool, True = plant or pot.
 
     The same decisions as :func:`lab_shadow_mask_reference` (tested equal on
@@ -361,8 +389,6 @@ def lab_shadow_mask(image: np.ndarray, background: np.ndarray, p,
     p : ``LabShadowSegmenter.Params``
     plate : ``PlateTerms.build(background, ...)`` when the caller keeps it
     band_rows : rows per band (default: ~``_BAND_PIXELS`` pixels per band)
-    full_shape : (H, W) of the whole image when ``image`` is a crop of it (the
-        largest hole filled is a fraction of the whole image's area)
     """
     if plate is None:
         plate = PlateTerms.build(background, p.shadow_ratio_min, p.shadow_ratio_max)
@@ -373,8 +399,21 @@ def lab_shadow_mask(image: np.ndarray, background: np.ndarray, p,
     for top in range(0, height, band_rows):
         bottom = min(top + band_rows, height)
         mask[top:bottom] = _band_mask(image, background, plate, p, alpha_delta, top, bottom)
-    return fill_holes_fast(remove_tiny_blobs(mask, p.min_blob_px),
-                           hole_px(full_shape or mask.shape, p.max_hole_fraction))
+    return _clean_up(mask, p, mask.shape)
+
+
+def _clean_up(mask: np.ndarray, p, shape: tuple[int, int]) -> np.ndarray:
+    """Tiny blobs dropped and small holes filled, on the mask's box (all else is background)."""
+    box = mask_box(mask)
+    if box is None:
+        return mask
+    # One pixel of background around the box: the blob test's 3 x 3 counts see the same
+    # neighbours as on the whole image.
+    rows = slice(max(0, box[0].start - 1), min(shape[0], box[0].stop + 1))
+    cols = slice(max(0, box[1].start - 1), min(shape[1], box[1].stop + 1))
+    mask[rows, cols] = fill_holes_fast(remove_tiny_blobs(mask[rows, cols], p.min_blob_px),
+                                       hole_px(shape, p.max_hole_fraction))
+    return mask
 
 
 def _band_mask(image, background, plate: PlateTerms, p, alpha_delta, top: int,

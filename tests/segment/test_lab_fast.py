@@ -169,19 +169,27 @@ def _leaf_on_plate(shape=(240, 320)):
     return image, plate
 
 
-def test_a_plant_the_region_cut_is_scored_again_in_a_wider_box():
-    image, plate = _leaf_on_plate()
-    # A 1 px stem running right from the leaf to near the image's edge, too faint in the
-    # reduced pictures (1/4 of its 4 x 4 blocks, under REGION_DIFF_DN) for the box to hold it.
-    image[130, 200:300] = (150, 175, 155)
+def test_a_plant_the_region_cut_is_scored_again_in_wider_columns():
+    rng = np.random.default_rng(5)
+    plate = np.clip(rng.normal(170, 2, (480, 1280, 3)), 0, 255).astype(np.uint8)
+    image = plate.copy()
+    image[200:320, 500:700] = (40, 140, 60)      # a leaf, found by the region pass
+    # A 1 px stem running right from the leaf to near the image's edge, and one running up
+    # through the bands above, too faint in the reduced pictures (1/4 of their 4 x 4 blocks,
+    # under REGION_DIFF_DN) for the region pass to see.
+    image[260, 700:1200] = (150, 175, 155)
+    image[20:200, 600] = (150, 175, 155)
     p = LabShadowSegmenter.Params()
     whole = lab_shadow_mask(image, plate, p)
-    assert whole[130, 200:300].sum() > 80                   # the stem is plant at full size
-    rows, cols = lab.plant_region(image, lab.PlateTerms.build(plate, 0.5, 0.98))
-    assert cols.stop < 280                                  # ... and outside the first box
-    mask, scored, widened = lab.lab_shadow_mask_in_region(
-        image, plate, p, lab.PlateTerms.build(plate, 0.5, 0.98))
-    assert widened >= 1 and np.array_equal(mask, whole)
+    assert whole[260, 700:1200].sum() > 450 and whole[20:200, 600].sum() > 160
+    terms = lab.PlateTerms.build(plate, p.shadow_ratio_min, p.shadow_ratio_max)
+    blocks = lab.plant_blocks(image, terms)
+    assert not blocks[:, 720 // lab.REGION_FACTOR:].any()      # ... not in the region pass
+    assert not blocks[:180 // lab.REGION_FACTOR].any()
+    mask, scored, widened = lab.lab_shadow_mask_in_region(image, plate, p, terms)
+    assert widened >= 2 and np.array_equal(mask, whole)
+    # The bands scored again are still far from the whole image (4 bands of 102 rows here).
+    assert scored < 0.6 * image.shape[0] * image.shape[1]
 
 
 def test_an_empty_view_scores_no_pixel_at_full_size():
