@@ -184,7 +184,7 @@ def virtual_views(root: pathlib.Path, size: tuple[int, int]) -> list[tuple[np.nd
 
 
 def lab_shadow_speed(pairs, threads: int, rounds: int = 3) -> dict[str, dict[str, float]]:
-    """Fast and reference ``lab-shadow`` on the same (image, plate) pairs, interleaved.
+    """Reference, fast and fast-in-the-plant's-region ``lab-shadow`` on the same pairs, interleaved.
 
     Each round segments every pair with ``threads`` threads (one OpenCV thread
     each, as images are the unit of parallelism); one segmenter per
@@ -194,8 +194,10 @@ def lab_shadow_speed(pairs, threads: int, rounds: int = 3) -> dict[str, dict[str
     image (median round).
     """
     mp = sum(img.shape[0] * img.shape[1] for img, _ in pairs) * 1e-6
-    segs = {impl: LabShadowSegmenter(LabShadowSegmenter.Params(implementation=impl))
-            for impl in ("reference", "fast")}
+    segs = {name: LabShadowSegmenter(LabShadowSegmenter.Params(**params)) for name, params in (
+        ("reference", {"implementation": "reference"}),
+        ("fast, whole image", {"region": "whole"}),
+        ("fast, region: plant (default)", {}))}
     per: dict[str, list[tuple[float, float]]] = {impl: [] for impl in segs}
     opencv_threads = cv2.getNumThreads()
     cv2.setNumThreads(1)
