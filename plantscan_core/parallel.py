@@ -33,8 +33,9 @@ def opencv_threads(n: int) -> Iterator[None]:
     Our pools already run one image per core: OpenCV splitting each call over
     its own threads as well only adds waiting. On the 18 MP paper-360 scan (4.5
     MP masks) ``lab-shadow`` cost 96 ms CPU per view with OpenCV's two threads
-    under a 2-thread pool, 73 ms with one (docs/benchmarks/end_to_end.md); the
-    results are the same (OpenCV's parallel loops split the rows, not the sums).
+    under a 2-thread pool, 73 ms with one (docs/benchmarks/end_to_end.md), the
+    same masks and traits (its per-pixel loops split rows; a call that sums in
+    parallel, like ``calibrateCamera``, is reproducible only at one thread).
     """
     import cv2
 
@@ -44,3 +45,12 @@ def opencv_threads(n: int) -> Iterator[None]:
         yield
     finally:
         cv2.setNumThreads(before)
+
+
+@contextlib.contextmanager
+def image_pool(workers: int) -> Iterator[ThreadPoolExecutor]:
+    """A ``ThreadPoolExecutor`` of ``workers`` threads, one image each, OpenCV at one thread
+    inside it while it runs (:func:`opencv_threads`; a single worker leaves OpenCV as is)."""
+    with (opencv_threads(1) if workers > 1 else contextlib.nullcontext(),
+          ThreadPoolExecutor(max_workers=workers) as pool):
+        yield pool

@@ -21,7 +21,6 @@ import resource
 import sys
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -30,7 +29,7 @@ from plantscan_core.data import plain
 from plantscan_core.errors import PlantScanError, StageError
 from plantscan_core.lock import one_writer
 from plantscan_core.metadata import Metadata, resolve_metadata, scan_summary
-from plantscan_core.parallel import opencv_threads
+from plantscan_core.parallel import image_pool
 from plantscan_core.photos import Photos
 from plantscan_core.plugins import PluginManager
 from plantscan_core.progress import Display, RunLog, StepProgress, display_for, run_logging
@@ -264,8 +263,7 @@ class Run:
         step = self._step
         if step is not None:
             step.count(n, unit)
-        with (opencv_threads(1) if self.workers > 1 else contextlib.nullcontext(),
-              ThreadPoolExecutor(max_workers=self.workers) as pool):
+        with image_pool(self.workers) as pool:
             futures = {pool.submit(fn, i): i for i in range(n)}
             for fut in futures:
                 results[futures[fut]] = fut.result()

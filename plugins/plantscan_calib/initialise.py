@@ -8,10 +8,8 @@ tilts.  ``solver`` refines the result.
 
 from __future__ import annotations
 
-import contextlib
 import math
 from collections import defaultdict
-from collections.abc import Iterator
 from dataclasses import replace
 from typing import TYPE_CHECKING
 
@@ -29,22 +27,10 @@ from plantscan_calib.model import (
     rotvec,
 )
 from plantscan_core.data import Calibration, Pose, TiltAxis, rotation_z
+from plantscan_core.parallel import opencv_threads
 
 if TYPE_CHECKING:
     from plantscan_calib.solver import SolveOptions
-
-
-@contextlib.contextmanager
-def single_threaded_opencv() -> Iterator[None]:
-    """OpenCV on one thread for the block: ``calibrateCamera`` sums its normal equations
-    in parallel, and the order of the sums changed the calibration from run to run
-    (1e-9 relative in f, measured on the demo scan); one thread makes it reproducible."""
-    n = cv2.getNumThreads()
-    cv2.setNumThreads(1)
-    try:
-        yield
-    finally:
-        cv2.setNumThreads(n)
 
 
 # --------------------------------------------------------------------------- boards
@@ -267,7 +253,10 @@ def initialise(detections: list[Detection], boards: dict[int, np.ndarray],
     for d in detections:
         by_cam[d.camera].append(d)
         by_ct[(d.camera, d.tilt_index)].append(d)
-    with single_threaded_opencv():
+    # OpenCV on one thread: calibrateCamera sums its normal equations in parallel, and the
+    # order of the sums changed the calibration from run to run (1e-9 relative in f,
+    # measured on the demo scan); one thread makes it reproducible.
+    with opencv_threads(1):
         intr = {c: _init_intrinsics(c, ds, boards, image_sizes[c], opt)
                 for c, ds in by_cam.items()}
         b2c = {id(d): _board_to_camera(d, intr[d.camera], boards) for d in detections}

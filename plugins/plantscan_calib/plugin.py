@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import contextlib
 from collections import Counter, defaultdict
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Literal
 
@@ -18,7 +16,7 @@ from plantscan_calib.solver import SolveOptions, solve_turntable
 from plantscan_core.data import Calibration, ViewRecord
 from plantscan_core.errors import DataError
 from plantscan_core.hookspecs import hookimpl
-from plantscan_core.parallel import opencv_threads
+from plantscan_core.parallel import image_pool
 from plantscan_core.stages import Calibrator, StageParams
 
 __all__ = ["TurntableCalibrator", "FixedCalibrator", "CalibrationError", "detect_views"]
@@ -113,8 +111,7 @@ def detect_views(scan, views: list[ViewRecord], spec: BoardSpec, max_side_px: in
                 for k in range(boards)]
         return view, size, [(k, *h) for k, h in hits if h is not None]
 
-    with (opencv_threads(1) if workers > 1 else contextlib.nullcontext(),
-          ThreadPoolExecutor(max_workers=workers) as pool):
+    with image_pool(workers) as pool:
         results = list(pool.map(one, views))
     sizes: dict[str, tuple[int, int]] = {}
     first: dict[str, ViewRecord] = {}

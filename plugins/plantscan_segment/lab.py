@@ -104,16 +104,15 @@ class PlateTerms:
         return cls(background, background.copy(), lum, a, b, right, down,
                    cv2.LUT(lum, lo), cv2.LUT(lum, hi), _reduced(background))
 
-    def crop(self, rows: slice, cols: slice) -> PlateTerms:
-        """The terms of the plate's pixels ``[rows, cols]`` (views, no copy).
+    def columns(self, cols: slice) -> PlateTerms:
+        """The terms of the plate's columns ``cols`` (views, no copy).
 
-        The ratios keep the plate's own right and lower neighbours at the crop's
-        last column and row, where the cropped image repeats its own: those
-        pixels are not the whole image's (:func:`lab_shadow_mask_in_region`
-        checks that no plant pixel lies there).
+        The ratios keep the plate's own right neighbour at the last column, where
+        the image's columns repeat their own: those pixels are not the whole
+        image's (:func:`lab_shadow_mask_in_region` checks the plant is not there).
         """
-        return PlateTerms(self.source[rows, cols], self.pixels[rows, cols],
-                          *(plane[rows, cols] for plane in (
+        return PlateTerms(self.source[:, cols], self.pixels[:, cols],
+                          *(plane[:, cols] for plane in (
                               self.lum, self.a, self.b, self.right, self.down,
                               self.shadow_lum_min, self.shadow_lum_max)))
 
@@ -352,7 +351,7 @@ def lab_shadow_mask_in_region(image: np.ndarray, background: np.ndarray, p,
             (top, bottom), (lo, hi) = spans[k], want[k]
             cols = slice(lo, hi)
             band = _band_mask(image[:, cols], background[:, cols],
-                              plate.crop(slice(None), cols), p, alpha_delta, top, bottom)
+                              plate.columns(cols), p, alpha_delta, top, bottom)
             mask[top:bottom] = False
             mask[top:bottom, cols] = band
             done[k] = [lo, hi]
@@ -529,10 +528,10 @@ class LabShadowSegmenter(Segmenter):
             "median: per-pixel median of the plant views of that camera and tilt "
             "(scans without a plate)")
         region: Literal["plant", "whole"] = Field(
-            default="plant", description="plant: a 1/4-size pass finds the box where the plant "
-            "can be and only that box is scored (the same masks; a mask reaching the box's "
-            "edge is scored again on the whole image); whole: every pixel is scored "
-            "(docs/segmentation.md)")
+            default="plant", description="plant: a pass over 4 x 4 blocks finds where the "
+            "plant can be and each band of rows is scored only in those columns (the same "
+            "masks: where the mask reaches a cut, the band is widened and scored again); "
+            "whole: every pixel is scored (docs/segmentation.md)")
         implementation: Literal["fast", "reference"] = Field(
             default="fast", description="reference: the plain float32 code path the fast one "
             "is tested against (same masks, ~5x slower; docs/segmentation.md)")
