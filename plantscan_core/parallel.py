@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import threading
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
@@ -26,6 +27,11 @@ def thread_map(fn: Callable[..., Any], *iterables: Iterable[Any]) -> list[Any]:
         return list(pool.map(lambda args: fn(*args), items))
 
 
+_cv_lock = threading.Lock()
+_cv_users = 0
+_cv_before = 0
+
+
 @contextlib.contextmanager
 def opencv_threads(n: int) -> Iterator[None]:
     """OpenCV's own thread pool at ``n`` threads for the block (restored after).
@@ -36,15 +42,26 @@ def opencv_threads(n: int) -> Iterator[None]:
     under a 2-thread pool, 73 ms with one (docs/benchmarks/end_to_end.md), the
     same masks and traits (its per-pixel loops split rows; a call that sums in
     parallel, like ``calibrateCamera``, is reproducible only at one thread).
+
+    OpenCV's setting is global and two steps may run at once (calibrate beside
+    segment, ``plantscan_core.pipeline``): the setting before the first block is
+    restored when the last block still running ends, never while another runs.
     """
     import cv2
 
-    before = cv2.getNumThreads()
-    cv2.setNumThreads(n)
+    global _cv_users, _cv_before
+    with _cv_lock:
+        if _cv_users == 0:
+            _cv_before = cv2.getNumThreads()
+        _cv_users += 1
+        cv2.setNumThreads(n)
     try:
         yield
     finally:
-        cv2.setNumThreads(before)
+        with _cv_lock:
+            _cv_users -= 1
+            if _cv_users == 0:
+                cv2.setNumThreads(_cv_before)
 
 
 @contextlib.contextmanager

@@ -19,8 +19,10 @@ import logging
 import os
 import resource
 import sys
+import threading
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -32,7 +34,7 @@ from plantscan_core.metadata import Metadata, resolve_metadata, scan_summary
 from plantscan_core.parallel import image_pool
 from plantscan_core.photos import Photos
 from plantscan_core.plugins import PluginManager
-from plantscan_core.progress import Display, RunLog, StepProgress, display_for, run_logging
+from plantscan_core.progress import Display, RunLog, display_for, run_logging
 from plantscan_core.recipe import Recipe, StageSpec, stage_spec
 from plantscan_core.runfolder import CACHE_DIR
 from plantscan_core.scanfolder import ScanFolder, atomic_write_text, now_iso
@@ -87,7 +89,10 @@ class Run:
         self.manager = manager
         self.display = display_for(progress)
         self.log: RunLog | None = None  # set by process() for the run's duration
-        self._step: StepProgress | None = None  # the step running (its items counted by _map)
+        # the step running in this thread (its items counted by _map): two steps may run at
+        # once (``process``), each in its own thread
+        self._local = threading.local()
+        self._lock = threading.RLock()  # run.json's record and the results, between steps
         self.workers = workers or min(4, os.cpu_count() or 1)
         self.context = StageContext(recipe=recipe, scan=scan, run_dir=self.run_dir)
         self.result = RunResult(run_dir=self.run_dir, recipe=recipe, scan=scan)
@@ -155,7 +160,8 @@ class Run:
         parts: list[Any] = [self.keys[n] for n in step.needs]
         if step.scan_inputs is not None:
             scan_inputs = step.scan_inputs(self.step_run)
-            self.info["input_hashes"][step.section] = sha(scan_inputs)
+            with self._lock:
+                self.info["input_hashes"][step.section] = sha(scan_inputs)
             parts.append(scan_inputs)
         return sha(parts)
 
@@ -190,12 +196,14 @@ class Run:
         key = sha(identity)
         record = {"plugin": spec.plugin, "version": plugin.version(), "params": params,
                   "key": key}
-        self.info["stages"][section] = record
+        with self._lock:
+            self.info["stages"][section] = record
         entry = self._cached(section, key, step.files(step_run)) if step.cached else None
         self.manager.before_stage(step.stage, plugin, context)
         title = f"{step.section} {spec.plugin}" if step.many else section  # export ply
         t0, c0 = time.perf_counter(), time.process_time()
-        with self.display.step(title) as self._step:
+        with self.display.step(title) as progress:
+            self._local.step = progress
             try:
                 with self._log_stage():
                     if entry is not None:
@@ -219,19 +227,21 @@ class Run:
                     raise
                 raise StageError(section, spec.plugin, str(exc) or type(exc).__name__) from exc
             if self.log is not None:
-                self._step.note = self.log.summarise(section, title, plugin.report.warnings,
-                                                     cached=entry is not None)
+                progress.note = self.log.summarise(section, title, plugin.report.warnings,
+                                                   cached=entry is not None)
             elif entry is not None:
-                self._step.note = "cached"
-        self._step = None
+                progress.note = "cached"
+        self._local.step = None
         seconds = time.perf_counter() - t0
-        record["cached"] = entry is not None
-        record["info"] = plugin.report.to_dict()
-        self.info["timings_s"][section] = round(seconds, 4)
-        self.info.setdefault("cpu_s", {})[section] = round(time.process_time() - c0, 4)
-        self.info.setdefault("peak_rss_mb", {})[section] = round(peak_rss_mb(), 1)
-        self.result.timings[section] = seconds
-        self._keep(step, section, value, key, plugin.report)
+        with self._lock:
+            record["cached"] = entry is not None
+            record["info"] = plugin.report.to_dict()
+            self.info["timings_s"][section] = round(seconds, 4)
+            # the process's CPU: a step running beside another (``process``) counts both
+            self.info.setdefault("cpu_s", {})[section] = round(time.process_time() - c0, 4)
+            self.info.setdefault("peak_rss_mb", {})[section] = round(peak_rss_mb(), 1)
+            self.result.timings[section] = seconds
+            self._keep(step, section, value, key, plugin.report)
         self.manager.after_stage(step.stage, plugin, context, seconds, entry is not None)
         self._write_info()
         return value
@@ -260,7 +270,7 @@ class Run:
         """Run ``fn(i)`` for i < n on a thread pool (OpenCV releases the GIL), in order; the
         running step's progress counts them."""
         results: list[Any] = [None] * n
-        step = self._step
+        step = getattr(self._local, "step", None)
         if step is not None:
             step.count(n, unit)
         with image_pool(self.workers) as pool:
@@ -272,7 +282,8 @@ class Run:
         return results
 
     def _write_info(self) -> None:
-        atomic_write_text(self.run_dir / "run.json", json.dumps(plain(self.info), indent=2))
+        with self._lock:
+            atomic_write_text(self.run_dir / "run.json", json.dumps(plain(self.info), indent=2))
 
 
 def file_content_hash(path: Path) -> str:
@@ -282,6 +293,55 @@ def file_content_hash(path: Path) -> str:
             return hashlib.file_digest(f, "sha256").hexdigest()
     except FileNotFoundError:
         return "missing"
+
+
+def _run_steps(run: Run, steps: list[Step], named: list[Step], given: dict[str, Path]) -> None:
+    """Run ``steps`` in table order; a step needing nothing runs beside the next one.
+
+    A step with no needs reads only the scan (calibrate).  When the next step the
+    recipe names does not need its result either (segment), the first runs in a worker
+    thread while the next runs here, and a later step needing it (reconstruct), or a
+    list step (the exports), or the end of the run waits for it.  The wall time saved
+    is the idle core of either: the calibration's solve is one thread (paper-360 at
+    18 MP: 2.7 of its 8 s), segmentation leaves ~10 % of two cores idle
+    (docs/benchmarks/end_to_end.md).  One step at a time beside; none with one worker.
+
+    A failure of either is raised after both have ended: the other's result is kept
+    (its cache entry written), so a re-run after fixing the cause redoes only what
+    failed.
+    """
+    beside: dict[str, Future] = {}  # result name -> the step computing it in the worker
+
+    def wait_for(names: Sequence[str]) -> None:
+        for name in names:
+            if name in beside:
+                beside.pop(name).result()  # the step's StageError, if it failed
+
+    with ThreadPoolExecutor(1, thread_name_prefix="plantscan-step") as worker:
+        for i, step in enumerate(steps):
+            spec = stage_spec(run.recipe, step.section)
+            wait_for(list(beside) if step.many else step.needs)
+            if step.many:
+                run.run_many(step, list(spec or []))
+            elif step not in named or any(n not in run.keys for n in step.needs):
+                with run._lock:
+                    run.info.setdefault("skipped", []).append(step.section)
+            elif step.section in given:
+                run.use_file(step, given[step.section])
+            else:
+                key = run.inputs_key(step)
+                following = next((s for s in steps[i + 1:] if s in named), None)
+                if (not step.needs and not beside and run.workers > 1
+                        and following is not None and not following.many
+                        and step.result not in following.needs):
+                    beside[step.result] = worker.submit(run.run_step, step, step.section,
+                                                        spec, key)
+                    with run._lock:  # their timings overlap (the CPU column counts both)
+                        run.info.setdefault("side_by_side", []).append(
+                            [step.section, following.section])
+                else:
+                    run.run_step(step, step.section, spec, key)
+        wait_for(list(beside))
 
 
 @one_writer("run_dir", "run folder")
@@ -307,7 +367,9 @@ def process(
     The steps of the stage table run in order (``manager.registry.steps``:
     calibrate, segment, reconstruct, mesh, segment_mesh, measure, export, and
     any a plugin added); a step runs when the recipe names it and the results
-    it needs exist (``run.json: skipped`` lists the others).
+    it needs exist (``run.json: skipped`` lists the others).  A step that reads
+    only the scan runs beside the next one when that one does not need it
+    (calibrate beside segment: ``_run_steps``).
     ``calibration_path`` replaces the calibrate stage with a saved calibration.
     ``metadata`` is the plant's and the experiment's (a sample sheet's row,
     resolved by the caller); by default the recipe's and the scan's own record.
@@ -338,16 +400,7 @@ def process(
         logging.getLogger("plantscan.run").info(
             "process %s -> %s (recipe %s%s)", scan.root, run_dir, recipe.name,
             f", --set {' '.join(overrides)}" if overrides else "")
-        for step in steps:
-            spec = stage_spec(recipe, step.section)
-            if step.many:
-                run.run_many(step, list(spec or []))
-            elif step not in named or any(n not in run.keys for n in step.needs):
-                run.info.setdefault("skipped", []).append(step.section)
-            elif step.section in given:
-                run.use_file(step, given[step.section])
-            else:
-                run.run_step(step, step.section, spec, run.inputs_key(step))
+        _run_steps(run, steps, named, given)
         logging.getLogger("plantscan.run").info(
             "done in %.1f s%s", time.perf_counter() - t0,
             f"; not run: {', '.join(run.info['skipped'])}" if run.info.get("skipped") else "")

@@ -285,15 +285,27 @@ class RunLog:
         self._to_display = to_display
         self._file = file_handler
         self._held: list[logging.LogRecord] = []
+        self._running = 0  # stages running (two may overlap: calibrate beside segment)
+        self._lock = threading.Lock()
 
     @contextlib.contextmanager
     def stage(self) -> Iterator[None]:
-        """Hold the warnings plugins log while a stage runs, for ``summarise``."""
-        self._to_display.held = []
+        """Hold the warnings plugins log while a stage runs, for ``summarise``.
+
+        Stages may overlap (``plantscan_core.pipeline``): the records are held while
+        any stage runs, and each ``summarise`` takes those its own report names.
+        """
+        with self._lock:
+            if self._running == 0:
+                self._to_display.held = []
+            self._running += 1
         try:
             yield
         finally:
-            self._held, self._to_display.held = self._to_display.held or [], None
+            with self._lock:
+                self._running -= 1
+                self._held += self._to_display.held or []
+                self._to_display.held = [] if self._running else None
 
     def _to_file(self, level: int, name: str, text: str) -> None:
         if self._file is not None:
@@ -306,16 +318,18 @@ class RunLog:
         ``leaf``).  A warning a plugin logged that is not in its report is shown
         as it is.  Returns a note for the step's "done" line.
         """
-        held, self._held = self._held, []
-        logged = {r.getMessage() for r in held}
         said = {w.message for w in warnings}
+        with self._lock:  # this stage's records; the others wait for a stage still running
+            held = [r for r in self._held if r.getMessage() in said]
+            others = [r for r in self._held if r.getMessage() not in said]
+            self._held, others = (others, []) if self._running else ([], others)
+        logged = {r.getMessage() for r in held}
         if not cached:
             for w in warnings:  # in full in run.log, once (the plugin may have logged it)
                 if w.message not in logged:
                     self._to_file(logging.WARNING, f"plantscan.{section}", w.message)
-        for record in held:
-            if record.getMessage() not in said:
-                self._to_display.emit(record)
+        for record in others:
+            self._to_display.emit(record)
         if not warnings:
             return "cached" if cached else ""
         leaves = sorted({w.leaf for w in warnings if getattr(w, "leaf", None) is not None})

@@ -21,3 +21,20 @@ def test_one_item_runs_in_the_calling_thread_and_errors_reach_the_caller():
     with pytest.raises(ValueError, match="view 3"):
         thread_map(lambda i: (_ for _ in ()).throw(ValueError(f"view {i}")) if i == 3 else i,
                    range(6))
+
+
+def test_opencv_threads_restored_only_when_the_last_overlapping_block_ends():
+    """Two steps may hold OpenCV at one thread at once (calibrate beside segment): the first
+    to end must not give OpenCV its threads back while the other still runs."""
+    import cv2
+
+    from plantscan_core.parallel import opencv_threads
+
+    before = cv2.getNumThreads()
+    first, second = opencv_threads(1), opencv_threads(1)
+    first.__enter__()
+    second.__enter__()
+    first.__exit__(None, None, None)  # the blocks end out of order, as threads do
+    assert cv2.getNumThreads() == 1
+    second.__exit__(None, None, None)
+    assert cv2.getNumThreads() == before

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import threading
 import types
 
 import numpy as np
@@ -20,6 +21,8 @@ from plantscan_core.testing import TINY_CALLS as CALLS
 from plantscan_core.testing import (
     TINY_SPHERE_CENTRE_MM,
     TINY_SPHERE_RADIUS_MM,
+    TinyDarkSegmenter,
+    TinyExactCalibrator,
     stages_plugin,
     tiny_camera,
     tiny_processing_plugin,
@@ -242,8 +245,85 @@ def test_observer_hooks_see_every_stage(tiny_scan, manager, tmp_path):
         process(tiny_scan.root, recipe, tmp_path / "run", manager, raw_recipe=raw)
     finally:
         manager.unregister(obs)
-    assert seen == [("calibrator", "tiny-exact", False), ("segmenter", "tiny-dark", False),
-                    ("reconstructor", "tiny-count", False)]
+    # calibrate and segment may end in either order (they run side by side); reconstruct
+    # needs both
+    assert sorted(seen[:2]) == [("calibrator", "tiny-exact", False),
+                                ("segmenter", "tiny-dark", False)]
+    assert seen[2:] == [("reconstructor", "tiny-count", False)]
+
+
+class RendezvousCalibrator(TinyExactCalibrator):
+    """Waits until segmentation has started (or fails): proves the two run side by side."""
+
+    name = "tiny-rendezvous"
+
+    class Params(StageParams):
+        fail: bool = False
+
+    def calibrate(self, scan):
+        # A generous bound: segmentation of the tiny scan starts within milliseconds when
+        # the steps overlap; run one after the other, segmentation never starts first.
+        assert SEGMENT_STARTED.wait(30), "segment did not start while calibrate ran"
+        if self.params.fail:
+            raise ValueError("no board found")
+        return super().calibrate(scan)
+
+
+SEGMENT_STARTED = threading.Event()
+
+
+class BrokenSegmenter(TinyDarkSegmenter):
+    name = "tiny-broken"
+
+    def segment(self, image, background, view=None):
+        raise ValueError("segment broke")
+
+
+@pytest.fixture
+def rendezvous(manager):
+    obs = types.SimpleNamespace()
+
+    @hookimpl
+    def plantscan_before_stage(stage, plugin, context):
+        if stage == "segmenter":
+            SEGMENT_STARTED.set()
+
+    obs.plantscan_before_stage = plantscan_before_stage
+    SEGMENT_STARTED.clear()
+    manager.register(obs, name="rendezvous")
+    manager.register(stages_plugin(RendezvousCalibrator, BrokenSegmenter),
+                     name="tiny-rendezvous")
+    yield manager
+    manager.unregister(obs)
+
+
+@pytest.mark.parametrize("fail", [None, "calibrate", "segment"])
+def test_calibrate_runs_beside_segment(tiny_scan, rendezvous, tmp_path, fail):
+    """Calibrate (reads only the scan) runs while segment runs; a failure of either is raised
+    once both have ended, and the other's result is kept and reused by the next run."""
+    raw = tiny_recipe()
+    raw.update(calibrate={"plugin": "tiny-rendezvous", "params": {"fail": fail == "calibrate"}},
+               segment={"plugin": "tiny-broken" if fail == "segment" else "tiny-dark"},
+               reconstruct={"plugin": "tiny-count"})
+    recipe = validate_recipe(raw, rendezvous.registry)
+    run = tmp_path / "run"
+    if fail is None:
+        result = process(tiny_scan.root, recipe, run, rendezvous, raw_recipe=raw)
+        assert result.volume is not None
+        assert CALLS == {"calibrate": 1, "segment": len(tiny_scan.views_by_role("plant"))}
+        info = json.loads((run / "run.json").read_text())
+        assert info["side_by_side"] == [["calibrate", "segment"]]
+        return
+    with pytest.raises(StageError, match="no board found" if fail == "calibrate"
+                       else "segment broke"):
+        process(tiny_scan.root, recipe, run, rendezvous, raw_recipe=raw)
+    info = json.loads((run / "run.json").read_text())
+    if fail == "calibrate":  # the masks were made and kept
+        assert len(list((run / "masks").glob("*.png"))) == len(tiny_scan.views_by_role("plant"))
+        assert "cached" in info["stages"]["segment"]
+    else:  # the calibration was made and kept
+        assert (run / "calibration.yaml").exists()
+        assert info["stages"]["calibrate"]["cached"] is False
 
 
 @pytest.mark.parametrize("bad_images", ["error", "skip"])
