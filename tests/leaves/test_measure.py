@@ -6,6 +6,7 @@ import logging
 
 import numpy as np
 import pytest
+from plantscan_leaves import geometry as geo
 from plantscan_leaves import phantoms as ph
 from plantscan_leaves.measure import (
     LeafGeometryParams,
@@ -251,3 +252,39 @@ def test_tip_broken_off_by_the_hull_counts_in_the_length():
     m2 = measure_leaf(mesh2, 1, LeafGeometryParams())
     assert m2.info["tip_extension_mm"] == 0.0
     assert _rel(m2.traits.length_mm, leaf.length_mm) < 0.02, m2.traits
+
+
+def test_tip_lost_by_the_hull_is_restored_from_the_taper():
+    # a grass-like blade (150 mm, 12 mm wide to 90 mm, then tapering straight to a point)
+    # whose last 10 mm, narrower than 2 mm, no view carved: the hull ends at 140 mm. With
+    # the lost width given (tip_taper_units: 2 mm in mesh units) the taper's run from
+    # the widest station (90 -> 140 mm) restores the 10 mm, area and perimeter with it.
+    length, half, flat, lost = 150.0, 6.0, 90.0, 2.0
+    cut = length - (length - flat) * lost / (2 * half)  # 140 mm
+
+    def blade(p):
+        x, y, z = p[..., 0], p[..., 1], p[..., 2]
+        hw = half * np.clip((length - x) / (length - flat), 0.0, 1.0)
+        return np.minimum.reduce([0.75 - np.abs(z), hw - np.abs(y), x, cut - x])
+
+    mesh = ph.mesh_field(blade, (0, -8, -2), (length, 8, 2), 0.4)
+    u = geo.mesh_unit(mesh.vertices, mesh.faces)
+    at_stem = np.zeros(3)  # the base end, as the plant's stem tells measure_plant
+    plain = measure_leaf(mesh, 1, LeafGeometryParams(), at_stem)
+    m = measure_leaf(mesh, 1, LeafGeometryParams(tip_taper_units=lost / u), at_stem)
+    # without it, the hull's 140 mm (the slab's 2 % tolerance); with it, the blade's 150
+    assert _rel(plain.traits.length_mm, cut) < 0.02, plain.traits
+    assert plain.info["lost_tip_mm"] == 0.0
+    assert _rel(m.traits.length_mm, length) < 0.02, m.traits
+    # the restored triangle: 10 mm long, 2 mm wide at its base
+    assert m.info["lost_tip_mm"] == pytest.approx(length - cut, rel=0.2)
+    assert m.traits.area_mm2 - plain.traits.area_mm2 == pytest.approx(
+        0.5 * lost * m.info["lost_tip_mm"], rel=1e-6)
+    assert m.traits.perimeter_mm - plain.traits.perimeter_mm == pytest.approx(
+        2 * m.info["lost_tip_mm"], rel=1e-6)
+    # a blade whose end is as wide as the rest (no taper: an end cut square) gains little
+    square = ph.mesh_field(lambda p: np.minimum.reduce(
+        [0.75 - np.abs(p[..., 2]), half - np.abs(p[..., 1]), p[..., 0], 120.0 - p[..., 0]]),
+        (0, -8, -2), (120, 8, 2), 0.4)
+    sq = measure_leaf(square, 1, LeafGeometryParams(tip_taper_units=lost / u), at_stem)
+    assert sq.info["lost_tip_mm"] < 0.02 * 120.0, sq.info
