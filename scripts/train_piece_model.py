@@ -79,7 +79,7 @@ SHIPPED = {
     pc.MODEL_FILE: {"dicot": list(range(8))},
     ALL_MODEL_FILE: {"dicot": list(range(8)), "branched": list(range(3)),
                      "grass": list(range(3))},
-    GRASS_MODEL_FILE: {"grass": list(range(10))},
+    GRASS_MODEL_FILE: {"grass": list(range(30))},
 }
 MODELS_DIR = REPO / "plugins" / "plantscan_leaves" / "models"
 
