@@ -27,6 +27,20 @@ class CurvatureRegions(MeshSegmenter):
     name = "curvature-regions"
     Params = CurvatureRegionsParams
 
+    def input_files(self, scan) -> list[Path]:
+        """The judges' model files in use: the run's cache key hashes their content, so a
+        model retrained under the same name segments again (files the package ships
+        included: an upgrade that retrains one does too)."""
+        from plantscan_leaves import pieces, stem_parts
+
+        p = self.params
+        files = []
+        if p.judge_pieces:
+            files.append(pieces.model_location(p.piece_model, pieces.MODEL_FILE))
+        if p.judge_stem_parts:
+            files.append(pieces.model_location(p.stem_part_model, stem_parts.MODEL_FILE))
+        return [Path(str(f)) for f in files]
+
     def segment(self, mesh: Mesh) -> LabelledMesh:
         labelled, self.report = segment_leaves(mesh, self.params)
         return labelled
@@ -38,6 +52,16 @@ class LearnedOrgans(MeshSegmenter):
     name = "learned-organs"
     Params = LearnedOrgansParams
 
+    def input_files(self, scan) -> list[Path]:
+        """The organ model's files: the run's cache key hashes their content."""
+        from importlib import resources
+
+        from plantscan_leaves.organs import MODEL_FILES
+
+        folder = self.params.model_dir
+        root = resources.files("plantscan_leaves") / "models" if folder is None else Path(folder)
+        return [Path(str(root / name)) for name in MODEL_FILES.values()]
+
     def segment(self, mesh: Mesh) -> LabelledMesh:
         labelled, self.report = segment_organs(mesh, self.params)
         return labelled
@@ -48,6 +72,13 @@ class LeafGeometry(Measurer):
 
     name = "leaf-geometry"
     Params = LeafGeometryParams
+
+    def input_files(self, scan) -> list[Path]:
+        """The trust model's file when one is named: the run's cache key hashes its content."""
+        from plantscan_leaves.pieces import model_location
+
+        name = self.params.trust_model
+        return [] if name is None else [Path(str(model_location(name, name)))]
 
     def measure(self, labelled: LabelledMesh) -> Traits:
         scan = self.context.scan

@@ -153,6 +153,37 @@ def test_a_calibrator_reading_the_plant_photos_is_redone_when_they_change(
     assert CALLS["calibrate"] == 2
 
 
+def test_a_stage_is_redone_when_a_file_it_reads_changes_content(tiny_scan, manager, tmp_path):
+    """A stage that declares ``input_files`` (a model file, an imported calibration) has
+    their content in its cache key: the same name with new content (a model retrained
+    under its old name) redoes it; a new modification time alone does not."""
+    import os
+
+    from plantscan_core.testing import TinyExactCalibrator
+
+    model = tmp_path / "model.bin"
+    model.write_bytes(b"first training")
+
+    class ModelCalibrator(TinyExactCalibrator):
+        name = "tiny-with-model"
+
+        def input_files(self, scan):
+            return [model]
+
+    manager.register(stages_plugin(ModelCalibrator), name="tiny-with-model")
+    recipe, raw = _recipe(manager)
+    raw["calibrate"] = {"plugin": "tiny-with-model"}
+    recipe = validate_recipe(raw, manager.registry)
+    process(tiny_scan.root, recipe, tmp_path / "run", manager, raw_recipe=raw)
+    st = model.stat()
+    os.utime(model, ns=(st.st_atime_ns, st.st_mtime_ns + 10_000_000))
+    process(tiny_scan.root, recipe, tmp_path / "run", manager, raw_recipe=raw)
+    assert CALLS["calibrate"] == 1  # same content: cached
+    model.write_bytes(b"second training")
+    process(tiny_scan.root, recipe, tmp_path / "run", manager, raw_recipe=raw)
+    assert CALLS["calibrate"] == 2
+
+
 def test_each_image_is_decoded_once_per_run(tiny_scan, manager, tmp_path):
     recipe, raw = _recipe(manager)
     iostats.reset()

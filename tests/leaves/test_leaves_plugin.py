@@ -159,3 +159,28 @@ def test_evaluate_says_where_each_truth_leaf_went(mock_plant, tmp_path):
     assert shares[1]["stem"] == 0.0
     for t in range(2, len(plant.leaves)):
         assert shares[t]["own"] == pytest.approx(1.0) and shares[t]["measured_id"] == t + 1
+
+
+def test_the_model_files_a_leaf_stage_reads_are_in_its_cache_key(manager, tmp_path):
+    # A judge or trust model retrained under its old name must not leave a run folder's
+    # cached labels or traits in place (the pipeline hashes the content of input_files).
+    import shutil
+
+    from plantscan_leaves import pieces, stem_parts
+
+    own = tmp_path / "my_piece_model.json.gz"
+    shutil.copy(pieces.model_location(None, pieces.MODEL_FILE), own)
+    seg = manager.build("mesh_segmenter", "curvature-regions",
+                        {"judge_pieces": True, "piece_model": str(own),
+                         "judge_stem_parts": True})
+    files = seg.input_files(None)
+    assert files[0] == own
+    assert files[1] == Path(str(pieces.model_location(None, stem_parts.MODEL_FILE)))
+    assert all(f.is_file() for f in files)
+    assert manager.build("mesh_segmenter", "curvature-regions", {}).input_files(None) == []
+    meas = manager.build("measurer", "leaf-geometry", {"trust_model": "trust_model_grass.json.gz"})
+    (trust,) = meas.input_files(None)
+    assert trust.name == "trust_model_grass.json.gz" and trust.is_file()
+    assert manager.build("measurer", "leaf-geometry", {}).input_files(None) == []
+    organs = manager.build("mesh_segmenter", "learned-organs", {}).input_files(None)
+    assert organs and all(f.is_file() for f in organs)
