@@ -124,10 +124,10 @@ class LeafGeometryParams(StageParams):
     tip_taper_units: float = Field(
         0.0, ge=0,
         description="width, mesh units, below which a tapering tip is lost to the hull "
-                    "(the views carve nothing narrower than about two voxels): the tip is "
-                    "extended by the length over which the blade's taper, from its widest "
-                    "station to its end, narrows by this width (docs/leaves.md, \"Lost "
-                    "tips\"); 0: off (broad leaves: their rounded tips are not lost)")
+                    "(3 at the grass family's 1296x864 and 512^3): the blade's taper, from "
+                    "the last station at 0.9 of its width to its measured end, is "
+                    "continued to zero width (docs/leaves.md, \"Lost tips\"); 0: off "
+                    "(broad leaves: their rounded tips are not lost)")
     min_plant_views: int = Field(
         0, ge=0, description="plant views this recipe's plants need (the family's protocol): "
                              "fewer flag the plant 'check', fewer than half 'fail' "

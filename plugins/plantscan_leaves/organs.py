@@ -68,13 +68,19 @@ def _booster(text: str):
 
 
 @lru_cache(maxsize=4)
+def model_root(folder: str | None = None):
+    """The folder holding the organ model's files (``MODEL_FILES``): None, the one shipped
+    in ``plantscan_leaves/models``."""
+    return resources.files("plantscan_leaves") / "models" if folder is None else Path(folder)
+
+
 def load_model(folder: str | None = None) -> OrganModel:
     """The organ model in ``folder`` (the three files of ``MODEL_FILES``, as
     ``scripts/train_organ_model.py --out`` writes them); None: the one shipped in
     ``plantscan_leaves/models``.  Loaded once per process and folder."""
     from plantscan_core.errors import DataError
 
-    root = resources.files("plantscan_leaves") / "models" if folder is None else Path(folder)
+    root = model_root(folder)
     boosters = {}
     for key, name in MODEL_FILES.items():
         path = root / name

@@ -54,12 +54,9 @@ class LearnedOrgans(MeshSegmenter):
 
     def input_files(self, scan) -> list[Path]:
         """The organ model's files: the run's cache key hashes their content."""
-        from importlib import resources
+        from plantscan_leaves.organs import MODEL_FILES, model_root
 
-        from plantscan_leaves.organs import MODEL_FILES
-
-        folder = self.params.model_dir
-        root = resources.files("plantscan_leaves") / "models" if folder is None else Path(folder)
+        root = model_root(self.params.model_dir)
         return [Path(str(root / name)) for name in MODEL_FILES.values()]
 
     def segment(self, mesh: Mesh) -> LabelledMesh:
