@@ -62,7 +62,7 @@ BOOSTER_PARAMS = dict(objective="multiclass", num_class=3, learning_rate=0.1, nu
 ROUNDS = 100
 TRAINING = {  # what every model is trained with (the plants and recipes: training_config)
     "family": "dicot",
-    "seeds": list(range(8)),
+    "seeds": list(range(30)),
     "population": "benchmarks/population.py paper-72 1296x864, recipes/dicot.yaml 512^3",
     "labels": "match_leaves: paired leaf; unpaired on leaf with partner of the same truth "
               f"leaf join (lies_on leaf >= {ON_LEAF_SHARE}); else debris",
@@ -76,7 +76,7 @@ GRASS_MODEL_FILE = "piece_model_grass.json.gz"  # the pieces of the grass rules 
 # every model shipped in plantscan_leaves/models and the development plants it is trained
 # on (the recipes name them with segment_mesh.params.piece_model; the test checks each)
 SHIPPED = {
-    pc.MODEL_FILE: {"dicot": list(range(8))},
+    pc.MODEL_FILE: {"dicot": list(range(30))},
     ALL_MODEL_FILE: {"dicot": list(range(8)), "branched": list(range(3)),
                      "grass": list(range(3))},
     GRASS_MODEL_FILE: {"grass": list(range(30))},

@@ -126,8 +126,15 @@ class LeafGeometryParams(StageParams):
         description="width, mesh units, below which a tapering tip is lost to the hull "
                     "(3 at the grass family's 1296x864 and 512^3): the blade's taper, from "
                     "the last station at 0.9 of its width to its measured end, is "
-                    "continued to zero width (docs/leaves.md, \"Lost tips\"); 0: off "
-                    "(broad leaves: their rounded tips are not lost)")
+                    "continued to zero width (docs/leaves.md, \"Lost tips\"); 1 for the "
+                    "dicot family's; 0: off")
+    base_taper_units: float = Field(
+        0.0, ge=0,
+        description="the same at the leaf's base: width, mesh units, below which a blade "
+                    "narrowing into its petiole is lost to the hull and the cut from the "
+                    "petiole; the taper from the first station at 0.9 of the width back to "
+                    "the measured base is continued to zero width (1 at the dicot family's "
+                    "1296x864 and 512^3); 0: off")
     min_plant_views: int = Field(
         0, ge=0, description="plant views this recipe's plants need (the family's protocol): "
                              "fewer flag the plant 'check', fewer than half 'fail' "
@@ -153,7 +160,8 @@ class LeafGeometryParams(StageParams):
             self.sheet_scale_units * u, self.smoothing_units * u, self.path_smoothing_units * u,
             self.outline_smoothing_units * u,
             self.graph_spacing_units * u, u, self.width_stations, self.graph_points_per_size,
-            self.rim_correction, self.min_leaf_faces, self.tip_taper_units * u)
+            self.rim_correction, self.min_leaf_faces, self.tip_taper_units * u,
+            self.base_taper_units * u)
 
 
 @dataclass(frozen=True)
@@ -171,6 +179,7 @@ class LeafScales:
     rim_correction: bool | str
     min_leaf_faces: int
     tip_taper_mm: float = 0.0
+    base_taper_mm: float = 0.0
 
 
 @dataclass
@@ -382,13 +391,16 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
         area += ext_area
     width, extent = _width(sides, mid_pts, dist_b, outline_lines, sheet, slab.edge_mm,
                            rim_excess, p)
-    taper_mm = 0.0
+    taper_mm = base_taper_mm = 0.0
+    seen_mm = geo.polyline_length(mid_pts) + tip_extension_mm
     if p.tip_taper_mm > 0:
-        taper_mm = _lost_tip(extent, geo.polyline_length(mid_pts) + tip_extension_mm,
-                             p.tip_taper_mm)
-        length += taper_mm
-        perimeter += 2.0 * taper_mm  # both edges of the lost tip
-        area += 0.5 * p.tip_taper_mm * taper_mm  # the lost triangle
+        taper_mm = _lost_tip(extent, seen_mm, p.tip_taper_mm)
+    if p.base_taper_mm > 0:  # the same taper read from the other end
+        base_taper_mm = _lost_tip(extent[::-1], seen_mm, p.base_taper_mm)
+    for lost_width, lost_mm in ((p.tip_taper_mm, taper_mm), (p.base_taper_mm, base_taper_mm)):
+        length += lost_mm
+        perimeter += 2.0 * lost_mm  # both edges of the lost end
+        area += 0.5 * lost_width * lost_mm  # the lost triangle
     traits = LeafTraits(leaf_id, float(length), float(width), area, perimeter)
     base_v, tip_v = sides.nodes[base], sides.nodes[tip]
     tip_point = slab.v[tip_v] if ext_tip is None else ext_tip
@@ -396,7 +408,8 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
                            slab.v[sides.nodes[midrib_idx]],
                            {"rim_length_mm": rim_length, "outline": outline_kind,
                             "border_length_mm": slab.border_length,
-                            "tip_extension_mm": tip_extension_mm, "lost_tip_mm": taper_mm})
+                            "tip_extension_mm": tip_extension_mm, "lost_tip_mm": taper_mm,
+                            "lost_base_mm": base_taper_mm})
 
 
 def _closed_slab(mesh: Mesh, p: LeafScales) -> _Slab:

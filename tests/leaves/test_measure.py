@@ -288,3 +288,33 @@ def test_tip_lost_by_the_hull_is_restored_from_the_taper():
         (0, -8, -2), (120, 8, 2), 0.4)
     sq = measure_leaf(square, 1, LeafGeometryParams(tip_taper_units=lost / u), at_stem)
     assert sq.info["lost_tip_mm"] < 0.02 * 120.0, sq.info
+
+
+def test_base_lost_into_the_petiole_is_restored_from_the_taper():
+    # the tip test read from the other end: a blade narrowing over its first 60 mm into a
+    # petiole whose last 10 mm, narrower than 2 mm, the hull lost (or the cut from the
+    # petiole took): the hull starts 10 mm up.  base_taper_units restores them; the tip's
+    # taper (off) and the square tip add nothing.
+    length, half, taper, lost = 150.0, 6.0, 60.0, 2.0
+    cut = taper * lost / (2 * half)  # 10 mm
+
+    def blade(p):
+        x, y, z = p[..., 0], p[..., 1], p[..., 2]
+        hw = half * np.clip(x / taper, 0.0, 1.0)
+        return np.minimum.reduce([0.75 - np.abs(z), hw - np.abs(y), x - cut, length - x])
+
+    mesh = ph.mesh_field(blade, (0, -8, -2), (length, 8, 2), 0.4)
+    u = geo.mesh_unit(mesh.vertices, mesh.faces)
+    at_stem = np.zeros(3)  # the petiole's end
+    plain = measure_leaf(mesh, 1, LeafGeometryParams(), at_stem)
+    m = measure_leaf(mesh, 1, LeafGeometryParams(base_taper_units=lost / u), at_stem)
+    # the slab's 2 % tolerance, as in the tip test
+    assert _rel(plain.traits.length_mm, length - cut) < 0.02, plain.traits
+    assert plain.info["lost_base_mm"] == 0.0
+    assert _rel(m.traits.length_mm, length) < 0.02, m.traits
+    assert m.info["lost_base_mm"] == pytest.approx(cut, rel=0.2)
+    assert m.info["lost_tip_mm"] == 0.0
+    assert m.traits.area_mm2 - plain.traits.area_mm2 == pytest.approx(
+        0.5 * lost * m.info["lost_base_mm"], rel=1e-6)
+    assert m.traits.perimeter_mm - plain.traits.perimeter_mm == pytest.approx(
+        2 * m.info["lost_base_mm"], rel=1e-6)
