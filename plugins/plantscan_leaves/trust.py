@@ -109,12 +109,15 @@ def reason_text(reason: str, trust: Trust) -> str:
 
 
 def plant_quality(trusts: list[Trust], debris_share: float, plant_views: int | None,
-                  min_views: int) -> tuple[str, list[str]]:
+                  min_views: int, stem_share: float = 0.0,
+                  max_stem_share: float = 0.0) -> tuple[str, list[str]]:
     """The plant's flag and its reasons (messages a scientist reads first).
 
     ``debris_share``: debris area over leaf area; ``plant_views``: views the hull was
     carved from (None: unknown); ``min_views``: what the family's recipe asks for (0:
-    no check).
+    no check); ``stem_share``: the stem's share of the plant's surface, against
+    ``max_stem_share``, the most the recipe's plants hold (0: no check): more flags the
+    plant ``check``, twice as much ``fail`` (leaves labelled stem are missed leaves).
     """
     fail, check = [], []
     if not trusts:
@@ -128,6 +131,11 @@ def plant_quality(trusts: list[Trust], debris_share: float, plant_views: int | N
         fail.append(f"debris is {100 * debris_share:.0f} % of the leaf area")
     elif debris_share >= DEBRIS_CHECK:
         check.append(f"debris is {100 * debris_share:.0f} % of the leaf area")
+    if max_stem_share and stem_share > max_stem_share:
+        msg = (f"the stem holds {100 * stem_share:.0f} % of the plant's surface, more than the "
+               f"{100 * max_stem_share:.0f} % of this recipe's plants: leaves labelled stem "
+               "are missing from the leaf count and area, or phantom volume fused to it")
+        (fail if stem_share > 2 * max_stem_share else check).append(msg)
     if min_views and plant_views is not None and plant_views < min_views:
         msg = (f"{plant_views} plant views, fewer than the {min_views} this recipe's plants "
                "need (phantom volume and merged leaves follow)")

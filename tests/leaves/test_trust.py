@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
-from plantscan_leaves.measure import LeafGeometryParams, measure_plant
+from plantscan_leaves.measure import LeafGeometryParams, measure_plant, stem_share
 from plantscan_leaves.trust import LOW_CONFIDENCE, Trust, leaf_trust, plant_quality
 
-from plantscan_core.data import LeafTraits
+from plantscan_core.data import LabelledMesh, LeafTraits
 
 
 def _leaf(length=100.0, width=50.0, area=3900.0, perimeter=240.0, thick=0.0) -> LeafTraits:
@@ -45,6 +46,13 @@ def test_plant_flag_and_its_reasons():
     assert flag == "fail" and "12 plant views" in why[0]
     assert plant_quality([], 0.0, 72, 72)[0] == "fail"
     assert plant_quality([low] * 3 + [good] * 3, 0.0, 72, 72)[0] == "fail"
+    # the stem's share of the surface against the recipe's most: over it check, over
+    # twice it fail; 0: no check
+    assert plant_quality([good] * 12, 0.0, 72, 72, 0.2, 0.25) == ("ok", [])
+    flag, why = plant_quality([good] * 12, 0.0, 72, 72, 0.3, 0.25)
+    assert flag == "check" and "the stem holds 30 % of the plant's surface" in why[0]
+    assert plant_quality([good] * 12, 0.0, 72, 72, 0.6, 0.25)[0] == "fail"
+    assert plant_quality([good] * 12, 0.0, 72, 72, 0.6, 0.0) == ("ok", [])
 
 
 def test_measured_mock_plant_carries_confidence_and_flag(mock_plant, mock_plant_measured):
@@ -54,4 +62,30 @@ def test_measured_mock_plant_carries_confidence_and_flag(mock_plant, mock_plant_
     assert all(lf.quality_flag in ("ok", "check") for lf in traits.leaves)
     assert traits.plant["quality_flag"] == "fail"
     assert any("12 plant views" in r for r in traits.plant["quality_reasons"])
+    assert report.warnings_about(code="plant-quality")
+
+
+def test_leaves_labelled_stem_flag_the_plant(mock_plant_measured):
+    # the dicot failure this check is for: the segmenter calls young leaves stem, so they
+    # are missing from the leaf count and area with no leaf to carry a low confidence.
+    # Relabel half the mock plant's leaves stem: the stem's share of the surface rises
+    # past the recipe's most and the plant is flagged, with the share in its reason.
+    labelled, _ = mock_plant_measured
+    leaves = sorted(k for k, kind in labelled.kinds.items() if kind == "leaf")
+    stem = next(k for k, kind in labelled.kinds.items() if kind == "stem")
+    params = LeafGeometryParams(max_stem_share=0.25)
+    traits, _, _ = measure_plant(labelled, params)
+    before = stem_share(labelled, traits.plant["total_leaf_area_mm2"])
+    assert before < 0.25 and traits.plant["quality_flag"] != "fail"
+    assert not any("the stem holds" in r for r in traits.plant["quality_reasons"])
+    gone = leaves[: len(leaves) // 2]
+    labels = np.where(np.isin(labelled.face_labels, gone), stem, labelled.face_labels)
+    fewer = LabelledMesh(labelled.mesh, labels,
+                         {k: v for k, v in labelled.kinds.items() if k not in gone})
+    traits, _, report = measure_plant(fewer, params)
+    after = stem_share(fewer, traits.plant["total_leaf_area_mm2"])
+    assert after > 0.25 and after > before
+    assert traits.plant["quality_flag"] in ("check", "fail")
+    assert any(f"the stem holds {100 * after:.0f} %" in r
+               for r in traits.plant["quality_reasons"])
     assert report.warnings_about(code="plant-quality")
