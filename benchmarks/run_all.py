@@ -28,7 +28,8 @@ def assemble() -> Path:
     header = (ROOT / "docs/benchmarks/_header.md.in")
     parts = [header.read_text() if header.exists() else "# Benchmarks\n"]
     for p in pages:
-        parts.append(p.read_text().strip() + "\n")
+        # the pages link docs/img as ../img; the assembled page sits in docs/
+        parts.append(p.read_text().strip().replace("](../img/", "](img/") + "\n")
     out = ROOT / "docs/benchmarks.md"
     out.write_text("\n".join(parts))
     return out
