@@ -56,7 +56,9 @@ _DEV = {"dicot": list(range(20)), "grass": list(range(10)), "branched": list(ran
         "rosette": list(range(6)), "seedling": list(range(16))}
 SHIPPED = {**{f"trust_model_{f}.json.gz": {f: _DEV[f]}
               for f in ("dicot", "grass", "branched", "rosette")},
-           "trust_model_all.json.gz": _DEV}
+           "trust_model_all.json.gz": _DEV,
+           # session 21: the dicot model on the dicot recipe's new rules, 30 dev plants
+           "trust_model_dicot.json.gz": {"dicot": list(range(30))}}
 MODELS_DIR = REPO / "plugins/plantscan_leaves/models"
 
 
