@@ -1234,13 +1234,18 @@ def _thick_and_outline_checks(labelled: LabelledMesh, measurements: list[LeafMea
         report.warnings.append(w)
 
 
+def _kind_area(labelled: LabelledMesh, kind: str) -> float:
+    """One-side area of the faces labelled ``kind`` (their area over two).  Only those
+    faces are summed (the whole plant's areas cost 0.3-0.9 s at 1.7 M faces)."""
+    labels = [k for k, name in labelled.kinds.items() if name == kind]
+    faces = labelled.mesh.faces[np.isin(labelled.face_labels, labels)]
+    return float(Mesh(labelled.mesh.vertices, faces).face_areas().sum()) / 2.0
+
+
 def stem_share(labelled: LabelledMesh, other_area_mm2: float) -> float:
-    """The stem's share of the plant's surface, one side: its faces' area over two, over
-    that plus ``other_area_mm2`` (the leaves' and the debris' one-side area).  Only the
-    stem's faces are summed (the whole plant's areas cost 0.3-0.9 s at 1.7 M faces)."""
-    stem = [k for k, kind in labelled.kinds.items() if kind == "stem"]
-    on_stem = labelled.mesh.faces[np.isin(labelled.face_labels, stem)]
-    area = float(Mesh(labelled.mesh.vertices, on_stem).face_areas().sum()) / 2.0
+    """The stem's share of the plant's surface, one side: the stem's one-side area over
+    that plus ``other_area_mm2`` (the leaves' and the debris' one-side area)."""
+    area = _kind_area(labelled, "stem")
     total = area + other_area_mm2
     return area / total if total > 0 else 0.0
 
@@ -1268,15 +1273,12 @@ def _judge(traits: Traits, measurements: list[LeafMeasurement], labelled: Labell
         if t.low:
             report.warn("low-confidence", f"leaf {leaf.leaf_id}: confidence {t.confidence:.2f}: "
                         + "; ".join(reason_text(r, t) for r in t.reasons), leaf=leaf.leaf_id)
-    debris = [k for k, kind in labelled.kinds.items() if kind == "debris"]
-    # the debris faces' areas only (the whole plant's cost 0.3-0.9 s at 1.7 M faces)
-    on_debris = labelled.mesh.faces[np.isin(labelled.face_labels, debris)]
-    debris_area = float(Mesh(labelled.mesh.vertices, on_debris).face_areas().sum()) / 2.0
+    debris_area = _kind_area(labelled, "debris")
     leaf_area = float(traits.plant.get("total_leaf_area_mm2", 0.0))
     share = debris_area / leaf_area if leaf_area > 0 else (1.0 if debris_area > 0 else 0.0)
-    stem = stem_share(labelled, leaf_area + debris_area) if p.max_stem_share else None
+    stem = stem_share(labelled, leaf_area + debris_area) if p.max_stem_share else 0.0
     flag, reasons = plant_quality(trusts, share, plant_views, p.min_plant_views,
-                                  stem or 0.0, p.max_stem_share)
+                                  stem, p.max_stem_share)
     traits.plant.update(quality_flag=flag, quality_reasons=reasons,
                         debris_area_mm2=debris_area,
                         low_confidence_leaves=sum(t.low for t in trusts))
