@@ -1155,6 +1155,9 @@ PLANT_TRAITS: tuple[TraitColumn, ...] = (
            decimals=0),
     _plant("debris_area_mm2", "mm2", "one-sided area of the surface pieces labelled debris "
            "(neither leaf nor stem)", decimals=0),
+    _plant("stem_area_mm2", "mm2", "one-sided area of the surface labelled stem (stems, "
+           "petioles, sheaths); a share of the plant's surface above the recipe's "
+           "max_stem_share flags the plant (docs/leaves.md, Trust)", decimals=0),
     _plant("low_confidence_leaves", "1", "number of leaves whose quality flag is check",
            decimals=0),
     _plant("quality_flag", "", "ok, check or fail: whether to trust the plant's numbers "

@@ -1276,11 +1276,13 @@ def _judge(traits: Traits, measurements: list[LeafMeasurement], labelled: Labell
     debris_area = _kind_area(labelled, "debris")
     leaf_area = float(traits.plant.get("total_leaf_area_mm2", 0.0))
     share = debris_area / leaf_area if leaf_area > 0 else (1.0 if debris_area > 0 else 0.0)
-    stem = stem_share(labelled, leaf_area + debris_area) if p.max_stem_share else 0.0
+    stem_area = _kind_area(labelled, "stem")
+    total = stem_area + leaf_area + debris_area
+    stem = stem_area / total if total > 0 else 0.0
     flag, reasons = plant_quality(trusts, share, plant_views, p.min_plant_views,
                                   stem, p.max_stem_share)
     traits.plant.update(quality_flag=flag, quality_reasons=reasons,
-                        debris_area_mm2=debris_area,
+                        debris_area_mm2=debris_area, stem_area_mm2=stem_area,
                         low_confidence_leaves=sum(t.low for t in trusts))
     if flag != "ok":
         report.warn("plant-quality", f"plant flagged '{flag}': " + "; ".join(reasons))

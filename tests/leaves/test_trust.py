@@ -85,6 +85,9 @@ def test_leaves_labelled_stem_flag_the_plant(mock_plant_measured):
     traits, _, report = measure_plant(fewer, params)
     after = stem_share(fewer, traits.plant["total_leaf_area_mm2"])
     assert after > 0.25 and after > before
+    # the stem's area is a plant trait of its own, the share's numerator (no debris here)
+    stem_area = traits.plant["stem_area_mm2"]
+    assert after == pytest.approx(stem_area / (stem_area + traits.plant["total_leaf_area_mm2"]))
     assert traits.plant["quality_flag"] in ("check", "fail")
     assert any(f"the stem holds {100 * after:.0f} %" in r
                for r in traits.plant["quality_reasons"])
