@@ -94,3 +94,10 @@ def plantscan_register_stages(registry) -> None:
 @hookimpl
 def plantscan_evaluate(run_dir: Path, truth_dir: Path) -> dict[str, Any] | None:
     return evaluate_traits(run_dir, truth_dir)
+
+
+@hookimpl
+def plantscan_warm_up() -> str | None:
+    from plantscan_leaves import kernels
+
+    return kernels.warm_up()

@@ -30,9 +30,10 @@ passes of ``PASSES``, in order, over one labels record (``_Labels``):
    that are tubes or lie on the ground go to the stem, pieces of one cut blade
    are joined (``join_gap_mm``), small ones join their neighbour, the rest are
    leaves 1..n;
-10. *touching leaves split* (``split_curvature_per_mm``), 11. *broken blades
-    joined* (``join_gap_mm``), 12. *bases off culms* (``base_reach_mm``);
-13. *pieces judged* (``judge_pieces``): a learned judge calls every numbered leaf a
+10. *touching leaves split* (``split_curvature_per_mm``), 11. *forked leaves split*
+    (``fork_branch_mm``), 12. *broken blades joined* (``join_gap_mm``), 13. *bases off
+    culms* (``base_reach_mm``), 14. *stem parts judged* (``judge_stem_parts``);
+15. *pieces judged* (``judge_pieces``): a learned judge calls every numbered leaf a
     leaf, a fragment to join to its neighbour, or debris (``plantscan_leaves.pieces``).
 
 Every number that decides a label is a parameter above or a named module
@@ -48,13 +49,14 @@ import logging
 import numpy as np
 from pydantic import Field, field_validator
 from scipy import sparse
-from scipy.sparse.csgraph import connected_components
+from scipy.sparse.csgraph import connected_components, dijkstra
 from scipy.spatial import cKDTree
 
 from plantscan_core.data import LabelledMesh, Mesh
 from plantscan_core.parallel import thread_map
 from plantscan_core.stages import StageParams, StageReport
 from plantscan_leaves import geometry as geo
+from plantscan_leaves import kernels
 from plantscan_leaves.geometry import face_curvature
 
 log = logging.getLogger(__name__)
@@ -127,6 +129,12 @@ class CurvatureRegionsParams(StageParams):
         description="a leaf holding two big regions separated by creases sharper than this "
                     "(1/mm, below concave_curvature_per_mm) is split in two (touching "
                     "leaves); None: off")
+    fork_branch_mm: float | None = Field(
+        None, gt=0,
+        description="a leaf whose surface forks, going out from where it meets the stem "
+                    "nearest the plant's axis, into branches of at least min_leaf_area_mm2 "
+                    "that each reach this far beyond the fork and go the same way, is one "
+                    "leaf per branch (grass blades fused at their common base); None: off")
     stem_sheet_ratio: float = Field(
         0.0, ge=0, le=1,
         description="faces of stem regions whose neighbourhood (petiole_scale_mm cells) is "
@@ -517,6 +525,17 @@ def _touching_leaves_split(s: _Surface, lab: _Labels) -> None:
     lab.n_leaves = int(lab.out.max())
 
 
+def _forked_leaves_split(s: _Surface, lab: _Labels) -> None:
+    """A leaf that forks into branches going the same way is one leaf each (``fork_branch_mm``)."""
+    p = s.p
+    if p.fork_branch_mm is None or not lab.n_leaves:
+        return
+    lab.out, n_split = _split_forked_leaves(lab.out, s.centroids, s.areas, s.pairs,
+                                            p.min_leaf_area_mm2, p.fork_branch_mm)
+    s.report.counts["forked_leaves_split"] = n_split
+    lab.n_leaves = int(lab.out.max())
+
+
 def _broken_blades_joined(s: _Surface, lab: _Labels) -> None:
     """Two leaves that are pieces of one blade cut at a stem are one (``join_gap_mm``)."""
     if s.p.join_gap_mm is None or lab.n_leaves <= 1:
@@ -532,8 +551,8 @@ def _bases_off_culms(s: _Surface, lab: _Labels) -> None:
     if p.base_reach_mm is None or not lab.n_leaves:
         return
     ground_z = float(s.mesh.vertices[:, 2].min()) + p.ground_band_mm
-    lab.out, n_claimed = _blade_bases_off_culms(lab.out, s.centroids, s.pairs, ground_z,
-                                                p.base_reach_mm)
+    lab.out, n_claimed = _blade_bases_off_culms(lab.out, s.centroids, s.normals, s.pairs,
+                                                ground_z, p.base_reach_mm)
     s.report.counts["base_faces_from_stem"] = n_claimed
 
 
@@ -578,6 +597,7 @@ PASSES = (
     ("blade pieces joined", _blade_pieces_joined),
     ("numbered leaves", _numbered_leaves),
     ("touching leaves split", _touching_leaves_split),
+    ("forked leaves split", _forked_leaves_split),
     ("broken blades joined", _broken_blades_joined),
     ("bases off culms", _bases_off_culms),
     ("stem parts judged", _stem_parts_judged),
@@ -993,6 +1013,93 @@ def _split_joined_leaves(labels: np.ndarray, crease: np.ndarray, areas: np.ndarr
     return out, int(split.sum())
 
 
+FORK_SOURCE_LINK_MM = 3.0  # cut faces this close are one place where a leaf meets the stem
+
+
+def _leaf_base(leaf: np.ndarray, stem: np.ndarray, centroids: np.ndarray,
+               pairs: np.ndarray) -> np.ndarray:
+    """Faces of ``leaf`` (F,) bool where it meets ``stem`` nearest the plant's axis (the
+    turntable axis, z through x = y = 0): its faces bordering the stem, grouped by single
+    linkage within ``FORK_SOURCE_LINK_MM``; the group of at least three faces with the
+    smallest median distance from the axis (a blade's base is at its culm, its tip out;
+    a blade lying across another culm touches it farther out).  Empty: no stem contact."""
+    a, b = pairs[:, 0], pairs[:, 1]
+    cut = np.unique(np.r_[a[leaf[a] & stem[b]], b[leaf[b] & stem[a]]])
+    if len(cut) < 3:
+        return cut[:0]
+    links = cKDTree(centroids[cut]).query_pairs(FORK_SOURCE_LINK_MM, output_type="ndarray")
+    g = sparse.csr_matrix((np.ones(len(links), np.int8), (links[:, 0], links[:, 1])),
+                          shape=(len(cut), len(cut)))
+    n_groups, group = connected_components(g, directed=False)
+    r = np.hypot(centroids[cut, 0], centroids[cut, 1])
+    size = np.bincount(group, minlength=n_groups)
+    med = np.array([np.median(r[group == k]) if size[k] >= 3 else np.inf
+                    for k in range(n_groups)])
+    return cut[group == int(np.argmin(med))] if np.isfinite(med).any() else cut[:0]
+
+
+def _split_forked_leaves(labels: np.ndarray, centroids: np.ndarray, areas: np.ndarray,
+                         pairs: np.ndarray, min_area: float, min_reach: float
+                         ) -> tuple[np.ndarray, int]:
+    """Leaves that fork into branches, one leaf per branch (``fork_branch_mm``).
+
+    Grass blades that leave their culm together share a fused base in the hull and
+    arrive as one leaf: no crease parts them where they join, because they do not touch
+    along a line but grow out of one surface.  Seen from the leaf's base
+    (``_leaf_base``), such a leaf forks; one blade does not.  Per leaf: geodesic distance
+    over its face graph from the base (edge length between face centroids), the branches
+    of ``kernels.fork_branches`` (a persistence filtration, as in watershed and
+    mode-seeking segmentation: the superlevel sets of the distance grow face by face,
+    and where two parts of ``min_area`` one side, each reaching ``min_reach`` mm beyond
+    the joining face and lying the same way from it, meet, each becomes a branch: two
+    blades diverging from a common base, not the two ends of one blade whose base-most
+    stem contact sits in its middle; a lobe or a hole never makes two big parts), and
+    the trunk (the faces below the fork, both blades' fused bases) given to the nearest
+    branch along the surface.  A leaf with no stem contact, or with fewer than two
+    branches, is left as it is.  Returns the labels (new leaves numbered after the
+    others) and the number of leaves split.
+    """
+    out = labels.copy()
+    stem = labels == STEM_LABEL
+    a, b = pairs[:, 0], pairs[:, 1]
+    inner = (labels[a] == labels[b]) & (labels[a] > 0)
+    one_side = areas / 2.0
+    leaf_area = np.bincount(labels[labels > 0], one_side[labels > 0])
+    next_label, n_split = int(labels.max()) + 1, 0
+    for lab in np.flatnonzero(leaf_area >= 2 * min_area):
+        leaf = labels == lab
+        base = _leaf_base(leaf, stem, centroids, pairs)
+        if not len(base):
+            continue
+        idx = np.flatnonzero(leaf)
+        loc = np.full(len(labels), -1)
+        loc[idx] = np.arange(len(idx))
+        e = inner & (labels[a] == lab)
+        ia, ib = loc[a[e]], loc[b[e]]
+        w = geo.row_norm(centroids[a[e]] - centroids[b[e]]) + 1e-9
+        graph = sparse.csr_matrix((np.r_[w, w], (np.r_[ia, ib], np.r_[ib, ia])),
+                                  shape=(len(idx), len(idx)))
+        dist = dijkstra(graph, indices=loc[base], min_only=True)
+        reached = np.isfinite(dist)
+        order = np.flatnonzero(reached)[np.argsort(-dist[reached], kind="stable")]
+        branch = kernels.fork_branches(order, np.where(reached, dist, 0.0), graph.indptr,
+                                       graph.indices, centroids[idx], one_side[idx],
+                                       min_area, min_reach)
+        n_branch = int(branch.max())
+        if n_branch < 2:
+            continue
+        # the trunk (and faces the base does not reach) to the nearest branch on the surface
+        _, _, src = dijkstra(graph, indices=np.flatnonzero(branch > 0), min_only=True,
+                             return_predecessors=True)
+        rest = branch == 0
+        branch[rest] = np.where(src[rest] >= 0, branch[np.maximum(src[rest], 0)], 1)
+        new = np.r_[lab, np.arange(next_label, next_label + n_branch - 1)]
+        out[idx] = new[branch - 1]
+        next_label += n_branch - 1
+        n_split += 1
+    return out, n_split
+
+
 # A broken blade's two pieces: their facing ends point at each other within ~30° and
 # are at least this share of each piece's widest station wide (a blade's own base tapers,
 # so two blades meeting base to base across a stem are not joined).
@@ -1122,6 +1229,9 @@ CULM_MIN_POOL = 200  # fewer stem faces left than this: no further culm to find
 CULM_MIN_TRIAL_MM = 15.0  # a trial line's two points at least this far apart (a direction)
 CULM_REFINE_ROUNDS = 4  # PCA refinements of the best trial line over its inliers
 CULM_POOL_DROP = 2.0  # after each line, faces within this x CULM_INLIER_MM leave the pool
+CULM_MIN_ROUNDNESS = 0.4  # a culm is round: its normals turn all round its axis (below)
+CULM_ROUND_STEP_MM = 10.0  # ... judged per stretch of this length along the axis
+CULM_ROUND_MIN_FACES = 20  # ... of at least this many inliers
 BASE_DIRECTION_MM = 30.0  # a blade's direction at its cut: its faces within this of the cut
 BASE_MARGIN_MM = 1.0  # the corridor: the cut's half width (90th percentile) + this
 CUT_LINK_MM = 3.0  # cut faces this close are one place where a leaf meets the stem
@@ -1130,17 +1240,20 @@ BASE_MIN_FACES = 10  # a blade with fewer faces near its cut has no direction to
 BASE_HALF_WIDTH_PERCENTILE = 90  # the cut's half width: this percentile of its lateral offsets
 
 
-def _culm_axes(points: np.ndarray, rng: np.random.Generator
+def _culm_axes(points: np.ndarray, normals: np.ndarray, rng: np.random.Generator
                ) -> list[tuple[np.ndarray, np.ndarray, float, float, float]]:
     """Straight culm axes through stem points: ``(origin, direction, s0, s1, radius)`` each.
 
     Sequential RANSAC lines (two random points; inliers within
     ``CULM_INLIER_MM``), each refined by the PCA of its inliers (a tube's
     surface points average onto its axis); a line is a culm when its inliers
-    span ``CULM_MIN_LENGTH_MM`` (2nd-98th percentile along it) and it is
-    steeper than 30°; ``radius`` is the inliers' median distance from it.  Points
-    within twice the inlier distance leave the pool after every line, culm or
-    not (the soil disc's edge, fused blade bases).
+    span ``CULM_MIN_LENGTH_MM`` (2nd-98th percentile along it), it is
+    steeper than 30° and it is round (``_roundness`` of the inliers' unit
+    ``normals`` at least ``CULM_MIN_ROUNDNESS``: a narrow straight blade the
+    tube test called stem is a slab, whose normals point two ways); ``radius``
+    is the inliers' median distance from it.  Points within twice the inlier
+    distance leave the pool after every line, culm or not (the soil disc's
+    edge, fused blade bases, blades).
     """
     axes = []
     pool = np.ones(len(points), bool)
@@ -1177,10 +1290,29 @@ def _culm_axes(points: np.ndarray, rng: np.random.Generator
         inl = r < CULM_INLIER_MM
         pool[idx[r < CULM_POOL_DROP * CULM_INLIER_MM]] = False
         if (np.percentile(s[inl], 98) - np.percentile(s[inl], 2) >= CULM_MIN_LENGTH_MM
-                and abs(d[2]) > CULM_MIN_STEEPNESS):
+                and abs(d[2]) > CULM_MIN_STEEPNESS
+                and _roundness(normals[idx[inl]], s[inl], d) >= CULM_MIN_ROUNDNESS):
             axes.append((o, d, float(np.percentile(s[inl], 1)), float(np.percentile(s[inl], 99)),
                          float(np.median(r[inl]))))
     return axes
+
+
+def _roundness(normals: np.ndarray, along: np.ndarray, d: np.ndarray) -> float:
+    """How evenly unit ``normals`` turn round the axis direction ``d``: per stretch of
+    ``CULM_ROUND_STEP_MM`` along it (``along``: each face's position on the axis), the
+    smaller over the larger eigenvalue of the normals' tensor across the axis; the median
+    over the stretches with ``CULM_ROUND_MIN_FACES``.  A tube gives ~1, a slab (a blade,
+    whose two sides share one normal up to sign) ~0; a blade twisting along its length
+    still reads as a slab in every stretch.  1 when no stretch has enough faces (nothing
+    to say against the line)."""
+    across = normals - np.outer(normals @ d, d)
+    ratios = []
+    k = np.floor((along - along.min()) / CULM_ROUND_STEP_MM).astype(np.int64)
+    for b in np.flatnonzero(np.bincount(k) >= CULM_ROUND_MIN_FACES):
+        t = across[k == b]
+        ev = np.linalg.eigvalsh(t.T @ t)  # 3x3; the smallest ~0 (along d)
+        ratios.append(ev[1] / max(ev[2], 1e-12))
+    return float(np.median(ratios)) if ratios else 1.0
 
 
 def _axis_distance(points: np.ndarray, axes: list) -> np.ndarray:
@@ -1211,8 +1343,9 @@ def _cut_places(labels: np.ndarray, cut: np.ndarray, centroids: np.ndarray):
             yield lab, faces
 
 
-def _blade_bases_off_culms(labels: np.ndarray, centroids: np.ndarray, pairs: np.ndarray,
-                           ground_z: float, reach_mm: float) -> tuple[np.ndarray, int]:
+def _blade_bases_off_culms(labels: np.ndarray, centroids: np.ndarray, normals: np.ndarray,
+                           pairs: np.ndarray, ground_z: float, reach_mm: float
+                           ) -> tuple[np.ndarray, int]:
     """Stem faces along a blade's continuation into the tangle of tillers, given to the blade.
 
     A wheat blade's base often runs across the neighbouring tillers to its own
@@ -1237,7 +1370,7 @@ def _blade_bases_off_culms(labels: np.ndarray, centroids: np.ndarray, pairs: np.
     si = np.flatnonzero(stem)
     rng = np.random.default_rng(0)  # the same labels from the same mesh
     sample = si if len(si) <= CULM_SAMPLE else rng.choice(si, CULM_SAMPLE, replace=False)
-    axes = _culm_axes(centroids[sample], rng)
+    axes = _culm_axes(centroids[sample], normals[sample], rng)
     if not axes:
         return labels, 0
     off = _axis_distance(centroids, axes) > np.median([a[4] for a in axes]) + CULM_MARGIN_MM

@@ -2,8 +2,9 @@
 
 The warm-up is what keeps the first ``plantscan demo`` from waiting a minute for
 numba (``make setup`` runs it).  Wall time is not asserted; what is asserted is
-the thing that makes the wait go away: after the warm-up, a virtual scan and the
-hull stages with their default parameters call no kernel with argument types the
+the thing that makes the wait go away: after the warm-up, a virtual scan, the
+hull stages with their default parameters and the leaf stages' fork filtration call no
+kernel with argument types the
 warm-up did not compile.  Run in a fresh interpreter, so that no signature comes
 from an earlier test.
 """
@@ -25,11 +26,12 @@ import json, sys
 from pathlib import Path
 from numba.core.registry import CPUDispatcher
 from plantscan_hull import kernels
+from plantscan_leaves import kernels as leaf_kernels
 from plantscan_sim import render
 
 def signatures():
     out = {}
-    for mod in (kernels, render):
+    for mod in (kernels, leaf_kernels, render):
         for name in dir(mod):
             d = getattr(mod, name)
             if isinstance(d, CPUDispatcher):
@@ -46,6 +48,11 @@ scan = make_scan(Path(sys.argv[1]) / "scan", "plastic-dicot", image_size=(240, 1
                  images_per_revolution=8, roles=("plant",))
 sils, cal = truth_silhouettes(scan)
 MarchingCubesMesher().mesh(OctreeHull().reconstruct(sils, cal))
+# the leaf stages' fork filtration with what segment passes (scipy's int32 CSR arrays)
+import numpy as np
+leaf_kernels.fork_branches(np.arange(3)[::-1], np.arange(3.0), np.array([0, 1, 3, 4], np.int32),
+                           np.array([1, 0, 2, 1], np.int32), np.zeros((3, 3)), np.ones(3),
+                           1.0, 1.0)
 after = signatures()
 print(json.dumps({
     "warm": warm,
@@ -62,10 +69,11 @@ def test_warm_up_compiles_what_a_scan_and_the_hull_stages_use(tmp_path):
     assert out.returncode == 0, out.stderr[-3000:]
     result = json.loads(out.stdout.strip().splitlines()[-1])
     plugins = {name for name, _ in result["warm"]}
-    assert {"hull", "sim"} <= plugins, result["warm"]
+    assert {"hull", "leaves", "sim"} <= plugins, result["warm"]
     assert not any(said.startswith("failed") for _, said in result["warm"]), result["warm"]
     # The hull's work-stealing kernel and the renderer's raster kernels ran at all ...
     assert "plantscan_hull.kernels._steal" in result["used"]
     assert "plantscan_sim.render._raster_triangles" in result["used"]
+    assert "plantscan_leaves.kernels._fork_branches_jit" in result["used"]
     # ... and none of them, nor any other, needed a signature the warm-up had not compiled.
     assert result["new"] == {}
