@@ -3,10 +3,9 @@
 The warm-up is what keeps the first ``plantscan demo`` from waiting a minute for
 numba (``make setup`` runs it).  Wall time is not asserted; what is asserted is
 the thing that makes the wait go away: after the warm-up, a virtual scan, the
-hull stages with their default parameters and the leaf stages' fork filtration call no
-kernel with argument types the
-warm-up did not compile.  Run in a fresh interpreter, so that no signature comes
-from an earlier test.
+hull stages with their default parameters and the leaf stages' fork filtration call
+no kernel with argument types the warm-up did not compile.  Run in a fresh
+interpreter, so that no signature comes from an earlier test.
 """
 
 from __future__ import annotations
