@@ -1242,10 +1242,12 @@ def _kind_area(labelled: LabelledMesh, kind: str) -> float:
     return float(Mesh(labelled.mesh.vertices, faces).face_areas().sum()) / 2.0
 
 
-def stem_share(labelled: LabelledMesh, other_area_mm2: float) -> float:
-    """The stem's share of the plant's surface, one side: the stem's one-side area over
-    that plus ``other_area_mm2`` (the leaves' and the debris' one-side area)."""
-    area = _kind_area(labelled, "stem")
+def stem_share(labelled: LabelledMesh, other_area_mm2: float,
+               stem_area_mm2: float | None = None) -> float:
+    """The stem's share of the plant's surface, one side: the stem's one-side area
+    (``stem_area_mm2`` when known) over that plus ``other_area_mm2`` (the leaves' and the
+    debris' one-side area)."""
+    area = _kind_area(labelled, "stem") if stem_area_mm2 is None else stem_area_mm2
     total = area + other_area_mm2
     return area / total if total > 0 else 0.0
 
@@ -1277,8 +1279,7 @@ def _judge(traits: Traits, measurements: list[LeafMeasurement], labelled: Labell
     leaf_area = float(traits.plant.get("total_leaf_area_mm2", 0.0))
     share = debris_area / leaf_area if leaf_area > 0 else (1.0 if debris_area > 0 else 0.0)
     stem_area = _kind_area(labelled, "stem")
-    total = stem_area + leaf_area + debris_area
-    stem = stem_area / total if total > 0 else 0.0
+    stem = stem_share(labelled, leaf_area + debris_area, stem_area)
     flag, reasons = plant_quality(trusts, share, plant_views, p.min_plant_views,
                                   stem, p.max_stem_share)
     traits.plant.update(quality_flag=flag, quality_reasons=reasons,

@@ -1013,29 +1013,19 @@ def _split_joined_leaves(labels: np.ndarray, crease: np.ndarray, areas: np.ndarr
     return out, int(split.sum())
 
 
-FORK_SOURCE_LINK_MM = 3.0  # cut faces this close are one place where a leaf meets the stem
-
-
-def _leaf_base(leaf: np.ndarray, stem: np.ndarray, centroids: np.ndarray,
-               pairs: np.ndarray) -> np.ndarray:
-    """Faces of ``leaf`` (F,) bool where it meets ``stem`` nearest the plant's axis (the
-    turntable axis, z through x = y = 0): its faces bordering the stem, grouped by single
-    linkage within ``FORK_SOURCE_LINK_MM``; the group of at least three faces with the
-    smallest median distance from the axis (a blade's base is at its culm, its tip out;
-    a blade lying across another culm touches it farther out).  Empty: no stem contact."""
-    a, b = pairs[:, 0], pairs[:, 1]
-    cut = np.unique(np.r_[a[leaf[a] & stem[b]], b[leaf[b] & stem[a]]])
-    if len(cut) < 3:
-        return cut[:0]
-    links = cKDTree(centroids[cut]).query_pairs(FORK_SOURCE_LINK_MM, output_type="ndarray")
-    g = sparse.csr_matrix((np.ones(len(links), np.int8), (links[:, 0], links[:, 1])),
-                          shape=(len(cut), len(cut)))
-    n_groups, group = connected_components(g, directed=False)
-    r = np.hypot(centroids[cut, 0], centroids[cut, 1])
-    size = np.bincount(group, minlength=n_groups)
-    med = np.array([np.median(r[group == k]) if size[k] >= 3 else np.inf
-                    for k in range(n_groups)])
-    return cut[group == int(np.argmin(med))] if np.isfinite(med).any() else cut[:0]
+def _leaf_bases(labels: np.ndarray, centroids: np.ndarray, pairs: np.ndarray
+                ) -> dict[int, np.ndarray]:
+    """Each leaf's base: of the places where it meets the stem (``_cut_places``), the one
+    with the smallest median distance from the plant's axis (the turntable axis, z through
+    x = y = 0; a blade's base is at its culm, its tip out, and a blade lying across another
+    culm touches it farther out); its faces, by leaf label.  A leaf with no such place
+    (no stem contact) has none."""
+    best: dict[int, tuple[float, np.ndarray]] = {}
+    for lab, faces in _cut_places(labels, _stem_border(labels, pairs), centroids):
+        r = float(np.median(np.hypot(centroids[faces, 0], centroids[faces, 1])))
+        if int(lab) not in best or r < best[int(lab)][0]:
+            best[int(lab)] = (r, faces)
+    return {lab: np.flatnonzero(faces) for lab, (_, faces) in best.items()}
 
 
 def _split_forked_leaves(labels: np.ndarray, centroids: np.ndarray, areas: np.ndarray,
@@ -1046,7 +1036,7 @@ def _split_forked_leaves(labels: np.ndarray, centroids: np.ndarray, areas: np.nd
     Grass blades that leave their culm together share a fused base in the hull and
     arrive as one leaf: no crease parts them where they join, because they do not touch
     along a line but grow out of one surface.  Seen from the leaf's base
-    (``_leaf_base``), such a leaf forks; one blade does not.  Per leaf: geodesic distance
+    (``_leaf_bases``), such a leaf forks; one blade does not.  Per leaf: geodesic distance
     over its face graph from the base (edge length between face centroids), the branches
     of ``kernels.fork_branches`` (a persistence filtration, as in watershed and
     mode-seeking segmentation: the superlevel sets of the distance grow face by face,
@@ -1060,18 +1050,17 @@ def _split_forked_leaves(labels: np.ndarray, centroids: np.ndarray, areas: np.nd
     others) and the number of leaves split.
     """
     out = labels.copy()
-    stem = labels == STEM_LABEL
     a, b = pairs[:, 0], pairs[:, 1]
     inner = (labels[a] == labels[b]) & (labels[a] > 0)
     one_side = areas / 2.0
     leaf_area = np.bincount(labels[labels > 0], one_side[labels > 0])
+    bases = _leaf_bases(labels, centroids, pairs)
     next_label, n_split = int(labels.max()) + 1, 0
     for lab in np.flatnonzero(leaf_area >= 2 * min_area):
-        leaf = labels == lab
-        base = _leaf_base(leaf, stem, centroids, pairs)
-        if not len(base):
+        base = bases.get(int(lab))
+        if base is None:
             continue
-        idx = np.flatnonzero(leaf)
+        idx = np.flatnonzero(labels == lab)
         loc = np.full(len(labels), -1)
         loc[idx] = np.arange(len(idx))
         e = inner & (labels[a] == lab)
@@ -1315,6 +1304,27 @@ def _roundness(normals: np.ndarray, along: np.ndarray, d: np.ndarray) -> float:
     return float(np.median(ratios)) if ratios else 1.0
 
 
+def _stem_culms(stem: np.ndarray, centroids: np.ndarray, normals: np.ndarray) -> list:
+    """``_culm_axes`` of the ``stem`` (F,) faces, at most ``CULM_SAMPLE`` of them, drawn
+    with a fixed seed (the same culms from the same mesh); [] without stem."""
+    si = np.flatnonzero(stem)
+    if not len(si):
+        return []
+    rng = np.random.default_rng(0)
+    sample = si if len(si) <= CULM_SAMPLE else rng.choice(si, CULM_SAMPLE, replace=False)
+    return _culm_axes(centroids[sample], normals[sample], rng)
+
+
+def _stem_border(labels: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    """(F,) the leaf faces (label > 0) sharing an edge with a stem face."""
+    a, b = pairs[:, 0], pairs[:, 1]
+    stem = labels == STEM_LABEL
+    cut = np.zeros(len(labels), bool)
+    cut[a[(labels[a] > 0) & stem[b]]] = True
+    cut[b[(labels[b] > 0) & stem[a]]] = True
+    return cut
+
+
 def _axis_distance(points: np.ndarray, axes: list) -> np.ndarray:
     """(N,) distance of every point from the nearest culm axis segment (inf without axes)."""
     best = np.full(len(points), np.inf)
@@ -1365,20 +1375,12 @@ def _blade_bases_off_culms(labels: np.ndarray, centroids: np.ndarray, normals: n
     the number of faces moved.
     """
     stem = labels == STEM_LABEL
-    if not stem.any():
-        return labels, 0
-    si = np.flatnonzero(stem)
-    rng = np.random.default_rng(0)  # the same labels from the same mesh
-    sample = si if len(si) <= CULM_SAMPLE else rng.choice(si, CULM_SAMPLE, replace=False)
-    axes = _culm_axes(centroids[sample], normals[sample], rng)
+    axes = _stem_culms(stem, centroids, normals)
     if not axes:
         return labels, 0
     off = _axis_distance(centroids, axes) > np.median([a[4] for a in axes]) + CULM_MARGIN_MM
     cand = stem & off & (centroids[:, 2] > ground_z)
-    a, b = pairs[:, 0], pairs[:, 1]
-    cut = np.zeros(len(labels), bool)
-    cut[a[(labels[a] > 0) & stem[b]]] = True
-    cut[b[(labels[b] > 0) & stem[a]]] = True
+    cut = _stem_border(labels, pairs)
     best = np.full(len(labels), np.inf)
     claim = np.zeros(len(labels), labels.dtype)
     ids_all = np.flatnonzero(cand)

@@ -59,10 +59,7 @@ def stem_parts(s: pc.PieceSurface, labels: np.ndarray, n: int, ground_z: float) 
                                                             np.float32))
     if not stem.any():
         return none
-    si = np.flatnonzero(stem)
-    rng = np.random.default_rng(0)  # the same parts from the same mesh
-    sample = si if len(si) <= sg.CULM_SAMPLE else rng.choice(si, sg.CULM_SAMPLE, replace=False)
-    axes = sg._culm_axes(s.centroids[sample], s.normals[sample], rng)
+    axes = sg._stem_culms(stem, s.centroids, s.normals)
     dist = sg._axis_distance(s.centroids, axes)
     off = (dist > np.median([a[4] for a in axes]) + sg.CULM_MARGIN_MM if axes
            else np.ones(nf, bool))
