@@ -860,14 +860,29 @@ class Mesh:
     ----------
     vertices : (V, 3) float64 array, mm, turntable frame
     faces : (F, 3) int64 array, counter-clockwise seen from outside
+    rim_vertices : (V, 3) float64 array or None
+        The same vertices with the rims of one-voxel-thick parts put where the outside
+        field says (``marching-cubes``' ``thin_rims: measure``): the segmenter labels the
+        faces on ``vertices``, the measurer measures them on these (docs/reconstruction.md,
+        "Thin rims").  None: measure on ``vertices``.
     """
 
     vertices: np.ndarray
     faces: np.ndarray
+    rim_vertices: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.vertices = np.asarray(self.vertices, dtype=np.float64).reshape(-1, 3)
         self.faces = np.asarray(self.faces, dtype=np.int64).reshape(-1, 3)
+        if self.rim_vertices is not None:
+            self.rim_vertices = np.asarray(self.rim_vertices, dtype=np.float64).reshape(-1, 3)
+            if self.rim_vertices.shape != self.vertices.shape:
+                raise ValueError(f"rim_vertices has {len(self.rim_vertices)} rows for "
+                                 f"{len(self.vertices)} vertices")
+
+    def measured(self) -> Mesh:
+        """The surface the measurer measures: ``rim_vertices`` when the mesher gave them."""
+        return self if self.rim_vertices is None else Mesh(self.rim_vertices, self.faces)
 
     @property
     def is_empty(self) -> bool:
@@ -916,12 +931,22 @@ class Mesh:
 
         Faces are stored as int32 when they fit (lossless; read back as int64).
         """
-        np.savez(Path(path), vertices=self.vertices, faces=_compact_indices(self.faces))
+        np.savez(Path(path), vertices=self.vertices, faces=_compact_indices(self.faces),
+                 **_rim_arrays(self))
 
     @classmethod
     def load(cls, path: Path) -> Mesh:
         with np.load(Path(path)) as z:
-            return cls(z["vertices"], z["faces"])
+            return cls(z["vertices"], z["faces"], _rim_of(z))
+
+
+def _rim_arrays(mesh: Mesh) -> dict[str, np.ndarray]:
+    """``rim_vertices`` for an ``.npz`` (absent when the mesh has none)."""
+    return {} if mesh.rim_vertices is None else {"rim_vertices": mesh.rim_vertices}
+
+
+def _rim_of(z) -> np.ndarray | None:
+    return z["rim_vertices"] if "rim_vertices" in z else None  # files before the field: none
 
 
 def _compact_indices(faces: np.ndarray) -> np.ndarray:
@@ -983,7 +1008,8 @@ class LabelledMesh:
 
         evidence = json.dumps({str(k): v for k, v in self.evidence.items()})
         np.savez(Path(path), vertices=self.mesh.vertices, faces=_compact_indices(self.mesh.faces),
-                 face_labels=self.face_labels, kinds=kinds, evidence=np.array(evidence))
+                 face_labels=self.face_labels, kinds=kinds, evidence=np.array(evidence),
+                 **_rim_arrays(self.mesh))
 
     @classmethod
     def load(cls, path: Path) -> LabelledMesh:
@@ -993,7 +1019,8 @@ class LabelledMesh:
             kinds = {int(k): LABEL_KINDS[int(v)] for k, v in z["kinds"]}
             evidence = ({int(k): v for k, v in json.loads(str(z["evidence"])).items()}
                         if "evidence" in z else {})  # files before the field have none
-            return cls(Mesh(z["vertices"], z["faces"]), z["face_labels"], kinds, evidence)
+            return cls(Mesh(z["vertices"], z["faces"], _rim_of(z)), z["face_labels"], kinds,
+                       evidence)
 
 
 # --------------------------------------------------------------------------- traits

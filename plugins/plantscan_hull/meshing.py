@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from typing import Literal
 
 import numpy as np
 
@@ -117,7 +118,8 @@ def _surface_blocks(field: Field, block: int) -> np.ndarray:
 
 
 def marching_cubes(field: Field, origin: np.ndarray, voxel_size: float,
-                   block: int = MC_BLOCK, thin_rims: bool = False) -> Mesh:
+                   block: int = MC_BLOCK, thin_rims: bool | Literal["measure"] = False
+                   ) -> Mesh:
     """Closed surface of ``field > 0`` (0 level, linear interpolation between voxels).
 
     scikit-image's marching cubes runs on the blocks of ``block``
@@ -137,6 +139,9 @@ def marching_cubes(field: Field, origin: np.ndarray, voxel_size: float,
     field : (NX, NY, NZ) float array or BlockField, > 0 inside
     origin : (3,) mm, centre of voxel (0, 0, 0)
     voxel_size : mm
+    thin_rims : True moves the rims of one-voxel-thick parts out (:func:`_thin_rims`);
+        ``"measure"`` leaves the vertices where interpolation puts them and gives the
+        moved ones as ``rim_vertices`` (same faces).
 
     Returns
     -------
@@ -195,16 +200,20 @@ def marching_cubes(field: Field, origin: np.ndarray, voxel_size: float,
     key = np.concatenate(keys)
     _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
     verts = verts[first]
+    rim = None
     if thin_rims:
         low = np.floor(verts)
         frac = verts - low
-        verts = _thin_rims(verts, low.astype(np.int64), np.argmax(frac, axis=1),
-                           (frac > 1e-6).sum(axis=1) == 1, field)
-    verts = verts * voxel_size + (np.asarray(origin, dtype=float) - voxel_size)
+        rim = _thin_rims(verts, low.astype(np.int64), np.argmax(frac, axis=1),
+                         (frac > 1e-6).sum(axis=1) == 1, field)
+        if thin_rims != "measure":
+            verts, rim = rim, None
+    shift = np.asarray(origin, dtype=float) - voxel_size
+    verts = verts * voxel_size + shift
     faces = inverse.reshape(-1)[faces]
     if volume6 < 0:
         faces = faces[:, ::-1].copy()
-    return Mesh(verts, faces)
+    return Mesh(verts, faces, None if rim is None else rim * voxel_size + shift)
 
 
 def _thin_rims(verts: np.ndarray, low: np.ndarray, axis: np.ndarray, on_edge: np.ndarray,

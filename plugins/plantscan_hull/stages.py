@@ -9,7 +9,7 @@ import time
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
 from plantscan_core.data import Calibration, CarvingViews, Mesh, Silhouettes, Volume
 from plantscan_core.errors import DataError
@@ -263,13 +263,24 @@ class MarchingCubesMesher(Mesher):
                                    "rim is known to a voxel)")
         min_component_voxels: int = Field(
             8, ge=0, description="inside components smaller than this are dropped (mask specks)")
-        thin_rims: bool = Field(
+        thin_rims: bool | Literal["measure"] = Field(
             False, description="put the rim of one-voxel-thick parts (leaf slabs) where the "
                                "outside field says, not where linear interpolation from the "
-                               "thickness-capped inside value does (docs/reconstruction.md)")
+                               "thickness-capped inside value does (docs/reconstruction.md); "
+                               "'measure': segment the mesh as interpolated and measure the "
+                               "leaves with their rims put out (same faces)")
         smooth_iterations: int = Field(0, ge=0, description="pymeshlab Taubin smoothing steps")
         target_faces: int | None = Field(None, ge=100,
                                          description="pymeshlab quadric decimation target")
+
+        @model_validator(mode="after")
+        def _rims_need_the_faces(self):
+            if self.thin_rims == "measure" and (self.smooth_iterations or self.target_faces):
+                raise ValueError(
+                    "thin_rims: measure keeps the rims beside the faces as meshed; smoothing "
+                    "(smooth_iterations) or decimation (target_faces) moves or replaces them: "
+                    "use one or the other")
+            return self
 
     def mesh(self, volume: Volume, views: CarvingViews | None = None) -> Mesh:
         """Remove pot and carrier from ``volume``, then extract the closed surface."""

@@ -1136,10 +1136,15 @@ def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = No
 
     Every leaf gets a confidence and the plant a quality flag (``plantscan_leaves.trust``);
     ``plant_views`` (the views the hull was carved from, when known) is checked against
-    ``min_plant_views``.
+    ``min_plant_views``.  A mesh with ``rim_vertices`` (the mesher's ``thin_rims:
+    measure``) is measured on them: the labels are the segmenter's, the surface the one
+    with the thin rims put out.
     """
     p = params or LeafGeometryParams()
     report = StageReport()
+    if labelled.mesh.rim_vertices is not None:
+        labelled = LabelledMesh(labelled.mesh.measured(), labelled.face_labels, labelled.kinds,
+                                labelled.evidence)
     mesh = labelled.mesh
     if mesh.is_empty:
         msg = "mesh is empty: traits table left empty"

@@ -198,6 +198,37 @@ def test_a_sheet_stepping_diagonally_stays_one_surface():
     assert topology_report(mesh)["watertight"] and topology_report(mesh)["manifold"]
 
 
+def test_thin_rims_for_measuring_keep_the_mesh_and_carry_the_rims(tmp_path):
+    """``thin_rims: measure``: the segmenter gets the interpolated mesh (thin rims move
+    vertices, and on grass blades that broke blades into pieces), the measurer the rims put
+    out; both on the same faces, and both kept by the run cache's mesh file."""
+    from plantscan_core.data import LabelledMesh, Mesh
+
+    field = _thin_slab_field(10.0, 8.0, 0.25)
+    plain = marching_cubes(field, np.zeros(3), 1.0)
+    snapped = marching_cubes(field, np.zeros(3), 1.0, thin_rims=True)
+    both = marching_cubes(field, np.zeros(3), 1.0, thin_rims="measure")
+    np.testing.assert_array_equal(both.vertices, plain.vertices)
+    np.testing.assert_array_equal(both.faces, plain.faces)
+    np.testing.assert_array_equal(both.rim_vertices, snapped.vertices)
+    np.testing.assert_array_equal(both.measured().vertices, snapped.vertices)
+    assert plain.rim_vertices is None and plain.measured() is plain
+    both.save(tmp_path / "mesh.npz")
+    np.testing.assert_array_equal(Mesh.load(tmp_path / "mesh.npz").rim_vertices,
+                                  snapped.vertices)
+    labelled = LabelledMesh(both, np.zeros(len(both.faces)), {0: "leaf"})
+    labelled.save(tmp_path / "labelled.npz")
+    np.testing.assert_array_equal(LabelledMesh.load(tmp_path / "labelled.npz").mesh.rim_vertices,
+                                  snapped.vertices)
+    with pytest.raises(ValueError, match="rim_vertices has 3 rows"):
+        Mesh(plain.vertices, plain.faces, plain.vertices[:3])
+
+
+def test_thin_rims_for_measuring_refuse_smoothing():
+    with pytest.raises(ValueError, match="smooth_iterations"):
+        MarchingCubesMesher.Params(thin_rims="measure", smooth_iterations=2)
+
+
 def test_thin_rims_leave_thick_parts_alone():
     """A slab 4 voxels thick has exact distances inside: no vertex moves."""
     field = _thin_slab_field(10.5, 8.5, 2.0)
