@@ -290,6 +290,31 @@ def test_tip_lost_by_the_hull_is_restored_from_the_taper():
     assert sq.info["lost_tip_mm"] < 0.02 * 120.0, sq.info
 
 
+def test_a_narrow_blades_lost_tip_is_bounded():
+    """The taper's slope read from two points (the station at 0.9 of the width and the end,
+    taken as the lost width wide) has no bound where the blade is barely wider than the
+    lost width: a 3.4 mm blade with 2.8 mm lost (grass, 3 units) narrowing only over a
+    noisy last third got +234 mm on a 96 mm blade (session 23). The fitted slope of the
+    stations still 2.8 mm wide, and the bound (0.3 of the seen length), keep it sane."""
+    from plantscan_leaves.measure import LOST_TIP_MAX_SHARE, _lost_tip
+
+    seen_mm, lost_w = 82.0, 2.8
+    body = np.full(30, 3.4)
+    tail = np.array([3.1, 3.0, 2.7, 2.9, 2.9, 2.9, 2.8, 2.7, 2.3, 1.9, 1.9, 1.7, 1.4, 0.4])
+    extent = np.concatenate([body, tail])
+    # the old reading: 2.8 * run / (0.9 * 3.4 - 2.8), run ~ 24 mm
+    last = int(np.flatnonzero(extent >= 0.9 * 3.4)[-1])
+    run = seen_mm * (1 - (last + 0.5) / len(extent))
+    assert lost_w * run / (0.9 * 3.4 - lost_w) > seen_mm
+    lost = _lost_tip(extent, seen_mm, lost_w)
+    assert 0 < lost <= LOST_TIP_MAX_SHARE * seen_mm + 1e-9
+    # a straight taper (4 mm wide to 80 mm, to a point at 100 mm, cut where 2.8 mm wide at
+    # 86 mm): the fit gives the 14 mm back, as the two-point reading did
+    s = (np.arange(60) + 0.5) / 60 * 86.0
+    straight = np.clip(4.0 * (100.0 - s) / 20.0, 0, 4.0)
+    assert _lost_tip(straight, 86.0, lost_w) == pytest.approx(14.0, rel=0.05)
+
+
 def test_base_lost_into_the_petiole_is_restored_from_the_taper():
     # the tip test read from the other end: a blade narrowing over its first 60 mm into a
     # petiole whose last 10 mm, narrower than 2 mm, the hull lost (or the cut from the
@@ -343,3 +368,31 @@ def test_a_thin_leaf_is_measured_on_its_rims_put_out(radius):
     assert errors[False] < -0.005
     assert abs(errors["measure"]) < 0.01
     assert abs(errors["measure"]) < abs(errors[False])
+
+
+def test_the_base_is_where_the_leaf_meets_the_stem_not_where_it_passes_another(monkeypatch):
+    """A blade grown from culm A (its 12 mm base fused to it) whose pointed tip touches culm
+    B: both ends are at zero distance from some stem vertex, and the vertex order (the tip
+    first) made the nearest-point hint pick the tip as the base -- so the lost tip was read
+    at the wrong end. The mean of the leaf's faces sharing an edge with a stem face lies
+    at the broad contact: the base is at culm A."""
+    from plantscan_leaves import measure as measure_module
+
+    def blade(p):
+        x, y, z = p[..., 0], p[..., 1], p[..., 2]
+        hw = 6.0 * np.clip(x / 120.0, 0.05, 1.0)
+        return np.minimum.reduce([0.75 - np.abs(z), hw - np.abs(y), x, 122.0 - x])
+
+    culm_a = ph.cylinder_field(4.0, -20, 20, centre=(124.0, 0.0))
+    culm_b = ph.cylinder_field(1.5, -20, 20, centre=(-1.0, 0.0))
+    mesh = ph.mesh_field(ph.union(blade, culm_a, culm_b), (-5, -10, -22), (130, 10, 22), 0.5)
+    c = mesh.vertices[mesh.faces].mean(axis=1)
+    stem = ((np.hypot(c[:, 0] - 124.0, c[:, 1]) < 4.3) | (np.hypot(c[:, 0] + 1.0, c[:, 1]) < 1.8)
+            | (np.abs(c[:, 2]) > 1.2))
+    labelled = LabelledMesh(mesh, np.where(stem, 1, 0), {0: "leaf", 1: "stem"})
+    _, (m,), _ = measure_plant(labelled)
+    assert m.base[0] > 100.0 and m.tip[0] < 20.0, (m.base, m.tip)
+    # the nearest stem point alone (the rule before) takes the tip for the base
+    monkeypatch.setattr(measure_module, "_stem_contacts", lambda *a: {})
+    _, (old,), _ = measure_plant(labelled)
+    assert old.base[0] < 20.0
