@@ -135,6 +135,13 @@ class LeafGeometryParams(StageParams):
                     "petiole; the taper from the first station at 0.9 of the width back to "
                     "the measured base is continued to zero width (1 at the dicot family's "
                     "1296x864 and 512^3); 0: off")
+    outline_offset_units: float = Field(
+        0.0, ge=0,
+        description="mesh units by which the hull's outline of a thin leaf lies inside the "
+                    "leaf's (what is left after the mesher's thin rims): the area gains "
+                    "this band along the seen outline (0.1 at the grass family's 1296x864 "
+                    "and 512^3, chosen on its virtual twin's development plants; "
+                    "docs/leaves.md, \"Outline offset\"); 0: off")
     min_plant_views: int = Field(
         0, ge=0, description="plant views this recipe's plants need (the family's protocol): "
                              "fewer flag the plant 'check', fewer than half 'fail' "
@@ -166,7 +173,7 @@ class LeafGeometryParams(StageParams):
             self.outline_smoothing_units * u,
             self.graph_spacing_units * u, u, self.width_stations, self.graph_points_per_size,
             self.rim_correction, self.min_leaf_faces, self.tip_taper_units * u,
-            self.base_taper_units * u)
+            self.base_taper_units * u, self.outline_offset_units * u)
 
 
 @dataclass(frozen=True)
@@ -185,6 +192,7 @@ class LeafScales:
     min_leaf_faces: int
     tip_taper_mm: float = 0.0
     base_taper_mm: float = 0.0
+    outline_offset_mm: float = 0.0
 
 
 @dataclass
@@ -380,6 +388,7 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
     # mean slab thickness: enclosed volume over planform area (exact for a flat slab; an
     # open cut at the stem leaves this an estimate, used only by the rim correction)
     thickness = _enclosed_volume(slab.v, slab.f) / max(area, 1e-9)
+    area += p.outline_offset_mm * rim_length  # the band along the outline the hull lost
     sides = _side_graphs(slab, face_side, p)
     base, tip, dist_b, pred_b = _base_and_tip(sides, base_hint)
     midrib_idx = np.array(_path(pred_b, tip))

@@ -396,3 +396,19 @@ def test_the_base_is_where_the_leaf_meets_the_stem_not_where_it_passes_another(m
     monkeypatch.setattr(measure_module, "_stem_contacts", lambda *a: {})
     _, (old,), _ = measure_plant(labelled)
     assert old.base[0] < 20.0
+
+
+def test_the_outline_offset_adds_its_band_to_the_area_alone():
+    """``outline_offset_units``: the area gains the offset times the seen outline; length,
+    width and perimeter are as measured without it."""
+    leaf = ph.EllipseLeaf(40.0, 6.0)
+    mesh = ph.mesh_field(ph.ellipse_slab_field(leaf.a, leaf.b, 1.0), (-42, -8, -3),
+                         (42, 8, 3), 0.4)
+    u = geo.mesh_unit(mesh.vertices, mesh.faces)
+    plain = measure_leaf(mesh, 1, LeafGeometryParams())
+    off = measure_leaf(mesh, 1, LeafGeometryParams(outline_offset_units=0.25))
+    band = 0.25 * u * off.info["rim_length_mm"]
+    assert off.traits.area_mm2 - plain.traits.area_mm2 == pytest.approx(band, rel=1e-9)
+    assert band > 0.005 * plain.traits.area_mm2  # a band that shows (0.25 u round 244 mm)
+    for name in ("length_mm", "width_mm", "perimeter_mm"):
+        assert getattr(off.traits, name) == getattr(plain.traits, name)
