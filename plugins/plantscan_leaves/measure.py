@@ -1190,31 +1190,15 @@ def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = No
         msg = "no leaf in the labelled mesh: traits table left empty"
         log.warning(msg)
         report.warn("no-leaf", msg)
-    stem_labels = [k for k, kind in labelled.kinds.items() if kind == "stem"]
-    stem_faces = np.isin(labelled.face_labels, stem_labels)
-    used = np.zeros(len(mesh.vertices), bool)
-    used[mesh.faces[stem_faces].ravel()] = True  # a mask, not np.unique: no sort
-    stem_vertices = np.flatnonzero(used)
-    tree = None
-    if len(stem_vertices):
-        from scipy.spatial import cKDTree
-
-        tree = cKDTree(mesh.vertices[stem_vertices])
-    contacts = _stem_contacts(labelled, stem_faces)
-
+    base_hint = _base_hints(labelled)
     unit = geo.mesh_unit(mesh.vertices, mesh.faces)  # one unit for every leaf of the plant
 
     def one(leaf_id: int, sub: Mesh) -> tuple[LeafMeasurement | None, StageWarning | None]:
         if len(sub.faces) < p.min_leaf_faces:  # also a leaf label no face carries
             return None, StageWarning("leaf-too-small", f"leaf {leaf_id}: {len(sub.faces)} "
                                       f"faces (fewer than {p.min_leaf_faces}), skipped", leaf_id)
-        hint = contacts.get(leaf_id)
-        if hint is None and tree is not None:
-            probe = sub.vertices[:: max(1, len(sub.vertices) // 5000)]  # 5000 are plenty
-            d, _ = tree.query(probe)
-            hint = probe[int(np.argmin(d))]
         try:
-            m = measure_leaf(sub, leaf_id, p, hint, unit)
+            m = measure_leaf(sub, leaf_id, p, base_hint(leaf_id, sub), unit)
         except Exception as exc:  # one odd leaf must not lose the others
             msg = f"leaf {leaf_id}: not measured ({type(exc).__name__}: {exc})"
             log.warning(msg)
@@ -1245,6 +1229,32 @@ def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = No
     traits = Traits(leaves, plant_traits(mesh, leaves, geometry=geometry))
     _judge(traits, measurements, labelled, p, plant_views, report, unit)
     return traits, measurements, report
+
+
+def _base_hints(labelled: LabelledMesh):
+    """``hint(leaf_id, leaf_mesh)``: where the leaf attaches, for ``measure_leaf`` (its stem
+    contact, ``_stem_contacts``; else its point nearest to the stem; None without a stem)."""
+    mesh = labelled.mesh
+    stem_labels = [k for k, kind in labelled.kinds.items() if kind == "stem"]
+    stem_faces = np.isin(labelled.face_labels, stem_labels)
+    used = np.zeros(len(mesh.vertices), bool)
+    used[mesh.faces[stem_faces].ravel()] = True  # a mask, not np.unique: no sort
+    stem_vertices = np.flatnonzero(used)
+    tree = None
+    if len(stem_vertices):
+        from scipy.spatial import cKDTree
+
+        tree = cKDTree(mesh.vertices[stem_vertices])
+    contacts = _stem_contacts(labelled, stem_faces)
+
+    def hint(leaf_id: int, sub: Mesh) -> np.ndarray | None:
+        if leaf_id in contacts or tree is None:
+            return contacts.get(leaf_id)
+        probe = sub.vertices[:: max(1, len(sub.vertices) // 5000)]  # 5000 are plenty
+        d, _ = tree.query(probe)
+        return probe[int(np.argmin(d))]
+
+    return hint
 
 
 def _stem_contacts(labelled: LabelledMesh, stem_faces: np.ndarray) -> dict[int, np.ndarray]:
