@@ -596,3 +596,25 @@ def test_absolute_millimetres_lose_a_small_plant():
     relative, _ = segment_leaves(small, CurvatureRegionsParams(
         reference_unit_mm=geo.mesh_unit(mesh.vertices, mesh.faces)))
     assert len(relative.leaf_labels) == len(plant.leaves)
+
+
+@pytest.mark.parametrize("family", ["grass", "branched", "rosette", "seedling"])
+def test_a_family_recipe_labels_a_plant_the_same_at_any_scale(mock_plant, family):
+    """The issue's scale target, for the shipped recipes that set ``reference_unit_mm``
+    (grass since session 23; the dicot recipe is still in absolute millimetres): the same
+    plant scaled x0.2 and x3 with its voxel size gets the same labels face for face, with
+    every rule and learned judge of the recipe."""
+    from pathlib import Path
+
+    from plantscan_core.recipe import read_recipe_file
+
+    recipe = read_recipe_file(Path(__file__).parents[2] / "recipes" / f"{family}.yaml")
+    p = CurvatureRegionsParams(**recipe["segment_mesh"]["params"])
+    assert p.reference_unit_mm is not None
+    _, mesh, _ = mock_plant
+    base, _ = segment_leaves(mesh, p)
+    assert base.leaf_labels  # a plant the recipe finds leaves on
+    for scale in (0.2, 3.0):
+        scaled, _ = segment_leaves(Mesh(mesh.vertices * scale, mesh.faces), p)
+        assert np.array_equal(scaled.face_labels, base.face_labels), (family, scale)
+        assert scaled.kinds == base.kinds
