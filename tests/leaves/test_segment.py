@@ -598,12 +598,12 @@ def test_absolute_millimetres_lose_a_small_plant():
     assert len(relative.leaf_labels) == len(plant.leaves)
 
 
-@pytest.mark.parametrize("family", ["grass", "branched", "rosette", "seedling"])
+@pytest.mark.parametrize("family", ["dicot", "grass", "branched", "rosette", "seedling"])
 def test_a_family_recipe_labels_a_plant_the_same_at_any_scale(mock_plant, family):
-    """The issue's scale target, for the shipped recipes that set ``reference_unit_mm``
-    (grass since session 23; the dicot recipe is still in absolute millimetres): the same
-    plant scaled x0.2 and x3 with its voxel size gets the same labels face for face, with
-    every rule and learned judge of the recipe."""
+    """The issue's scale target, for every shipped family recipe (``reference_unit_mm``;
+    dicot and grass since session 23): the same plant scaled x0.2 and x3 with its voxel
+    size gets the same labels face for face, with every rule and learned judge of the
+    recipe."""
     from pathlib import Path
 
     from plantscan_core.recipe import read_recipe_file
