@@ -1258,8 +1258,8 @@ def _base_hints(labelled: LabelledMesh):
 
 
 def _stem_contacts(labelled: LabelledMesh, stem_faces: np.ndarray) -> dict[int, np.ndarray]:
-    """Where each leaf meets the stem: the mean centroid of its faces sharing an edge with a
-    stem face (mm), for the leaves that have any.
+    """Where each leaf meets the stem: the centroid (``Mesh.label_centroids``) of its faces
+    sharing an edge with a stem face (mm), for the leaves that have any.
 
     The base hint of ``measure_leaf``.  The leaf's point nearest to any stem vertex (the
     hint without a contact) is as often the tip of a blade drooping past another tiller:
@@ -1268,20 +1268,14 @@ def _stem_contacts(labelled: LabelledMesh, stem_faces: np.ndarray) -> dict[int, 
     """
     if not stem_faces.any():
         return {}
-    mesh, labels = labelled.mesh, labelled.face_labels
-    pairs = geo.mesh_topology(mesh.faces).face_pairs
+    labels = labelled.face_labels
+    pairs = geo.mesh_topology(labelled.mesh.faces).face_pairs
     a, b = pairs[:, 0], pairs[:, 1]
-    cross = stem_faces[a] != stem_faces[b]
-    side = np.where(stem_faces[a[cross]], b[cross], a[cross])  # the face that is not stem
-    side = side[labels[side] >= 0]
-    if not len(side):
-        return {}
-    centre = mesh.vertices[mesh.faces[side]].mean(axis=1)
-    ids, index = np.unique(labels[side], return_inverse=True)
-    count = np.bincount(index)
-    sums = np.stack([np.bincount(index, centre[:, k]) for k in range(3)], axis=1)
-    return {int(i): sums[j] / count[j] for j, i in enumerate(ids)
-            if labelled.kinds.get(int(i)) == "leaf"}
+    contact = np.zeros(len(labels), bool)
+    contact[a[~stem_faces[a] & stem_faces[b]]] = True
+    contact[b[~stem_faces[b] & stem_faces[a]]] = True
+    centres = labelled.mesh.label_centroids(np.where(contact, labels, -1))
+    return {k: c for k, c in centres.items() if labelled.kinds.get(k) == "leaf"}
 
 
 def _thick_and_outline_checks(labelled: LabelledMesh, measurements: list[LeafMeasurement],
