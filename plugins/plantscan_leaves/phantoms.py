@@ -104,6 +104,25 @@ def placed(field: Field, rotation: np.ndarray, translation: Sequence[float]) -> 
     return out
 
 
+def touching_slabs(a: float = 40.0, b: float = 18.0, thickness: float = 1.5,
+                   tilt_deg: float = 35.0, overlap_mm: float = 4.0,
+                   voxel_mm: float = 0.5) -> tuple[Mesh, np.ndarray]:
+    """Two elliptical slabs, the second tilted ``tilt_deg`` and overlapping the first one's
+    tip by ``overlap_mm``: one connected surface whose two leaves meet along a concave
+    crease; and each face's leaf (0, 1)."""
+    leaf1 = ellipse_slab_field(a, b, thickness)
+    rot = rotation_about_axis((0, 1, 0), -tilt_deg)
+    leaf2 = placed(ellipse_slab_field(a, b, thickness), rot,
+                   np.array([a - overlap_mm, 0.0, 0.0]) + rot @ np.array([a, 0.0, 0.0]))
+    t = math.radians(tilt_deg)
+    box1 = (np.array([-a, -b, -2.0]), np.array([a, b, 2.0]))
+    box2 = (np.array([a - overlap_mm - 2.0, -b, -2.0]),
+            np.array([a + 2 * a * math.cos(t) + 2.0, b, 2 * a * math.sin(t) + 2.0]))
+    mesh = mesh_field(None, box1[0], box2[1], voxel_mm, parts=[(leaf1, box1), (leaf2, box2)])
+    c = mesh.vertices[mesh.faces].mean(axis=1)
+    return mesh, np.argmax(np.stack([leaf1(c), leaf2(c)]), 0)
+
+
 def cylinder_field(radius: float, z0: float, z1: float, centre=(0.0, 0.0)) -> Field:
     """Vertical cylinder (a stem) of ``radius`` from ``z0`` to ``z1``."""
 

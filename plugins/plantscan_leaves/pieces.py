@@ -95,6 +95,20 @@ class Pieces:
     area: np.ndarray
 
 
+def surface_of(mesh, smoothing_units: float = 1.5 / 0.8) -> PieceSurface:
+    """The judges' view of ``mesh`` on its own (outside the segmenter, which builds it from
+    its passes' fields): curvature at ``smoothing_units`` mesh units (the rules'
+    ``smoothing_mm`` 1.5 at 0.8 mm voxels)."""
+    from plantscan_leaves import geometry as geo
+
+    topo = geo.topology(mesh.faces)
+    normals, areas = geo.face_normals_areas(mesh.vertices, mesh.faces)
+    unit = geo.mesh_unit(mesh.vertices, mesh.faces)
+    return PieceSurface(mesh.vertices, mesh.faces, geo.face_centroids(mesh.vertices, mesh.faces),
+                        normals, areas, topo.face_pairs,
+                        geo.face_curvature(mesh, topo, smoothing_units * unit), unit)
+
+
 def _strided(idx: np.ndarray, k: int) -> np.ndarray:
     """At most ``k`` of ``idx``, evenly spaced (the same faces whatever the unit)."""
     return idx if len(idx) <= k else idx[np.linspace(0, len(idx) - 1, k).astype(np.int64)]

@@ -31,7 +31,7 @@ class CurvatureRegions(MeshSegmenter):
         """The judges' model files in use: the run's cache key hashes their content, so a
         model retrained under the same name segments again (files the package ships
         included: an upgrade that retrains one does too)."""
-        from plantscan_leaves import pieces, stem_parts
+        from plantscan_leaves import pairs, pieces, stem_parts
 
         p = self.params
         files = []
@@ -39,6 +39,8 @@ class CurvatureRegions(MeshSegmenter):
             files.append(pieces.model_location(p.piece_model, pieces.MODEL_FILE))
         if p.judge_stem_parts:
             files.append(pieces.model_location(p.stem_part_model, stem_parts.MODEL_FILE))
+        if p.judge_pairs:
+            files.append(pieces.model_location(p.pair_model, pairs.MODEL_FILE))
         return [Path(str(f)) for f in files]
 
     def segment(self, mesh: Mesh) -> LabelledMesh:

@@ -34,7 +34,9 @@ passes of ``PASSES``, in order, over one labels record (``_Labels``):
     (``fork_branch_mm``), 12. *broken blades joined* (``join_gap_mm``), 13. *bases off
     culms* (``base_reach_mm``), 14. *stem parts judged* (``judge_stem_parts``);
 15. *pieces judged* (``judge_pieces``): a learned judge calls every numbered leaf a
-    leaf, a fragment to join to its neighbour, or debris (``plantscan_leaves.pieces``).
+    leaf, a fragment to join to its neighbour, or debris (``plantscan_leaves.pieces``);
+16. *pairs judged* (``judge_pairs``): a learned judge merges two leaves sharing a border
+    that it calls one leaf (``plantscan_leaves.pairs``).
 
 Every number that decides a label is a parameter above or a named module
 constant with its reason (``TUBE_AXIS_COS``, ``TIP_*``, ``JOIN_*``, ``CULM_*``...).
@@ -190,19 +192,29 @@ class CurvatureRegionsParams(StageParams):
         None, description="another stem-part model (scripts/train_stem_part_model.py --out "
                           "writes one): a file name without a folder is a model shipped in "
                           "the package, else a path; None: the shipped one")
+    judge_pairs: bool = Field(
+        False,
+        description="after the piece judge, a learned judge (plantscan_leaves.pairs) looks at "
+                    "every two leaves sharing a border and merges those it calls one leaf (a "
+                    "leaf a crease cut into two halves that each look whole)")
+    pair_model: str | None = Field(
+        None, description="another pair model (scripts/train_pair_model.py --out writes "
+                          "one): a file name without a folder is a model shipped in the "
+                          "package, else a path; None: the shipped one (pair_model.json.gz)")
     ground_band_mm: float = Field(
         12.0, ge=0,
         description="leaf-like pieces lying entirely this close to the bottom of the mesh are "
                     "remnants of the pot cut / soil, not leaves (0 for rosettes lying on the "
                     "soil), mm")
 
-    @field_validator("piece_model", "stem_part_model")
+    @field_validator("piece_model", "stem_part_model", "pair_model")
     @classmethod
     def _model_exists(cls, value: str | None, info) -> str | None:
         from plantscan_leaves.pieces import check_model_name
 
-        script = ("scripts/train_piece_model.py" if info.field_name == "piece_model"
-                  else "scripts/train_stem_part_model.py")
+        script = {"piece_model": "scripts/train_piece_model.py",
+                  "pair_model": "scripts/train_pair_model.py"}.get(
+                      info.field_name, "scripts/train_stem_part_model.py")
         return check_model_name(value, script)
 
 
@@ -309,7 +321,7 @@ class _Surface:
             if p.petiole_tube_ratio < 1 and p.stem_scale_mm is not None:
                 self.stem_spread = _neighbourhood_spread(self.centroids, self.normals,
                                                          self.areas, p.stem_scale_mm)
-            if p.judge_pieces or p.judge_stem_parts:
+            if p.judge_pieces or p.judge_stem_parts or p.judge_pairs:
                 geo.mesh_unit(v, f)  # remembered (geometry.mesh_key) for the judges
 
         # the label-free fields on both cores, in two halves of about equal work (dicot
@@ -317,6 +329,7 @@ class _Surface:
         thread_map(lambda task: task(), [curvature, per_face])
         self.piece_model = None  # the judge of judge_pieces when not the params' file
         self.stem_part_model = None  # the judge of judge_stem_parts when not the params' file
+        self.pair_model = None  # the judge of judge_pairs when not the params' file
 
     @functools.cached_property
     def piece_surface(self):
@@ -571,6 +584,33 @@ def _pieces_judged(s: _Surface, lab: _Labels) -> None:
     lab.evidence = pieces.joined_evidence(verdict)
 
 
+def _pairs_judged(s: _Surface, lab: _Labels) -> None:
+    """Two leaves sharing a border that a learned judge calls one leaf merged (``judge_pairs``)."""
+    if not s.p.judge_pairs or lab.n_leaves < 2:
+        return
+    from plantscan_leaves import pairs
+
+    model = s.pair_model or pairs.load_model(s.p.pair_model)
+    found = pairs.pair_features(s.piece_surface, lab.out, lab.n_leaves)
+    prob = model.probabilities(found)
+    out, n, merged, new_of_old = pairs.merge_pairs(lab.out, lab.n_leaves, found, prob)
+    s.report.counts["pairs_touching"] = len(found.pairs)
+    s.report.counts["pairs_merged"] = lab.n_leaves - n
+    evidence: dict[int, dict] = {}
+    for old in range(1, lab.n_leaves + 1):  # the piece judge's joins carry over
+        new, ev = int(new_of_old[old]), lab.evidence.get(old, {})
+        if new not in merged:
+            if ev:
+                evidence[new] = ev
+            continue
+        cur = evidence.setdefault(new, {"fragments": 0, "weakest_merge": merged[new][1]})
+        cur["fragments"] += int(ev.get("fragments", 1))
+        cur["weakest_merge"] = round(min(cur["weakest_merge"], ev.get("weakest_merge", 1.0)), 4)
+    lab.out = out.astype(np.int32)
+    lab.n_leaves = n
+    lab.evidence = evidence
+
+
 def _stem_parts_judged(s: _Surface, lab: _Labels) -> None:
     """Parts of the stem off the culms that are blades become leaf pieces (``judge_stem_parts``)."""
     if not s.p.judge_stem_parts:
@@ -602,12 +642,14 @@ PASSES = (
     ("bases off culms", _bases_off_culms),
     ("stem parts judged", _stem_parts_judged),
     ("pieces judged", _pieces_judged),
+    ("pairs judged", _pairs_judged),
 )
 """The passes of ``segment_leaves``, in order, each ``(name, fn(surface, labels))``."""
 
 
 def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None,
-                   piece_model=None, stem_part_model=None) -> tuple[LabelledMesh, StageReport]:
+                   piece_model=None, stem_part_model=None,
+                   pair_model=None) -> tuple[LabelledMesh, StageReport]:
     """Label every face of ``mesh`` as one leaf or the stem (``PASSES`` in turn).
 
     ``piece_model``: the judge of ``judge_pieces`` (anything with ``probabilities(pieces)
@@ -634,7 +676,7 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None,
         # at once; labels are per face, so they carry back to the mesh as it was
         scaled, report = segment_leaves(Mesh(mesh.vertices * scale, mesh.faces),
                                         p.model_copy(update={"reference_unit_mm": None}),
-                                        piece_model, stem_part_model)
+                                        piece_model, stem_part_model, pair_model)
         report.figures.update(mesh_unit_mm=round(unit, 6), scale_to_reference_unit=round(scale, 6))
         return LabelledMesh(mesh, scaled.face_labels, scaled.kinds, scaled.evidence), report
     if mesh.is_empty:
@@ -651,6 +693,7 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None,
     surface = _Surface(mesh, topo, p, report)
     surface.piece_model = piece_model
     surface.stem_part_model = stem_part_model
+    surface.pair_model = pair_model
     lab = _Labels(regions=np.zeros(surface.nf, np.int64))
     for _name, run_pass in PASSES:
         run_pass(surface, lab)

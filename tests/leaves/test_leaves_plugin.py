@@ -166,16 +166,17 @@ def test_the_model_files_a_leaf_stage_reads_are_in_its_cache_key(manager, tmp_pa
     # cached labels or traits in place (the pipeline hashes the content of input_files).
     import shutil
 
-    from plantscan_leaves import pieces, stem_parts
+    from plantscan_leaves import pairs, pieces, stem_parts
 
     own = tmp_path / "my_piece_model.json.gz"
     shutil.copy(pieces.model_location(None, pieces.MODEL_FILE), own)
     seg = manager.build("mesh_segmenter", "curvature-regions",
                         {"judge_pieces": True, "piece_model": str(own),
-                         "judge_stem_parts": True})
+                         "judge_stem_parts": True, "judge_pairs": True})
     files = seg.input_files(None)
     assert files[0] == own
     assert files[1] == Path(str(pieces.model_location(None, stem_parts.MODEL_FILE)))
+    assert files[2] == Path(str(pieces.model_location(None, pairs.MODEL_FILE)))
     assert all(f.is_file() for f in files)
     assert manager.build("mesh_segmenter", "curvature-regions", {}).input_files(None) == []
     meas = manager.build("measurer", "leaf-geometry", {"trust_model": "trust_model_grass.json.gz"})

@@ -22,14 +22,7 @@ LUMP_RADIUS_MM = 10.0  # a ball of phantom volume on the stem's top: 630 mm² on
 
 
 def _surface(mesh: Mesh) -> pc.PieceSurface:
-    topo = geo.topology(mesh.faces)
-    normals, areas = geo.face_normals_areas(mesh.vertices, mesh.faces)
-    unit = geo.mesh_unit(mesh.vertices, mesh.faces)
-    # the rules' curvature scale (smoothing_mm 1.5 at 0.8 mm voxels), in voxels
-    curvature = geo.face_curvature(mesh, topo, 1.5 / 0.8 * unit)
-    return pc.PieceSurface(mesh.vertices, mesh.faces,
-                           geo.face_centroids(mesh.vertices, mesh.faces), normals, areas,
-                           topo.face_pairs, curvature, unit)
+    return pc.surface_of(mesh)
 
 
 @pytest.fixture(scope="module")

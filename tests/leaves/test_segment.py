@@ -33,15 +33,7 @@ def test_two_touching_leaves_come_out_as_two():
     # two 1.5 mm slabs, the second tilted 35 deg and overlapping the first one's tip by 4 mm:
     # one connected surface whose leaves meet along a concave crease
     a, b = 40.0, 18.0
-    leaf1 = ph.ellipse_slab_field(a, b, 1.5)
-    rot = rotation_about_axis((0, 1, 0), -35.0)
-    leaf2 = ph.placed(ph.ellipse_slab_field(a, b, 1.5), rot,
-                      np.array([a - 4.0, 0.0, 0.0]) + rot @ np.array([a, 0.0, 0.0]))
-    box2 = (np.array([a - 6, -b, -2.0]), np.array([a + 2 * a * np.cos(np.radians(35)) + 2, b,
-                                                    2 * a * np.sin(np.radians(35)) + 2]))
-    mesh = ph.mesh_field(None, (-a, -b, -2.0), box2[1], 0.5,
-                         parts=[(leaf1, ((-a, -b, -2.0), (a, b, 2.0))), (leaf2, box2)])
-    parts = np.argmax(np.stack([leaf1(c := mesh.vertices[mesh.faces].mean(axis=1)), leaf2(c)]), 0)
+    mesh, parts = ph.touching_slabs(a, b)
     from plantscan_leaves.geometry import face_adjacency_operator, topology
     from scipy.sparse.csgraph import connected_components
 
