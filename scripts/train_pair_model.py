@@ -49,7 +49,7 @@ BOOSTER_PARAMS = dict(objective="binary", learning_rate=0.1, num_leaves=4,
 ROUNDS = 100
 SHIPPED = {pr.MODEL_FILE: {"dicot": list(range(30))}}
 # the rules again with shallower creases cutting leaves (the recipe's 0.06 /mm): split
-# leaves are rare on the development plants the piece judge was trained on (2 of 28
+# leaves are rare on the development plants the piece judge was trained on (2 of 32
 # touching pairs), and these cuts are the rules' own, along real creases of real hulls
 VARY = {"concave_curvature_per_mm": [0.04, 0.05]}
 MODELS_DIR = tp.MODELS_DIR
