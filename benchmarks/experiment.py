@@ -1,7 +1,7 @@
 """A virtual growth experiment: 2 genotypes x 2 treatments x 3 replicates x 5 days, one store.
 
     python benchmarks/experiment.py [--out DIR] [--genotypes G1=dicot,G2=branched]
-        [--days 5] [--replicates 3] [--image-size 640x427,G2=1296x864] [--views 24]
+        [--days 5] [--replicates 3] [--image-size 1296x864] [--views 24]
         [--resolution 256]
 
 * The design is ``plantscan_sim.experiment.growth_design``: genotypes are plant
@@ -22,10 +22,12 @@
   on the measured leaves (each paired with its truth leaf: a link is kept when
   the truth leaf's measured leaves on two successive days share a track).
 
-Image size: 640 x 427 px, but 1296 x 864 for the branched genotype (``G2``): the
+Image size: 1296 x 864 px, the population benchmark's (docs/benchmarks/population.md),
+for every genotype (session 24; before, 640 x 427 px with ``G2=1296x864``): the
 branched rig frames a 600 mm plant (2100 mm away), 2.26 mm per pixel at 640 px, and
 its seedlings' leaflets (6-1,100 mm²) then lose about half a pixel along their
-outline (total leaf area -23 to -67 %); at 1296 px about -10 % (the page's notes).
+outline (total leaf area -23 to -67 %); the small dicots at 640 px lost 16-36 % (the
+page's notes).
 
 Writes ``docs/benchmarks/experiment.md`` (a ``## Notes`` section already in
 the page is kept).  Heavy: 60 renders and 60 runs (``nice -n 10``; about 1.5 h
@@ -222,7 +224,7 @@ def main() -> int:
     ap.add_argument("--seed0", type=int, default=1000,
                     help="first seed: validation (>= 1000) by default, below 1000 development "
                     "seeds (tuning; the page then says so)")
-    ap.add_argument("--image-size", default="640x427,G2=1296x864",
+    ap.add_argument("--image-size", default="1296x864",
                     help="WxH of every scan, then GENOTYPE=WxH for a genotype of its own "
                     "(the branched rig frames a 600 mm plant: its seedlings' leaflets need "
                     "1296 px, docs/benchmarks/experiment.md)")
