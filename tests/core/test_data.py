@@ -10,6 +10,7 @@ from plantscan_core.data import (
     Camera,
     CameraModel,
     LeafTraits,
+    Mesh,
     Pose,
     Silhouette,
     TiltAxis,
@@ -264,3 +265,18 @@ def test_volume_in_blocks_saves_loads_and_reads_densely(tmp_path):
     dense.save(tmp_path / "d.npz")
     assert Volume.load(tmp_path / "d.npz").blocks is None
     assert Volume.load(tmp_path / "d.npz").field is not None
+
+
+def test_label_centroids_are_each_labels_area_weighted_mean():
+    # against a plain per-label loop over every face (labels < 0 ignored)
+    rng = np.random.default_rng(0)
+    mesh = Mesh(rng.normal(size=(60, 3)), rng.integers(0, 60, size=(200, 3)))
+    labels = rng.integers(-1, 4, size=200)
+    got = mesh.label_centroids(labels)
+    area = mesh.face_areas()
+    centre = mesh.vertices[mesh.faces].mean(axis=1)
+    assert sorted(got) == [0, 1, 2, 3]
+    for k, c in got.items():
+        sel = labels == k
+        np.testing.assert_allclose(c, (area[sel, None] * centre[sel]).sum(0) / area[sel].sum())
+    assert mesh.label_centroids(np.full(200, -1)) == {}
