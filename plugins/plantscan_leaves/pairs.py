@@ -96,9 +96,10 @@ def pair_features(s: pc.PieceSurface, labels: np.ndarray, n: int) -> Pairs:
         return Pairs(np.zeros((0, 2), np.int64), np.zeros((0, k), np.float32))
     m = n + 1
     u = s.unit
-    w = s.areas
-    c0, c1, c2 = _moments(lab, m, w, s.centroids)
-    n0, n1, n2 = _moments(lab, m, w, s.normals)
+    on = lab > 0  # the leaves' faces (the stem's moments are not used)
+    w = s.areas[on]
+    c0, c1, c2 = _moments(lab[on], m, w, s.centroids[on])
+    n0, n1, n2 = _moments(lab[on], m, w, s.normals[on])
     area = c0 / 2.0  # one side
     largest = max(float(area[1:].max()), 1e-30)
     # borders per label

@@ -330,15 +330,19 @@ class _Surface:
         self.piece_model = None  # the judge of judge_pieces when not the params' file
         self.stem_part_model = None  # the judge of judge_stem_parts when not the params' file
         self.pair_model = None  # the judge of judge_pairs when not the params' file
+        # (vertices as given, scale) when the passes see them scaled to the reference unit
+        self.given: tuple[np.ndarray, float] | None = None
 
     @functools.cached_property
     def piece_surface(self):
         """The surface as the learned judges read it (``pieces.PieceSurface``)."""
         from plantscan_leaves import pieces
 
+        given, scale = self.given if self.given is not None else (None, 1.0)
         return pieces.PieceSurface(self.mesh.vertices, self.mesh.faces, self.centroids,
                                    self.normals, self.areas, self.pairs, self.curvature,
-                                   geo.mesh_unit(self.mesh.vertices, self.mesh.faces))
+                                   geo.mesh_unit(self.mesh.vertices, self.mesh.faces),
+                                   given, scale)
 
 
 @dataclasses.dataclass
@@ -648,14 +652,17 @@ PASSES = (
 
 
 def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None,
-                   piece_model=None, stem_part_model=None,
-                   pair_model=None) -> tuple[LabelledMesh, StageReport]:
+                   piece_model=None, stem_part_model=None, pair_model=None,
+                   _given: tuple[np.ndarray, float] | None = None
+                   ) -> tuple[LabelledMesh, StageReport]:
     """Label every face of ``mesh`` as one leaf or the stem (``PASSES`` in turn).
 
     ``piece_model``: the judge of ``judge_pieces`` (anything with ``probabilities(pieces)
     -> (n, 3)``, ``plantscan_leaves.pieces``; None: the params' file or the shipped one);
     ``stem_part_model`` likewise the judge of ``judge_stem_parts`` (``probabilities(parts)
-    -> (m,)``, ``plantscan_leaves.stem_parts``).
+    -> (m,)``, ``plantscan_leaves.stem_parts``), ``pair_model`` of ``judge_pairs``
+    (``probabilities(pairs) -> (k,)``, ``plantscan_leaves.pairs``).  ``_given``: internal
+    (the vertices as given and their scale, when ``reference_unit_mm`` scales the mesh).
 
     Returns
     -------
@@ -676,7 +683,8 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None,
         # at once; labels are per face, so they carry back to the mesh as it was
         scaled, report = segment_leaves(Mesh(mesh.vertices * scale, mesh.faces),
                                         p.model_copy(update={"reference_unit_mm": None}),
-                                        piece_model, stem_part_model, pair_model)
+                                        piece_model, stem_part_model, pair_model,
+                                        _given=(mesh.vertices, scale))
         report.figures.update(mesh_unit_mm=round(unit, 6), scale_to_reference_unit=round(scale, 6))
         return LabelledMesh(mesh, scaled.face_labels, scaled.kinds, scaled.evidence), report
     if mesh.is_empty:
@@ -694,6 +702,7 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None,
     surface.piece_model = piece_model
     surface.stem_part_model = stem_part_model
     surface.pair_model = pair_model
+    surface.given = _given
     lab = _Labels(regions=np.zeros(surface.nf, np.int64))
     for _name, run_pass in PASSES:
         run_pass(surface, lab)

@@ -203,3 +203,25 @@ def test_verdict_rules():
     assert v.labels.tolist() == [0, 1, 1, 2, 2, 3, 3, 4]
     assert v.n_leaves == 3 and v.debris
     assert v.joined == {2: (2, pytest.approx(0.8))}
+
+
+def test_one_ray_scene_serves_the_judge_and_the_measurer(mock_plant, monkeypatch):
+    # with reference_unit_mm the segmenter works on the plant scaled; the piece judge still
+    # casts its thickness rays at the plant as given, so the measurer (thick shares) reuses
+    # that ray scene instead of building a second (about 1 s at 1.7 M faces)
+    from plantscan_leaves import geometry as geo
+
+    _, mesh, _ = mock_plant
+    geo.forget_meshes()
+    made = []
+    real_get = geo._SCENES.get
+
+    def get(vertices, faces, make):
+        return real_get(vertices, faces, lambda: made.append(1) or make())
+
+    monkeypatch.setattr(geo._SCENES, "get", get)
+    labelled, _ = segment_leaves(mesh, CurvatureRegionsParams(reference_unit_mm=0.5,
+                                                              judge_pieces=True))
+    assert made == [1]
+    measure_plant(labelled)
+    assert made == [1]
