@@ -114,3 +114,40 @@ def test_the_shipped_model_is_what_the_training_script_trains():
     plants = script.SHIPPED[pr.MODEL_FILE]
     assert model.config == script.training_config(plants)
     assert all(s < 1000 for seeds in plants.values() for s in seeds)  # development only
+
+
+def test_merges_are_the_components_of_the_likely_pairs():
+    # against a plain reference: whatever the order, merging every pair at the threshold or
+    # more gives the connected components of those pairs (scipy), numbered in the order of
+    # their lowest leaf, debris kept last
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    @settings(max_examples=200, deadline=None)
+    @given(st.integers(2, 12), st.data())
+    def check(n, data):
+        k = data.draw(st.integers(0, 20))
+        a = np.array(data.draw(st.lists(st.integers(1, n), min_size=k, max_size=k)), np.int64)
+        b = np.array(data.draw(st.lists(st.integers(1, n), min_size=k, max_size=k)), np.int64)
+        keep = a != b
+        pairs = np.stack([a[keep], b[keep]], 1).reshape(-1, 2)
+        prob = np.array(data.draw(st.lists(st.floats(0, 1), min_size=len(pairs),
+                                           max_size=len(pairs))))
+        labels = np.arange(n + 2)  # stem, every leaf, debris
+        found = pr.Pairs(pairs, np.zeros((len(pairs), len(pr.FEATURE_NAMES))))
+        out, n_new, merged, _ = pr.merge_pairs(labels, n, found, prob)
+        hit = pairs[prob >= pr.MERGE_PROBABILITY] - 1
+        graph = coo_matrix((np.ones(len(hit)), (hit[:, 0], hit[:, 1])), shape=(n, n))
+        count, comp = connected_components(graph, directed=False)
+        first = {}
+        ref = [first.setdefault(c, len(first) + 1) for c in comp]
+        assert n_new == count
+        assert out.tolist() == [0, *ref, count + 1]
+        sizes = np.bincount(comp)
+        assert {k: v[0] for k, v in merged.items()} == {
+            ref[int(np.flatnonzero(comp == c)[0])]: int(sizes[c])
+            for c in range(count) if sizes[c] > 1}
+
+    check()
