@@ -99,7 +99,7 @@ def pair_features(s: pc.PieceSurface, labels: np.ndarray, n: int) -> Pairs:
     on = lab > 0  # the leaves' faces (the stem's moments are not used)
     w = s.areas[on]
     c0, c1, c2 = _moments(lab[on], m, w, s.centroids[on])
-    n0, n1, n2 = _moments(lab[on], m, w, s.normals[on])
+    n0, _, n2 = _moments(lab[on], m, w, s.normals[on])
     area = c0 / 2.0  # one side
     largest = max(float(area[1:].max()), 1e-30)
     # borders per label
@@ -212,20 +212,7 @@ def merge_pairs(labels: np.ndarray, n: int, pairs: Pairs, prob: np.ndarray,
     return new[lab], n_new, merged, new
 
 
-@dataclass
-class PairModel:
-    """The shipped booster and what it was trained on (``config``, its ``config_sha256``)."""
-
-    booster: object
-    config: dict
-    config_sha256: str
-
-    def probabilities(self, pairs: Pairs) -> np.ndarray:
-        """(k,) probability that each pair is one leaf."""
-        x = np.asarray(pairs.features, dtype=np.float64)
-        if not len(x):
-            return np.zeros(0)
-        return np.asarray(self.booster.predict(x, num_threads=1)).reshape(len(x))
+PairModel = pc.BinaryModel  # probabilities(pairs): (k,) that each pair is one leaf
 
 
 @lru_cache(maxsize=4)

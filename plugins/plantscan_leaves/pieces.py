@@ -329,6 +329,23 @@ class PieceModel:
         return np.asarray(self.booster.predict(x, num_threads=1)).reshape(len(x), -1)
 
 
+@dataclass
+class BinaryModel:
+    """A shipped binary booster (the stem-part and pair judges) and what it was trained on
+    (``config``, its ``config_sha256``)."""
+
+    booster: object
+    config: dict
+    config_sha256: str
+
+    def probabilities(self, rows) -> np.ndarray:
+        """(k,) probability of the positive class of each row of ``rows.features``."""
+        x = np.asarray(rows.features, dtype=np.float64)
+        if not len(x):
+            return np.zeros(0)
+        return np.asarray(self.booster.predict(x, num_threads=1)).reshape(len(x))
+
+
 def config_sha256(config: dict) -> str:
     """The hash a model file records of its training configuration."""
     return hashlib.sha256(json.dumps(config, sort_keys=True).encode()).hexdigest()

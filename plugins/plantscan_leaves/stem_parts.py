@@ -88,20 +88,7 @@ def stem_parts(s: pc.PieceSurface, labels: np.ndarray, n: int, ground_z: float) 
     return StemParts(part, m, np.hstack([feats, extra]).astype(np.float32))
 
 
-@dataclass
-class StemPartModel:
-    """The shipped booster and what it was trained on (``config``, its ``config_sha256``)."""
-
-    booster: object
-    config: dict
-    config_sha256: str
-
-    def probabilities(self, parts: StemParts) -> np.ndarray:
-        """(m,) probability that each part is a blade."""
-        x = np.asarray(parts.features, dtype=np.float64)
-        if not len(x):
-            return np.zeros(0)
-        return np.asarray(self.booster.predict(x, num_threads=1)).reshape(len(x))
+StemPartModel = pc.BinaryModel  # probabilities(parts): (m,) that each part is a blade
 
 
 def save_model(booster, config: dict, path: Path) -> None:
