@@ -26,6 +26,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from plantscan_leaves import geometry as geo
 from plantscan_leaves import pieces as pc
 
 MODEL_FILE = "pair_model.json.gz"
@@ -66,17 +67,6 @@ class Pairs:
     features: np.ndarray
 
 
-def _moments(lab: np.ndarray, m: int, w: np.ndarray, x: np.ndarray):
-    """Per label: weight, weighted sum and weighted outer-product sum of rows of ``x``."""
-    s0 = np.bincount(lab, w, m)
-    s1 = np.stack([np.bincount(lab, w * x[:, k], m) for k in range(3)], 1)
-    s2 = np.zeros((m, 3, 3))
-    for a in range(3):
-        for b in range(a, 3):
-            s2[:, a, b] = s2[:, b, a] = np.bincount(lab, w * x[:, a] * x[:, b], m)
-    return s0, s1, s2
-
-
 def _spread(s0, s1, s2):
     """Covariance from moments (any leading shape)."""
     w = np.maximum(s0, 1e-30)[..., None, None]
@@ -98,8 +88,8 @@ def pair_features(s: pc.PieceSurface, labels: np.ndarray, n: int) -> Pairs:
     u = s.unit
     on = lab > 0  # the leaves' faces (the stem's moments are not used)
     w = s.areas[on]
-    c0, c1, c2 = _moments(lab[on], m, w, s.centroids[on])
-    n0, _, n2 = _moments(lab[on], m, w, s.normals[on])
+    c0, c1, c2 = geo.label_moments(lab[on], m, w, s.centroids[on])
+    n0, _, n2 = geo.label_moments(lab[on], m, w, s.normals[on])
     area = c0 / 2.0  # one side
     largest = max(float(area[1:].max()), 1e-30)
     # borders per label

@@ -32,6 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
+from plantscan_leaves import geometry as geo
+
 LEAF, JOIN, DEBRIS = 0, 1, 2
 CLASS_NAMES = ("leaf", "join", "debris")
 MODEL_FILE = "piece_model.json.gz"
@@ -105,8 +107,6 @@ def surface_of(mesh, smoothing_units: float = 1.5 / 0.8) -> PieceSurface:
     """The judges' view of ``mesh`` on its own (outside the segmenter, which builds it from
     its passes' fields): curvature at ``smoothing_units`` mesh units (the rules'
     ``smoothing_mm`` 1.5 at 0.8 mm voxels)."""
-    from plantscan_leaves import geometry as geo
-
     topo = geo.topology(mesh.faces)
     normals, areas = geo.face_normals_areas(mesh.vertices, mesh.faces)
     unit = geo.mesh_unit(mesh.vertices, mesh.faces)
@@ -139,17 +139,11 @@ def piece_features(s: PieceSurface, labels: np.ndarray, n: int) -> Pieces:
     area2 = np.bincount(lab, s.areas, m)
     area = area2[1:] / 2.0
     safe = np.maximum(area2, 1e-30)
-    mean = np.stack([np.bincount(lp, w * cp[:, k], m) for k in range(3)], 1)
+    _, mean, cov = geo.label_moments(lp, m, w, cp, 1e-30)  # a piece's own faces: area2's
     mean /= safe[:, None]
-    d = cp - mean[lp]
-    cov = np.zeros((m, 3, 3))
-    nt = np.zeros((m, 3, 3))
-    for a in range(3):
-        for b in range(a, 3):
-            cov[:, a, b] = cov[:, b, a] = np.bincount(lp, w * d[:, a] * d[:, b], m) / safe
-            nt[:, a, b] = nt[:, b, a] = np.bincount(lp, w * npf[:, a] * npf[:, b], m) / safe
-    ev_c = np.maximum(np.linalg.eigvalsh(cov), 0.0)  # ascending
-    ev_n, vec_n = np.linalg.eigh(nt)
+    nt = geo.label_moments(lp, m, w, npf)[2]
+    ev_c = np.maximum(np.linalg.eigvalsh(cov / safe[:, None, None]), 0.0)  # ascending
+    ev_n, vec_n = np.linalg.eigh(nt / safe[:, None, None])
     plane_normal = vec_n[:, :, 2]  # a slab's two sides share one sign-free normal
     z = s.vertices[:, 2]
     z0, height = float(z.min()), max(float(np.ptp(z)), 1e-12)

@@ -260,20 +260,11 @@ def _region_shape(c: np.ndarray, normals: np.ndarray, areas: np.ndarray, labels:
 
     ``c`` (F, 3) face centroids, ``normals`` (F, 3), ``areas`` (F,), ``labels`` (F,) < nlab.
     """
-    w = areas
-    tot = np.bincount(labels, w, nlab)
-    safe = np.maximum(tot, 1e-12)
-    mean = np.stack([np.bincount(labels, w * c[:, k], nlab) for k in range(3)], 1) / safe[:, None]
-    d = c - mean[labels]
-    cov = np.zeros((nlab, 3, 3))
-    nt = np.zeros((nlab, 3, 3))
-    for a in range(3):
-        for b in range(a, 3):
-            cov[:, a, b] = cov[:, b, a] = np.bincount(labels, w * d[:, a] * d[:, b], nlab) / safe
-            nt[:, a, b] = nt[:, b, a] = np.bincount(labels, w * normals[:, a] * normals[:, b],
-                                                    nlab) / safe
-    ev_c, vec_c = np.linalg.eigh(cov)  # ascending
-    ev_n, vec_n = np.linalg.eigh(nt)
+    tot, _, cov = geo.label_moments(labels, nlab, areas, c, 1e-12)
+    nt = geo.label_moments(labels, nlab, areas, normals)[2]
+    safe = np.maximum(tot, 1e-12)[:, None, None]
+    ev_c, vec_c = np.linalg.eigh(cov / safe)  # ascending
+    ev_n, vec_n = np.linalg.eigh(nt / safe)
     long_axis = vec_c[:, :, 2]
     null_normal = vec_n[:, :, 0]  # direction the normals never point to (tube axis)
     return {

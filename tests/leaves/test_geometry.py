@@ -229,3 +229,54 @@ def test_compiled_components_match_the_reference(seed):
     pairs = rng.integers(0, n, (int(rng.integers(0, 2 * n)), 2))
     keep = rng.random(n) < rng.uniform(0.3, 1.0)
     assert np.array_equal(components(n, pairs, keep), components_reference(n, pairs, keep))
+
+
+def _bumpy_slab():
+    """A closed slab with its vertices jittered: faces of every orientation and size."""
+    mesh = ph.ellipse_slab_mesh(20.0, 10.0, 2.0, voxel_mm=0.5)
+    v = mesh.vertices + np.random.default_rng(7).normal(0.0, 0.05, mesh.vertices.shape)
+    return v, mesh.faces
+
+
+def test_compiled_face_loops_match_the_references_to_the_bit():
+    # cross products, normals, areas, edge lengths and the curvature across edges summed in
+    # the references' (einsum's) order: every threshold downstream sees the same numbers,
+    # so the labels and traits stay the same to the last digit
+    from plantscan_leaves import geometry as geo
+
+    if not geo.HAVE_NUMBA:
+        pytest.skip("numba not installed: the loops are the references")
+    v, f = _bumpy_slab()
+    t = topology(f)
+    cross = geo.face_cross_reference(v, f)
+    assert np.array_equal(geo.face_cross(v, f), cross)
+    normals, areas = geo.face_normals_areas(v, f)
+    norm = geo.row_norm(cross)
+    assert np.array_equal(areas, 0.5 * norm)
+    assert np.array_equal(normals, cross / np.maximum(norm, 1e-300)[:, None])
+    a, b = t.edges[:, 0], t.edges[:, 1]
+    assert np.array_equal(geo.segment_lengths(v, a, b), geo.row_norm(v[a] - v[b]))
+    c = geo.face_centroids(v, f)
+    got = geo._edge_curvature_kernel(normals, c, t.face_pairs, len(f))
+    assert np.array_equal(got, geo.edge_curvature_reference(normals, c, t.face_pairs, len(f)))
+    assert np.isfinite(got).all() and (got < 0).any() and (got > 0).any()  # a real surface
+
+
+@pytest.mark.parametrize("floor", [None, 1e-12])
+def test_compiled_label_moments_match_the_reference_to_the_bit(floor):
+    # per-label sums of the same products in the same face order as np.bincount's, also
+    # for labels no face carries (their rows stay zero)
+    from plantscan_leaves import geometry as geo
+
+    if not geo.HAVE_NUMBA:
+        pytest.skip("numba not installed: the moments are the reference")
+    v, f = _bumpy_slab()
+    normals, areas = geo.face_normals_areas(v, f)
+    lab = np.random.default_rng(2).integers(0, 40, len(f))
+    lab[lab == 7] = 8  # label 7 empty
+    x = geo.face_centroids(v, f) if floor else normals
+    got = geo.label_moments(lab, 41, areas, x, floor)
+    want = geo.label_moments_reference(lab, 41, areas, x, floor)
+    for g, w in zip(got, want):
+        assert np.array_equal(g, w)
+    assert not got[2][7].any() and got[0][8] > 0
