@@ -1074,18 +1074,11 @@ def _radius_graphs(q: np.ndarray, kind: np.ndarray, radius: float
     from scipy.spatial import cKDTree
 
     pairs = cKDTree(q).query_pairs(radius, output_type="ndarray")
-    w = np.maximum(geo.row_norm(q[pairs[:, 0]] - q[pairs[:, 1]]), 1e-9)
-    n = len(q)
+    w = np.maximum(geo.segment_lengths(q, pairs[:, 0], pairs[:, 1]), 1e-9)
     # built once: the side graphs share its structure, with the other side's edges made
-    # impassable (infinite)
-    # both directions stored (pairs are i < j, so none is summed twice): a dijkstra with
-    # directed=False would build this symmetric copy again on every call; the data hold
-    # each entry's pair number + 1 until replaced by weights
-    ids = np.arange(1.0, len(pairs) + 1)
-    g_all = sparse.csr_matrix((np.concatenate([ids, ids]),
-                               (np.concatenate([pairs[:, 0], pairs[:, 1]]),
-                                np.concatenate([pairs[:, 1], pairs[:, 0]]))), shape=(n, n))
-    pair_of = g_all.data.astype(np.int64) - 1
+    # impassable (infinite); both directions stored (pairs are i < j, so none is summed
+    # twice): a dijkstra with directed=False would build this symmetric copy on every call
+    g_all, pair_of = geo.pair_graph(len(q), pairs)
     g_all.data = w[pair_of]
     ka, kb = kind[pairs[:, 0]], kind[pairs[:, 1]]
     g_a, g_b = g_all.copy(), g_all.copy()

@@ -223,26 +223,6 @@ def _regions_of(nf: int, pairs: np.ndarray, keep: np.ndarray) -> np.ndarray:
     return geo.components(nf, pairs, keep)
 
 
-def _grow(labels: np.ndarray, pairs: np.ndarray) -> np.ndarray:
-    """Spread labels into unlabelled (-1) faces ring by ring until nothing changes."""
-    labels = labels.copy()
-    a, b = pairs[:, 0], pairs[:, 1]
-    while True:
-        la, lb = labels[a], labels[b]
-        # only pairs with an unlabelled face can ever change anything: the others leave
-        # (a crease band is crossed in tens of steps, each then over the band's pairs alone)
-        open_ = (la < 0) | (lb < 0)
-        a, b, la, lb = a[open_], b[open_], la[open_], lb[open_]
-        to_a = (la < 0) & (lb >= 0)
-        to_b = (lb < 0) & (la >= 0)
-        if not (to_a.any() or to_b.any()):
-            return labels
-        # a face reached by several labels in one step takes the largest: the result does
-        # not depend on the order of the pairs
-        np.maximum.at(labels, a[to_a], lb[to_a])
-        np.maximum.at(labels, b[to_b], la[to_b])
-
-
 def _relabel(labels: np.ndarray) -> np.ndarray:
     """Labels renumbered 0..n-1 in order (-1 stays -1); a lookup table, not a sort."""
     ok = labels >= 0
@@ -379,7 +359,7 @@ def _seed_regions(s: _Surface, lab: _Labels) -> None:
     seed_area = np.bincount(seeds[seeds >= 0], s.areas[seeds >= 0])
     small = seed_area < p.min_region_area_mm2
     seeds[(seeds >= 0) & small[np.maximum(seeds, 0)]] = -1
-    labels = _grow(_relabel(seeds), pairs)
+    labels = kernels.grow(_relabel(seeds), pairs)
     # parts of the mesh with no seed at all (crumbs, all-crease bits) are their own region
     if (labels < 0).any():
         rest = _regions_of(s.nf, pairs, labels < 0)
@@ -1039,7 +1019,7 @@ def _split_joined_leaves(labels: np.ndarray, crease: np.ndarray, areas: np.ndarr
         return labels, 0
     in_split = split[labels]
     init = np.where(in_split & (seeds >= 0) & big[np.maximum(seeds, 0)], seeds, -1)
-    grown = _grow(init, inner[in_split[inner[:, 0]]])
+    grown = kernels.grow(init, inner[in_split[inner[:, 0]]])
     # faces of a split leaf no seed reaches (cut off by creases) join its biggest seed
     biggest = np.full(len(split), -1)
     order = np.argsort(seed_area)  # ascending: the biggest seed of a label is written last

@@ -257,6 +257,7 @@ def test_compiled_face_loops_match_the_references_to_the_bit():
     a, b = t.edges[:, 0], t.edges[:, 1]
     assert np.array_equal(geo.segment_lengths(v, a, b), geo.row_norm(v[a] - v[b]))
     c = geo.face_centroids(v, f)
+    assert np.array_equal(c, geo.face_centroids_reference(v, f))
     got = geo._edge_curvature_kernel(normals, c, t.face_pairs, len(f))
     assert np.array_equal(got, geo.edge_curvature_reference(normals, c, t.face_pairs, len(f)))
     assert np.isfinite(got).all() and (got < 0).any() and (got > 0).any()  # a real surface
@@ -280,3 +281,23 @@ def test_compiled_label_moments_match_the_reference_to_the_bit(floor):
     for g, w in zip(got, want):
         assert np.array_equal(g, w)
     assert not got[2][7].any() and got[0][8] > 0
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_compiled_pair_graph_matches_the_reference(seed):
+    # the same canonical CSR arrays as scipy's (columns ascending per row) and the same
+    # pair behind every entry: the measurer's shortest paths then take the same
+    # predecessors on ties, so the same midrib and length to the bit
+    from plantscan_leaves import geometry as geo
+    from scipy.spatial import cKDTree
+
+    if not geo.HAVE_NUMBA:
+        pytest.skip("numba not installed: the graph is the reference")
+    rng = np.random.default_rng(seed)
+    q = rng.uniform(0.0, 10.0, (int(rng.integers(1, 600)), 3)).round(1)  # ties on a lattice
+    pairs = cKDTree(q).query_pairs(1.0, output_type="ndarray")
+    got, got_of = geo.pair_graph(len(q), pairs)
+    want, want_of = geo.pair_graph_reference(len(q), pairs)
+    assert np.array_equal(got.indptr, want.indptr) and np.array_equal(got.indices, want.indices)
+    assert np.array_equal(got_of, want_of)
+    assert got.has_sorted_indices and got.nnz == 2 * len(pairs)

@@ -610,3 +610,22 @@ def test_a_family_recipe_labels_a_plant_the_same_at_any_scale(mock_plant, family
         scaled, _ = segment_leaves(Mesh(mesh.vertices * scale, mesh.faces), p)
         assert np.array_equal(scaled.face_labels, base.face_labels), (family, scale)
         assert scaled.kinds == base.kinds
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_compiled_region_growing_matches_the_reference(seed):
+    # ring by ring, a face reached by several labels at once takes the largest, whatever
+    # the order of the pairs: the compiled loop gives the reference's labels exactly
+    from plantscan_leaves import kernels
+
+    if not kernels.HAVE_NUMBA:
+        pytest.skip("numba not installed: growing is the reference")
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(20, 3000))
+    pairs = rng.integers(0, n, (int(rng.integers(n, 3 * n)), 2))
+    labels = np.where(rng.random(n) < 0.05, rng.integers(0, 9, n), -1)
+    want = kernels.grow_reference(labels, pairs)
+    got = kernels.grow(labels, pairs)
+    assert got.dtype == want.dtype and np.array_equal(got, want)
+    assert np.array_equal(kernels.grow(labels, pairs[::-1]), want)  # order-free
+    assert (want >= 0).sum() > (labels >= 0).sum()  # it grew
