@@ -229,11 +229,23 @@ def grow(labels: np.ndarray, pairs: np.ndarray) -> np.ndarray:
 
 def warm_up() -> str | None:
     """Compile the kernels now (``plantscan warm-up``): a four-face path, the argument
-    types a real run passes (``segment._split_forked_leaves``)."""
+    types a real run passes (``segment._split_forked_leaves``), then both leaf stages on a
+    small mock plant with every learned judge on (the per-face loops of
+    ``plantscan_leaves.geometry`` and this module in the types a plant's mesh gives them:
+    a few seconds of numba once, not in the first plant's run)."""
     if not HAVE_NUMBA:
         return None
     indptr = np.array([0, 1, 3, 5, 6], np.int64)
     indices = np.array([1, 0, 2, 1, 3, 2], np.int64)
     fork_branches(np.arange(4)[::-1], np.arange(4.0), indptr, indices, np.zeros((4, 3)),
                   np.ones(4), 1.0, 1.0)
-    return "leaf kernels compiled (fork branches)"
+    from plantscan_leaves import phantoms
+    from plantscan_leaves.measure import measure_plant
+    from plantscan_leaves.segment import CurvatureRegionsParams, segment_leaves
+
+    mesh = phantoms.mock_plant(n_leaves=2).mesh(voxel_mm=1.0)
+    params = CurvatureRegionsParams(reference_unit_mm=1.0, judge_pieces=True,
+                                    judge_pairs=True, fork_branch_mm=20.0)
+    labelled, _ = segment_leaves(mesh, params)
+    measure_plant(labelled)
+    return "leaf kernels compiled (fork branches, the leaf stages on a mock plant)"

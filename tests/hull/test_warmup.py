@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -25,12 +26,13 @@ import json, sys
 from pathlib import Path
 from numba.core.registry import CPUDispatcher
 from plantscan_hull import kernels
+from plantscan_leaves import geometry as leaf_geometry
 from plantscan_leaves import kernels as leaf_kernels
 from plantscan_sim import render
 
 def signatures():
     out = {}
-    for mod in (kernels, leaf_kernels, render):
+    for mod in (kernels, leaf_kernels, leaf_geometry, render):
         for name in dir(mod):
             d = getattr(mod, name)
             if isinstance(d, CPUDispatcher):
@@ -52,6 +54,16 @@ import numpy as np
 leaf_kernels.fork_branches(np.arange(3)[::-1], np.arange(3.0), np.array([0, 1, 3, 4], np.int32),
                            np.array([1, 0, 2, 1], np.int32), np.zeros((3, 3)), np.ones(3),
                            1.0, 1.0)
+# both leaf stages as the shipped dicot and grass recipes run them, on another mock plant
+import yaml
+from plantscan_leaves import phantoms
+from plantscan_leaves.measure import LeafGeometryParams, measure_plant
+from plantscan_leaves.segment import CurvatureRegionsParams, segment_leaves
+plant = phantoms.mock_plant(n_leaves=3, petiole_mm=10.0).mesh(voxel_mm=0.8)
+for family in ("dicot", "grass"):
+    recipe = yaml.safe_load(open(Path(sys.argv[2]) / f"{family}.yaml"))
+    labelled, _ = segment_leaves(plant, CurvatureRegionsParams(**recipe["segment_mesh"]["params"]))
+    measure_plant(labelled, LeafGeometryParams(**recipe["measure"]["params"]))
 after = signatures()
 print(json.dumps({
     "warm": warm,
@@ -63,8 +75,9 @@ print(json.dumps({
 
 
 def test_warm_up_compiles_what_a_scan_and_the_hull_stages_use(tmp_path):
-    out = subprocess.run([sys.executable, "-c", SCRIPT, str(tmp_path)], capture_output=True,
-                         text=True, timeout=600)
+    recipes = Path(__file__).resolve().parents[2] / "recipes"
+    out = subprocess.run([sys.executable, "-c", SCRIPT, str(tmp_path), str(recipes)],
+                         capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr[-3000:]
     result = json.loads(out.stdout.strip().splitlines()[-1])
     plugins = {name for name, _ in result["warm"]}
@@ -74,5 +87,7 @@ def test_warm_up_compiles_what_a_scan_and_the_hull_stages_use(tmp_path):
     assert "plantscan_hull.kernels._steal" in result["used"]
     assert "plantscan_sim.render._raster_triangles" in result["used"]
     assert "plantscan_leaves.kernels._fork_branches_jit" in result["used"]
+    assert "plantscan_leaves.kernels._grow_jit" in result["used"]
+    assert "plantscan_leaves.geometry._moments_kernel" in result["used"]
     # ... and none of them, nor any other, needed a signature the warm-up had not compiled.
     assert result["new"] == {}
