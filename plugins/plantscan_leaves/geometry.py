@@ -9,6 +9,7 @@ from __future__ import annotations
 import hashlib
 import math
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -61,8 +62,16 @@ def sort_keys(key: np.ndarray, key_bound: int) -> tuple[np.ndarray, np.ndarray]:
     return packed & ((1 << shift) - 1), packed >> shift
 
 
+DENSE_KEYS_PER_ITEM = 4  # unique_inverse by a table when the key range is at most this x n
+
+
 def unique_inverse(key: np.ndarray, key_bound: int) -> tuple[np.ndarray, np.ndarray]:
-    """``np.unique(key, return_inverse=True)`` for int64 keys below ``key_bound``."""
+    """``np.unique(key, return_inverse=True)`` for int64 keys below ``key_bound``.
+
+    Compiled by a table of the keys when it is not much longer than the keys (a cell grid's
+    keys: 0.10 -> 0.01 s at 2.7 M faces), else one sort of the keys (``sort_keys``)."""
+    if HAVE_NUMBA and len(key) and key_bound <= DENSE_KEYS_PER_ITEM * len(key):
+        return _dense_unique_kernel(np.ascontiguousarray(key, np.int64), int(key_bound))
     order, k = sort_keys(key, key_bound)
     first = np.empty(len(k), bool)
     first[:1] = True
@@ -388,6 +397,69 @@ if HAVE_NUMBA:
         return out
 
     @njit(cache=True, nogil=True)
+    def _cell_keys_kernel(p, cell):
+        """``cell_normal_tensors``' grid: ``lo``, ``dims`` and each point's cell key, as its
+        numpy lines compute them (the same numbers), in three passes without temporaries."""
+        lo = np.empty(3)
+        for k in range(3):
+            m = p[0, k]
+            for i in range(1, p.shape[0]):
+                if p[i, k] < m:
+                    m = p[i, k]
+            lo[k] = m - cell
+        ijk = np.empty((p.shape[0], 3), np.int64)
+        dims = np.zeros(3, np.int64)
+        for i in range(p.shape[0]):
+            for k in range(3):
+                ijk[i, k] = np.int64(np.floor((p[i, k] - lo[k]) / cell))
+                dims[k] = max(dims[k], ijk[i, k])
+        dims += 3
+        key = np.empty(p.shape[0], np.int64)
+        for i in range(p.shape[0]):
+            key[i] = (ijk[i, 0] * dims[1] + ijk[i, 1]) * dims[2] + ijk[i, 2]
+        return lo, dims, key
+
+    @njit(cache=True, nogil=True)
+    def _dense_unique_kernel(key, bound):
+        """``unique_inverse`` by marking the keys in a table of ``bound`` (no sort)."""
+        rank = np.zeros(bound, np.int64)
+        for x in key:
+            rank[x] = 1
+        n = 0
+        for b in range(bound):
+            if rank[b]:
+                rank[b] = n
+                n += 1
+            else:
+                rank[b] = -1
+        keys = np.empty(n, np.int64)
+        inverse = np.empty(key.shape[0], np.int64)
+        for i in range(key.shape[0]):
+            inverse[i] = rank[key[i]]
+            keys[inverse[i]] = key[i]
+        return keys, inverse
+
+    @njit(cache=True, nogil=True)
+    def _block_sums_kernel(keys, t, offsets):
+        """``block_sums_reference``: per offset a merge walk over the sorted keys (the
+        needles are sorted too), the rows added in the same order."""
+        nc, k = t.shape
+        acc = np.zeros((nc, k))
+        for off in offsets:
+            j = 0
+            for i in range(nc):
+                q = keys[i] + off
+                while j < nc and keys[j] < q:
+                    j += 1
+                if j < nc and keys[j] == q:
+                    for c in range(k):
+                        acc[i, c] += t[j, c]
+                else:
+                    for c in range(k):
+                        acc[i, c] += 0.0  # the reference adds an empty cell's zeros
+        return acc
+
+    @njit(cache=True, nogil=True)
     def _segment_lengths_kernel(v, a, b):
         """``row_norm(v[a] - v[b])`` without the gathered copies."""
         out = np.empty(a.shape[0])
@@ -419,7 +491,7 @@ def row_norm(x: np.ndarray) -> np.ndarray:
 
 
 def face_centroids(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(F, 3) centroid of each face, mm (compiled: 0.17 -> 0.03 s at 2.7 M faces, the bits
+    """(F, 3) centroid of each face, mm (compiled: 0.16 -> 0.06 s at 2.7 M faces, the bits
     of ``face_centroids_reference``)."""
     if _compiled(vertices, faces):
         return _centroids_kernel(vertices, faces)
@@ -461,7 +533,7 @@ def face_cross_reference(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 def face_normals_areas(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Unit face normals ``(F, 3)`` (outward for CCW faces) and areas ``(F,)`` mm².
-    Compiled: the same bits, 0.55 -> 0.1 s at 2.7 M faces."""
+    Compiled: the same bits, 0.33 -> 0.09 s at 2.7 M faces."""
     if _compiled(vertices, faces):
         cross, norm = _face_cross_kernel(vertices, faces)
     else:
@@ -472,7 +544,7 @@ def face_normals_areas(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndar
 
 def segment_lengths(vertices: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(E,) ``row_norm(vertices[a] - vertices[b])``: compiled without the gathered copies
-    (same bits; 0.45 -> 0.05 s over a 2.7 M-face mesh's edges)."""
+    (same bits; 0.18 -> 0.02 s over a 2.7 M-face mesh's edges)."""
     if _compiled(vertices, a):
         return _segment_lengths_kernel(vertices, a, b)
     return row_norm(vertices[a] - vertices[b])
@@ -485,7 +557,7 @@ def label_moments(lab: np.ndarray, m: int, w: np.ndarray, x: np.ndarray,
     (m, 3, 3), of the rows themselves or, with ``floor``, of their offsets from the
     label's mean ``s1 / max(s0, floor)``.  Compiled: one pass (two centred) summing the
     same products in the same order as ``label_moments_reference``'s ten ``np.bincount``,
-    so the same bits (a 2.7 M-face plant's regions: 0.45 -> 0.05 s)."""
+    so the same bits (a 2.7 M-face plant's regions: 0.15-0.22 -> 0.02-0.03 s)."""
     if HAVE_NUMBA and len(lab) and x.dtype == np.float64 and w.dtype == np.float64:
         return _moments_kernel(np.ascontiguousarray(lab), m, w, x,
                                0.0 if floor is None else float(floor), floor is not None)
@@ -523,8 +595,8 @@ def pair_graph(n: int, pairs: np.ndarray) -> tuple[sparse.csr_matrix, np.ndarray
     """The symmetric (n, n) graph of ``pairs`` (P, 2), both directions stored, in scipy's
     canonical form (each row's columns ascending), and the pair of every stored entry: its
     ``data`` is ``weights[pair_of]``.  ``pairs`` must not repeat a link.  Compiled: the
-    arrays ``pair_graph_reference`` builds, without its sorts (0.08 s per leaf of a 512³
-    dicot, 30 k points and 650 k pairs)."""
+    arrays ``pair_graph_reference`` builds, without its sorts (a leaf of a 512³ dicot, 30 k
+    points and 650 k pairs: about 0.08 -> 0.03 s)."""
     pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
     if not HAVE_NUMBA:
         return pair_graph_reference(n, pairs)
@@ -556,7 +628,8 @@ def averaging_operator(n: int, links: np.ndarray) -> sparse.csr_matrix:
     counts twice) plus the identity: the mean over each node and its neighbours.
 
     Compiled (``_averaging_kernel``: the rows filled by counting, each row's few columns
-    sorted in place; 0.35-0.6 -> 0.05 s at 1.7 M faces) when numba is there, else
+    sorted in place; faces of a 2.7 M-face mesh 0.47 -> 0.37 s, memory-bound) when numba
+    is there, else
     ``averaging_operator_reference``: the same arrays, each row's columns in the order
     scipy's product leaves them (descending), so a smoothing sums every row in the same
     order and gives the same values to the bit.
@@ -711,43 +784,60 @@ def cell_normal_tensors(points: np.ndarray, normals: np.ndarray, weights: np.nda
     cell_of : (N,) int64, index into ``keys`` of each point's cell
     grid : (6,) float, ``lo`` (mm) and ``dims`` of the key layout
     """
-    lo = points.min(axis=0) - cell
-    ijk = np.floor((points - lo) / cell).astype(np.int64)
-    dims = ijk.max(axis=0) + 3
-    key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
+    if HAVE_NUMBA and len(points) and points.dtype == np.float64:
+        lo, dims, key = _cell_keys_kernel(points, float(cell))
+    else:
+        lo = points.min(axis=0) - cell
+        ijk = np.floor((points - lo) / cell).astype(np.int64)
+        dims = ijk.max(axis=0) + 3
+        key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
     keys, inv = unique_inverse(key, int(np.prod(dims)))
     nc = len(keys)
     comps = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
-    t = np.stack([np.bincount(inv, weights * normals[:, a] * normals[:, b], nc)
-                  for a, b in comps], axis=1)
+    s2 = label_moments(inv, nc, weights, normals)[2]
+    t = np.stack([s2[:, a, b] for a, b in comps], axis=1)
     # every occupied cell has a free cell on each side (lo and dims carry a margin), so a
-    # neighbour's key is the cell's key plus a constant: sorted needles, a fast search
-    t_ext = np.vstack([t, np.zeros((1, 6))])  # row nc: the sum of an unoccupied cell
-    acc = np.zeros_like(t)
-    for d in np.array(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1])).reshape(3, -1).T:
-        qk = keys + int((d[0] * dims[1] + d[1]) * dims[2] + d[2])
-        pos = np.minimum(np.searchsorted(keys, qk), nc - 1)
-        acc += t_ext[np.where(keys[pos] == qk, pos, nc)]
+    # neighbour's key is the cell's key plus a constant
+    offsets = np.array([int((d[0] * dims[1] + d[1]) * dims[2] + d[2]) for d in
+                        np.array(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1])).reshape(3, -1).T])
+    acc = (_block_sums_kernel(keys, np.ascontiguousarray(t), offsets) if HAVE_NUMBA
+           else block_sums_reference(keys, t, offsets))
     m = np.zeros((nc, 3, 3))
     for c, (a, b) in enumerate(comps):
         m[:, a, b] = m[:, b, a] = acc[:, c]
     return keys, m, inv, np.concatenate([lo, dims.astype(float)])
 
 
-def face_curvature(mesh, topo: MeshTopology, smoothing_mm: float) -> np.ndarray:
+def block_sums_reference(keys: np.ndarray, t: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """(C, k) the sum of the rows of ``t`` (C, k) whose ``keys`` (sorted) are each key plus
+    one of ``offsets``, added in ``offsets``' order (numpy: the plain reference of
+    ``_block_sums_kernel``)."""
+    nc = len(keys)
+    t_ext = np.vstack([t, np.zeros((1, t.shape[1]))])  # row nc: an unoccupied cell's sum
+    acc = np.zeros_like(t)
+    for off in offsets:
+        qk = keys + off
+        pos = np.minimum(np.searchsorted(keys, qk), nc - 1)  # sorted needles: a fast search
+        acc += t_ext[np.where(keys[pos] == qk, pos, nc)]
+    return acc
+
+
+def face_curvature(mesh, topo: MeshTopology, smoothing_mm: float,
+                   face_op: Callable[[], sparse.csr_matrix] | None = None) -> np.ndarray:
     """(F,) smallest normal curvature across each face's edges, 1/mm (< 0 concave).
 
     Curvature across the edge shared by faces i, j is
     ``(n_j - n_i) . (c_j - c_i) / |c_j - c_i|^2`` with normals ``n`` and
     centroids ``c`` of the surface smoothed at ``smoothing_mm``; outward
-    normals make convex edges positive.
+    normals make convex edges positive.  ``face_op``, when given, returns the faces'
+    ``face_adjacency_operator`` (built by another thread meanwhile: the segmenter's).
     """
     v, f = mesh.vertices, mesh.faces
     edge_mm = float(np.mean(segment_lengths(v, topo.edges[:, 0], topo.edges[:, 1])))
     vop = vertex_adjacency_operator(len(v), topo.edges)
     vs = taubin(v, vop, diffusion_steps(smoothing_mm / 2, edge_mm, 30))
     n, _ = face_normals_areas(vs, f)
-    fop = face_adjacency_operator(len(f), topo.face_pairs)
+    fop = face_op() if face_op is not None else face_adjacency_operator(len(f), topo.face_pairs)
     n = smooth(fop, n, diffusion_steps(smoothing_mm, edge_mm * 0.6))
     n /= np.maximum(row_norm(n), 1e-12)[:, None]
     c = face_centroids(vs, f)
@@ -763,7 +853,7 @@ def edge_curvature_reference(n: np.ndarray, c: np.ndarray, pairs: np.ndarray, nf
                              ) -> np.ndarray:
     """(nf,) the smallest ``(n_j - n_i) . (c_j - c_i) / |c_j - c_i|^2`` over each face's
     ``pairs`` (inf where it has none): ``face_curvature``'s last step in numpy (the plain
-    reference of ``_edge_curvature_kernel``: 0.85 -> 0.05 s at 2.7 M faces)."""
+    reference of ``_edge_curvature_kernel``: 0.46 -> 0.07 s at 2.7 M faces)."""
     i, j = pairs[:, 0], pairs[:, 1]
     dc = c[j] - c[i]
     k = np.einsum("ij,ij->i", n[j] - n[i], dc) / np.maximum(np.einsum("ij,ij->i", dc, dc), 1e-12)

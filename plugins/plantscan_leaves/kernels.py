@@ -220,7 +220,8 @@ if HAVE_NUMBA:
 
 def grow(labels: np.ndarray, pairs: np.ndarray) -> np.ndarray:
     """``grow_reference``, compiled when numba is there (the same labels; a 2.7 M-face
-    dicot's seed regions: 0.7 -> 0.1 s)."""
+    dicot from one face in a thousand: 2.0 -> 0.66 s; the segmenter's seed-region pass on
+    it 0.87 -> 0.44 s)."""
     if not HAVE_NUMBA or not len(pairs):
         return grow_reference(labels, pairs)
     return _grow_jit(np.ascontiguousarray(labels, np.int64),

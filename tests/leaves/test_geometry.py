@@ -8,9 +8,11 @@ from plantscan_leaves import phantoms as ph
 from plantscan_leaves.geometry import sort_keys, topology, triangle_union_mask, unique_inverse
 
 
-@pytest.mark.parametrize("n, bound", [(0, 4), (1, 4), (20_000, 50), (20_000, 2**61)])
+@pytest.mark.parametrize("n, bound", [(0, 4), (1, 4), (20_000, 50), (20_000, 80_000),
+                                      (20_000, 2**61)])
 def test_packed_sort_matches_numpy(n, bound):
-    # the packed sort is used below 2**62 / n, argsort above: both must agree with numpy
+    # the packed sort is used below 2**62 / n, argsort above, a table of the keys (compiled)
+    # when the range is at most DENSE_KEYS_PER_ITEM x n: all must agree with numpy
     key = np.random.default_rng(n).integers(0, bound, n, dtype=np.int64)
     order, ks = sort_keys(key, bound)
     assert np.array_equal(ks, np.sort(key)) and np.array_equal(key[order], ks)
@@ -301,3 +303,34 @@ def test_compiled_pair_graph_matches_the_reference(seed):
     assert np.array_equal(got.indptr, want.indptr) and np.array_equal(got.indices, want.indices)
     assert np.array_equal(got_of, want_of)
     assert got.has_sorted_indices and got.nnz == 2 * len(pairs)
+
+
+@pytest.mark.parametrize("cell", [0.7, 1.3, 4.0])
+def test_compiled_cell_normal_tensors_match_the_reference(cell):
+    # the cell keys, the per-cell tensors and their 3x3x3 block sums added in the same order
+    # as the numpy lines they replace: the same bits
+    from plantscan_leaves import geometry as geo
+
+    if not geo.HAVE_NUMBA:
+        pytest.skip("numba not installed: the tensors are the reference")
+    v, f = _bumpy_slab()
+    n, w = geo.face_normals_areas(v, f)
+    c = geo.face_centroids(v, f)
+    keys, m, inv, grid = geo.cell_normal_tensors(c, n, w, cell)
+    lo = c.min(axis=0) - cell
+    ijk = np.floor((c - lo) / cell).astype(np.int64)
+    dims = ijk.max(axis=0) + 3
+    key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
+    want_keys, want_inv = np.unique(key, return_inverse=True)
+    assert np.array_equal(keys, want_keys) and np.array_equal(inv, want_inv)
+    assert np.array_equal(grid, np.concatenate([lo, dims.astype(float)]))
+    comps = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
+    t = np.stack([np.bincount(inv, w * n[:, a] * n[:, b], len(keys)) for a, b in comps], 1)
+    offsets = np.array([int((d[0] * dims[1] + d[1]) * dims[2] + d[2]) for d in
+                        np.array(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1])).reshape(3, -1).T])
+    acc = geo.block_sums_reference(keys, t, offsets)
+    assert np.array_equal(np.stack([m[:, a, b] for a, b in comps], 1), acc)
+    # what a block sums: unit normals, so each block's trace is the area of its 27 cells' faces
+    i = np.asarray(ijk[0])
+    near = np.all(np.abs(ijk - i) <= 1, axis=1)
+    assert np.isclose(np.trace(m[inv[0]]), w[near].sum())
