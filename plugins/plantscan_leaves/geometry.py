@@ -460,6 +460,68 @@ if HAVE_NUMBA:
         return acc
 
     @njit(cache=True, nogil=True)
+    def _dijkstra_kernel(indptr, indices, weights, source, limit):
+        """``shortest_paths``: scipy's single-source Dijkstra (a node's value set when first
+        reached, lowered only by a strictly shorter path, within ``limit``; its distance
+        when scanned), on a binary heap with lazy deletion instead of a Fibonacci heap."""
+        n = indptr.shape[0] - 1
+        dist = np.full(n, np.inf)
+        val = np.full(n, np.inf)
+        pred = np.full(n, -9999, np.int64)
+        state = np.zeros(n, np.int8)  # 0 not in heap, 1 in heap, 2 scanned
+        cap = indices.shape[0] + 1
+        hv = np.empty(cap)
+        hn = np.empty(cap, np.int64)
+        size = 0
+        hv[0], hn[0], size = 0.0, source, 1
+        val[source], state[source] = 0.0, 1
+        while size:
+            v, node = hv[0], hn[0]
+            size -= 1
+            hv[0], hn[0] = hv[size], hn[size]
+            i = 0
+            while True:  # sift down
+                c = 2 * i + 1
+                if c >= size:
+                    break
+                if c + 1 < size and hv[c + 1] < hv[c]:
+                    c += 1
+                if hv[c] < hv[i]:
+                    hv[i], hv[c] = hv[c], hv[i]
+                    hn[i], hn[c] = hn[c], hn[i]
+                    i = c
+                else:
+                    break
+            if state[node] == 2 or v != val[node]:
+                continue  # stale: scanned already, or lowered since
+            state[node] = 2
+            dist[node] = v
+            for k in range(indptr[node], indptr[node + 1]):
+                u = indices[k]
+                if state[u] == 2:
+                    continue
+                nv = v + weights[k]
+                if not nv <= limit:
+                    continue
+                if state[u] == 0 or val[u] > nv:
+                    state[u], val[u], pred[u] = 1, nv, node
+                    i = size  # push, sift up
+                    hv[i], hn[i] = nv, u
+                    size += 1
+                    while i > 0:
+                        q = (i - 1) // 2
+                        if hv[i] < hv[q]:
+                            hv[i], hv[q] = hv[q], hv[i]
+                            hn[i], hn[q] = hn[q], hn[i]
+                            i = q
+                        else:
+                            break
+        for i in range(n):  # scipy names no predecessor where no finite path arrives
+            if not dist[i] < np.inf:
+                pred[i] = -9999
+        return dist, pred
+
+    @njit(cache=True, nogil=True)
     def _segment_lengths_kernel(v, a, b):
         """``row_norm(v[a] - v[b])`` without the gathered copies."""
         out = np.empty(a.shape[0])
@@ -589,6 +651,28 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 def face_adjacency_operator(nf: int, pairs: np.ndarray) -> sparse.csr_matrix:
     """Row-stochastic averaging operator over each face and its edge neighbours."""
     return averaging_operator(nf, pairs)
+
+
+def shortest_paths(g: sparse.csr_matrix, source: int, limit: float = np.inf
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """``scipy.sparse.csgraph.dijkstra(g, directed=True, indices=source,
+    return_predecessors=True, limit=limit)``: distances from ``source`` (inf beyond
+    ``limit`` or unreached) and predecessors (-9999 for none).  Compiled without the GIL
+    (scipy's holds it, so the measurer's two leaf threads took turns); the same numbers
+    but for the predecessor on an exact tie of two paths' lengths, which a Fibonacci heap
+    and a binary heap may break differently (``shortest_paths_reference``: scipy's)."""
+    if not HAVE_NUMBA:
+        return shortest_paths_reference(g, source, limit)
+    return _dijkstra_kernel(g.indptr, g.indices, g.data.astype(np.float64, copy=False),
+                            int(source), float(limit))
+
+
+def shortest_paths_reference(g: sparse.csr_matrix, source: int, limit: float = np.inf
+                             ) -> tuple[np.ndarray, np.ndarray]:
+    """``shortest_paths`` by scipy (the plain reference)."""
+    from scipy.sparse.csgraph import dijkstra
+
+    return dijkstra(g, directed=True, indices=source, return_predecessors=True, limit=limit)
 
 
 def pair_graph(n: int, pairs: np.ndarray) -> tuple[sparse.csr_matrix, np.ndarray]:

@@ -53,7 +53,6 @@ from scipy.sparse.csgraph import (
     breadth_first_order,
     connected_components,
     depth_first_order,
-    dijkstra,
     minimum_spanning_tree,
 )
 
@@ -312,8 +311,7 @@ def _two_side_length(graphs: list[sparse.csr_matrix], vertices: np.ndarray, a: i
     """Mean over the slab's sides of the smoothed shortest-path length from ``a`` to ``b``."""
     lengths = []
     for g in graphs:
-        dist, pred = dijkstra(g, directed=True, indices=a, return_predecessors=True,
-                              limit=limit)
+        dist, pred = geo.shortest_paths(g, a, limit)
         if not np.isfinite(dist[b]):
             continue
         pts = vertices[_path(pred, b)]
@@ -525,14 +523,14 @@ def _base_and_tip(sides: _Sides, base_hint: np.ndarray | None
     stem is not used directly: a drooping blade's tip may hang close to another stem.)
     """
     crest, g = sides.crest, sides.g_all
-    d0 = dijkstra(g, directed=True, indices=int(crest[0]))
+    d0 = geo.shortest_paths(g, int(crest[0]))[0]
     end1 = int(crest[np.argmax(np.where(np.isfinite(d0[crest]), d0[crest], -1))])
-    d1, pred1 = dijkstra(g, directed=True, indices=end1, return_predecessors=True)
+    d1, pred1 = geo.shortest_paths(g, end1)
     end2 = int(crest[np.argmax(np.where(np.isfinite(d1[crest]), d1[crest], -1))])
     if base_hint is not None:
         hint = np.asarray(base_hint, float)
         if np.linalg.norm(sides.q[end2] - hint) < np.linalg.norm(sides.q[end1] - hint):
-            d2, pred2 = dijkstra(g, directed=True, indices=end2, return_predecessors=True)
+            d2, pred2 = geo.shortest_paths(g, end2)
             return end2, end1, d2, pred2
     return end1, end2, d1, pred1
 
@@ -826,7 +824,7 @@ def _tip_extension(q: np.ndarray, g: sparse.csr_matrix, base: int, tip: int,
     g_old = sparse.csr_matrix((g.data, g.indices,
                                np.concatenate([g.indptr, np.full(m - n, g.indptr[-1])])),
                               shape=(m, m))
-    dist, pred = dijkstra(g_old + g_new, directed=True, indices=base, return_predecessors=True)
+    dist, pred = geo.shortest_paths((g_old + g_new).tocsr(), base)
     reach = np.isfinite(dist)
     far = int(np.argmax(np.where(reach, dist, -1.0)))
     if far < n:

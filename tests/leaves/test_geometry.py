@@ -334,3 +334,28 @@ def test_compiled_cell_normal_tensors_match_the_reference(cell):
     i = np.asarray(ijk[0])
     near = np.all(np.abs(ijk - i) <= 1, axis=1)
     assert np.isclose(np.trace(m[inv[0]]), w[near].sum())
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_compiled_shortest_paths_match_scipy(seed):
+    # distances and predecessors as scipy's dijkstra gives them, with impassable (inf) edges
+    # and a distance limit, as the measurer's side graphs have them
+    from plantscan_leaves import geometry as geo
+    from scipy.spatial import cKDTree
+
+    if not geo.HAVE_NUMBA:
+        pytest.skip("numba not installed: scipy's dijkstra is used")
+    rng = np.random.default_rng(seed)
+    q = rng.uniform(0.0, 10.0, (800, 3))
+    pairs = cKDTree(q).query_pairs(1.6, output_type="ndarray")  # ~13 neighbours a point
+    g, pair_of = geo.pair_graph(len(q), pairs)
+    w = geo.segment_lengths(q, pairs[:, 0], pairs[:, 1])
+    w[rng.random(len(w)) < 0.2] = np.inf  # the other side's edges
+    g.data = w[pair_of]
+    for limit in (np.inf, 6.0):
+        dist, pred = geo.shortest_paths(g, 0, limit)
+        want_dist, want_pred = geo.shortest_paths_reference(g, 0, limit)
+        assert np.array_equal(dist, want_dist) and np.array_equal(pred, want_pred)
+        assert np.isfinite(dist).sum() > 10
+        if np.isfinite(limit):
+            assert (~np.isfinite(dist)).any()  # the limit leaves some out
