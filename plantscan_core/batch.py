@@ -385,9 +385,14 @@ def run_batch(
     else:
         # One plant per single-threaded worker process: numba's parallel loops (hull) would
         # otherwise start one thread per core in every worker and oversubscribe the cores
-        # (Dask already pins OMP/MKL/OpenBLAS to 1 thread in its workers).
+        # (Dask already pins OMP/MKL/OpenBLAS to 1 thread in its workers).  With several
+        # workers no core is idle for the leaf stages' ray-casting helper (plantscan_leaves
+        # .rays): its start would be CPU taken from the other plants.
+        env = {"NUMBA_NUM_THREADS": "1"}
+        if workers > 1:
+            env["PLANTSCAN_RAY_HELPER"] = "0"
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                               dashboard_address=None, env={"NUMBA_NUM_THREADS": "1"})
+                               dashboard_address=None, env=env)
         client = Client(cluster)
         where = f"local cluster ({workers} worker{'s' if workers > 1 else ''})"
     outcomes: dict[int, PlantOutcome] = {}

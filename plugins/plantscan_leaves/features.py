@@ -186,15 +186,13 @@ def _block_features(moments: np.ndarray, centroid: np.ndarray, lo: np.ndarray,
 def inward_thickness(mesh: Mesh, faces: np.ndarray) -> np.ndarray:
     """(N,) how far a ray from each of ``faces`` (face indices) along its inward normal runs
     inside the closed surface, mm; NaN where it leaves through nothing."""
-    import open3d as o3d
-
     v, f = mesh.vertices, mesh.faces
     scene = geo.raycasting_scene(v, f)
     fn, _ = geo.face_normals_areas(v, f[faces])
     centre = geo.face_centroids(v, f[faces])
     eps = 1e-3 * float(np.median(geo.row_norm(v[f[faces, 0]] - v[f[faces, 1]])))  # off the face
     rays = np.hstack([centre - eps * fn, -fn]).astype(np.float32)
-    t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(float) + eps
+    t = scene.t_hit(rays).astype(float) + eps
     t[~np.isfinite(t)] = np.nan
     return t
 

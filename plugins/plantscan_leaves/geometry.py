@@ -999,8 +999,20 @@ class _MeshCache:
             return self.values[key]
         value = self.values[key] = make()
         while len(self.values) > self.size:
-            self.values.popitem(last=False)
+            _close(self.values.popitem(last=False)[1])
         return value
+
+    def clear(self) -> None:
+        for value in self.values.values():
+            _close(value)
+        self.values.clear()
+
+
+def _close(value) -> None:
+    """A cached value that holds a resource (a ray scene's helper process) lets it go."""
+    close = getattr(value, "close", None)
+    if close is not None:
+        close()
 
 
 _UNITS = _MeshCache(8)
@@ -1012,9 +1024,9 @@ _NO_VERTICES = np.zeros((1, 3))  # the key of a topology: its faces alone
 def forget_meshes() -> None:
     """Empty the per-mesh caches (``mesh_unit``, ``raycasting_scene``): a benchmark times
     every round from scratch."""
-    _UNITS.values.clear()
-    _SCENES.values.clear()
-    _TOPOLOGIES.values.clear()
+    _UNITS.clear()
+    _SCENES.clear()
+    _TOPOLOGIES.clear()
 
 
 def mesh_topology(faces: np.ndarray) -> MeshTopology:
@@ -1049,20 +1061,16 @@ def _median_side(v: np.ndarray, faces: np.ndarray) -> float:
 
 
 def raycasting_scene(vertices: np.ndarray, faces: np.ndarray):
-    """An Open3D ``RaycastingScene`` of the mesh (float32 vertices, its BVH built on the first
-    cast), shared with the last caller of the same mesh (``mesh_key``): the piece judge and
-    the measurer's thickness both cast inward rays at the whole plant, and building the
-    scene is most of their cost (1 s at 1.7 M faces; its hits do not depend on who built
-    it).  Open3D holds the GIL while casting, so one scene serves threads one at a time."""
-    def make():
-        import open3d as o3d
+    """The ray-casting scene of a mesh (``rays.make_scene``: ``t_hit(rays)``, float32),
+    shared with the last caller of the same mesh (``mesh_key``): the piece judge and the
+    measurer's thickness both cast inward rays at the whole plant, and building the
+    scene is most of their cost (1.7 s at 2.7 M faces; its hits do not depend on who
+    built it).  Asking early starts the build: a large mesh's in a helper process
+    (``rays.HelperScene``), on the core the caller leaves idle.  One scene serves
+    threads one at a time."""
+    from plantscan_leaves import rays
 
-        scene = o3d.t.geometry.RaycastingScene()
-        scene.add_triangles(o3d.core.Tensor(np.asarray(vertices, np.float32)),
-                            o3d.core.Tensor(np.asarray(faces, np.uint32)))
-        return scene
-
-    return _SCENES.get(vertices, faces, make)
+    return _SCENES.get(vertices, faces, lambda: rays.make_scene(vertices, faces))
 
 
 def triangle_union_mask(triangles: np.ndarray, shape: tuple[int, int]) -> np.ndarray:

@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -722,8 +723,6 @@ def thick_shares(mesh: Mesh, face_labels: np.ndarray, leaf_labels: list[int],
     through nothing (a numerically open spot) are not counted.  ``unit_mm``: the
     mesh's ``geometry.mesh_unit`` when the caller has it (a median over every edge).
     """
-    import open3d as o3d
-
     v, f = mesh.vertices, mesh.faces
     out: dict[int, tuple[float, float]] = {}
     if not len(f) or not leaf_labels:
@@ -741,7 +740,7 @@ def thick_shares(mesh: Mesh, face_labels: np.ndarray, leaf_labels: list[int],
         fn, fa = geo.face_normals_areas(v, f[pick])
         centre = geo.face_centroids(v, f[pick])
         rays = np.hstack([centre - eps * fn, -fn]).astype(np.float32)
-        t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+        t = scene.t_hit(rays)
         hit = np.isfinite(t)
         if hit.any() and fa[hit].sum() > 0:
             median = float(np.median(t[hit]))
@@ -1135,21 +1134,33 @@ def plant_geometry(mesh: Mesh, pixel_mm: float | None = None) -> dict[str, float
     return out
 
 
-def _submeshes(labelled: LabelledMesh, labels: list[int]):
-    """``labelled.submesh(label)`` for each of ``labels`` (one sort of the labels for all)."""
-    lab = labelled.face_labels
-    faces, vertices = labelled.mesh.faces, labelled.mesh.vertices
-    order = np.argsort(lab, kind="stable")  # keeps each label's faces in mesh order
-    sorted_lab = lab[order]
-    lut = np.full(len(vertices), -1, np.int64)
-    for label in labels:
-        f = faces[order[np.searchsorted(sorted_lab, label):
-                        np.searchsorted(sorted_lab, label, side="right")]]
+class _LeafMeshes:
+    """``labelled.submesh(label)`` of any label, cut when asked (one sort of the labels for
+    all; each cut writes only its own arrays, so threads may cut at once)."""
+
+    def __init__(self, labelled: LabelledMesh) -> None:
+        lab = labelled.face_labels
+        self.mesh = labelled.mesh
+        self.order = np.argsort(lab, kind="stable")  # keeps each label's faces in mesh order
+        self.sorted = lab[self.order]
+
+    def _range(self, label: int) -> slice:
+        return slice(np.searchsorted(self.sorted, label),
+                     np.searchsorted(self.sorted, label, side="right"))
+
+    def face_count(self, label: int) -> int:
+        r = self._range(label)
+        return r.stop - r.start
+
+    def submesh(self, label: int) -> Mesh:
+        vertices = self.mesh.vertices
+        f = self.mesh.faces[self.order[self._range(label)]]
         used = np.zeros(len(vertices), bool)
         used[f.ravel()] = True
         idx = np.flatnonzero(used)
+        lut = np.empty(len(vertices), np.int64)  # read only where written
         lut[idx] = np.arange(len(idx))
-        yield Mesh(vertices[idx], lut[f])
+        return Mesh(vertices[idx], lut[f])
 
 
 def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = None,
@@ -1177,19 +1188,23 @@ def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = No
         _judge(traits, [], labelled, p, plant_views, report)
         return traits, [], report
     leaf_labels = labelled.leaf_labels
+    if leaf_labels:  # the thick shares' scene builds while the leaves are measured
+        geo.raycasting_scene(mesh.vertices, mesh.faces)
     if not leaf_labels:
         msg = "no leaf in the labelled mesh: traits table left empty"
         log.warning(msg)
         report.warn("no-leaf", msg)
-    base_hint = _base_hints(labelled)
     unit = geo.mesh_unit(mesh.vertices, mesh.faces)  # one unit for every leaf of the plant
+    hints = _Once(lambda: _base_hints(labelled))
+    leaf_meshes = _LeafMeshes(labelled)
 
-    def one(leaf_id: int, sub: Mesh) -> tuple[LeafMeasurement | None, StageWarning | None]:
+    def one(leaf_id: int) -> tuple[LeafMeasurement | None, StageWarning | None]:
+        sub = leaf_meshes.submesh(leaf_id)
         if len(sub.faces) < p.min_leaf_faces:  # also a leaf label no face carries
             return None, StageWarning("leaf-too-small", f"leaf {leaf_id}: {len(sub.faces)} "
                                       f"faces (fewer than {p.min_leaf_faces}), skipped", leaf_id)
         try:
-            m = measure_leaf(sub, leaf_id, p, base_hint(leaf_id, sub), unit)
+            m = measure_leaf(sub, leaf_id, p, hints.get()(leaf_id, sub), unit)
         except Exception as exc:  # one odd leaf must not lose the others
             msg = f"leaf {leaf_id}: not measured ({type(exc).__name__}: {exc})"
             log.warning(msg)
@@ -1200,26 +1215,43 @@ def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = No
         return m, None
 
     def task(item):
-        return plant_geometry(mesh, PROJECTION_PIXEL_UNITS * unit) if item is None else one(*item)
+        if item == "geometry":
+            return plant_geometry(mesh, PROJECTION_PIXEL_UNITS * unit)
+        if item == "areas":
+            return {kind: _kind_area(labelled, kind) for kind in ("debris", "stem")}
+        return one(item)
 
     # Leaves are measured independently, on both cores: their numpy/scipy work releases
     # the GIL for most of the time (1.2 M-face dicot hull, 12 leaves: 5.6 -> 3.5 s wall,
     # same CPU, same traits).  The plant's own geometry (hull, top-view shadow: 1 s at
-    # 1.7 M faces) goes first, then the leaves largest first, so that no big leaf is left
-    # alone on one core at the end.  Results come back in the leaves' order.
-    items = list(zip(leaf_labels, _submeshes(labelled, leaf_labels)))
-    order = sorted(range(len(items)), key=lambda i: -len(items[i][1].faces))
-    done_sorted = thread_map(task, [None, *(items[i] for i in order)])
-    geometry, done = done_sorted[0], [None] * len(items)
-    for i, result in zip(order, done_sorted[1:]):
+    # 1.7 M faces) goes first, the stem's and debris' areas beside it (the first leaf
+    # finds the base hints, shared), then the leaves largest first, so that no big leaf
+    # is left alone on one core at the end.  Results come back in the leaves' order.
+    order = sorted(range(len(leaf_labels)), key=lambda i: -leaf_meshes.face_count(leaf_labels[i]))
+    done_sorted = thread_map(task, ["geometry", "areas", *(leaf_labels[i] for i in order)])
+    geometry, kind_areas, done = done_sorted[0], done_sorted[1], [None] * len(leaf_labels)
+    for i, result in zip(order, done_sorted[2:]):
         done[i] = result
     measurements = [m for m, _ in done if m is not None]
     report.warnings += [w for _, w in done if w is not None]
     _thick_and_outline_checks(labelled, measurements, report, unit)
     leaves = [m.traits for m in measurements]
     traits = Traits(leaves, plant_traits(mesh, leaves, geometry=geometry))
-    _judge(traits, measurements, labelled, p, plant_views, report, unit)
+    _judge(traits, measurements, labelled, p, plant_views, report, unit, kind_areas)
     return traits, measurements, report
+
+
+class _Once:
+    """``make()``'s value, made by the first thread that asks (the others wait for it)."""
+
+    def __init__(self, make) -> None:
+        self._make, self._lock, self._value = make, threading.Lock(), None
+
+    def get(self):
+        with self._lock:
+            if self._make is not None:
+                self._value, self._make = self._make(), None
+            return self._value
 
 
 def _base_hints(labelled: LabelledMesh):
@@ -1314,7 +1346,7 @@ def stem_share(labelled: LabelledMesh, other_area_mm2: float,
 
 def _judge(traits: Traits, measurements: list[LeafMeasurement], labelled: LabelledMesh,
            p: LeafGeometryParams, plant_views: int | None, report: StageReport,
-           unit_mm: float | None = None) -> None:
+           unit_mm: float | None = None, kind_areas: dict[str, float] | None = None) -> None:
     """Each leaf's confidence and the plant's quality flag, into ``traits`` and ``report``."""
     from plantscan_leaves.trust import leaf_trust, model_trust, plant_quality, reason_text
 
@@ -1335,10 +1367,11 @@ def _judge(traits: Traits, measurements: list[LeafMeasurement], labelled: Labell
         if t.low:
             report.warn("low-confidence", f"leaf {leaf.leaf_id}: confidence {t.confidence:.2f}: "
                         + "; ".join(reason_text(r, t) for r in t.reasons), leaf=leaf.leaf_id)
-    debris_area = _kind_area(labelled, "debris")
+    kind_areas = kind_areas or {k: _kind_area(labelled, k) for k in ("debris", "stem")}
+    debris_area = kind_areas["debris"]
     leaf_area = float(traits.plant.get("total_leaf_area_mm2", 0.0))
     share = debris_area / leaf_area if leaf_area > 0 else (1.0 if debris_area > 0 else 0.0)
-    stem_area = _kind_area(labelled, "stem")
+    stem_area = kind_areas["stem"]
     stem = stem_share(labelled, leaf_area + debris_area, stem_area)
     flag, reasons = plant_quality(trusts, share, plant_views, p.min_plant_views,
                                   stem, p.max_stem_share)

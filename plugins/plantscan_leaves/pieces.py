@@ -122,7 +122,6 @@ def _strided(idx: np.ndarray, k: int) -> np.ndarray:
 
 def piece_features(s: PieceSurface, labels: np.ndarray, n: int) -> Pieces:
     """The features of leaves 1..n of ``labels`` (F,) (0 stem), their partners and areas."""
-    from scipy.spatial import cKDTree
 
     from plantscan_leaves.features import inward_thickness
 
@@ -175,17 +174,11 @@ def piece_features(s: PieceSurface, labels: np.ndarray, n: int) -> Pieces:
     bounds = np.searchsorted(lab[order], np.arange(m + 1))
     faces_of = [order[bounds[i]:bounds[i + 1]] for i in range(1, m)]
     picked = [_strided(f, GAP_FACES) for f in faces_of]
-    for i in range(n):
-        if to_leaf[i] > 0:
-            nearest[i] = partner[i]
-            continue
-        others = np.concatenate([picked[j] for j in range(n) if j != i] or [np.zeros(0, int)])
-        if not len(others) or not len(picked[i]):
-            gap[i] = np.inf
-            continue
-        dist, k = cKDTree(s.centroids[others]).query(s.centroids[picked[i]])
-        gap[i] = float(dist.min())
-        nearest[i] = lab[others[k[int(np.argmin(dist))]]]
+    touching = to_leaf > 0
+    nearest[touching] = partner[touching]
+    lone = [i for i in range(n) if not touching[i]]
+    if lone:
+        gap[lone], nearest[lone] = _nearest_pieces([s.centroids[p] for p in picked], lone)
     reach = (to_leaf > 0) | (gap <= JOIN_REACH_UNITS * u)
     partner = np.where(reach, nearest, 0)
 
@@ -238,6 +231,50 @@ def piece_features(s: PieceSurface, labels: np.ndarray, n: int) -> Pieces:
         concave,
     ], axis=1)
     return Pieces(out.astype(np.float32), partner, area)
+
+
+def _nearest_pieces(points: list[np.ndarray], which: list[int]
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """For each piece in ``which`` (indices into ``points``, each piece's (k, 3) points):
+    the least distance from its points to another piece's, and that piece's label
+    (index + 1; inf and 0 with no other piece).
+
+    Each piece's points are looked up in the other pieces' own trees, nearest box first;
+    a piece whose box lies farther than the best distance so far cannot hold a nearer
+    point and is skipped.  The same distances as one tree of all the others' points (a
+    pair's distance does not depend on the tree), and the same closest pair: the first
+    of the piece's points at the least distance.
+    """
+    from scipy.spatial import cKDTree
+
+    lo = np.array([p.min(axis=0) if len(p) else np.full(3, np.inf) for p in points])
+    hi = np.array([p.max(axis=0) if len(p) else np.full(3, -np.inf) for p in points])
+    trees: dict[int, cKDTree] = {}
+    gap = np.full(len(which), np.inf)
+    label = np.zeros(len(which), np.int64)
+    for w, i in enumerate(which):
+        own = points[i]
+        if not len(own):
+            continue
+        # box-to-box distance: a lower bound of any pair's
+        sep = np.maximum(np.maximum(lo - hi[i], lo[i] - hi), 0.0)
+        box = np.sqrt((sep * sep).sum(axis=1))
+        best = np.full(len(own), np.inf)
+        best_label = np.zeros(len(own), np.int64)
+        for j in np.argsort(box, kind="stable"):
+            if j == i or not len(points[j]):
+                continue
+            if box[j] > best.min():
+                break
+            if j not in trees:
+                trees[j] = cKDTree(points[j])
+            d, _ = trees[j].query(own)
+            nearer = d < best
+            best[nearer] = d[nearer]
+            best_label[nearer] = j + 1
+        k = int(np.argmin(best))
+        gap[w], label[w] = best[k], best_label[k]
+    return gap, label
 
 
 @dataclass

@@ -685,6 +685,11 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None,
     surface.pair_model = pair_model
     surface.given = _given
     lab = _Labels(regions=np.zeros(surface.nf, np.int64))
+    if p.judge_pieces:
+        # the piece judge's rays are cast at the plant as given: its scene starts building
+        # now, a large mesh's in a helper process on the core the passes leave idle (the
+        # surface's fields above keep both busy), and is ready when the judge comes
+        geo.raycasting_scene(mesh.vertices if _given is None else _given[0], mesh.faces)
     for _name, run_pass in PASSES:
         run_pass(surface, lab)
     kinds: dict[int, str] = {new: "leaf" for new in range(1, lab.n_leaves + 1)}

@@ -100,8 +100,9 @@ def leaf_features(traits, measurements, labelled, unit_mm: float) -> np.ndarray:
     kinds = labelled.kinds
     stem = [k for k, kind in kinds.items() if kind == "stem"]
     labels = labelled.face_labels
-    if stem and np.isin(labels, stem).any():
-        axis = v[mesh.faces[np.isin(labels, stem)].ravel()][:, :2].mean(axis=0)
+    on_stem_face = np.isin(labels, stem) if stem else np.zeros(len(labels), bool)
+    if on_stem_face.any():
+        axis = v[mesh.faces[on_stem_face].ravel()][:, :2].mean(axis=0)
     else:
         axis = np.median(v[:, :2], axis=0)
     radius = max(float(np.hypot(*(v[:, :2] - axis).T).max()), 1e-9)
@@ -115,16 +116,17 @@ def leaf_features(traits, measurements, labelled, unit_mm: float) -> np.ndarray:
     for k, kind in kinds.items():
         if 0 <= k < top:
             kind_code[k] = 1 if kind == "leaf" else 2 if kind == "debris" else 0
-    edge = np.zeros((top, 3))
+    edge = np.zeros(3 * top)  # counts: whole numbers, exact in any order
     for a, b in ((la, lb), (lb, la)):
         ok = (a >= 0) & (b >= 0)
-        np.add.at(edge, (a[ok], kind_code[b[ok]]), 1.0)
+        edge += np.bincount(3 * a[ok] + kind_code[b[ok]], minlength=3 * top)
+    edge = edge.reshape(top, 3)
     stem_tree = None
-    if stem and np.isin(labels, stem).any():
+    if on_stem_face.any():
         from scipy.spatial import cKDTree
 
         on_stem = np.zeros(len(v), bool)
-        on_stem[mesh.faces[np.isin(labels, stem)].ravel()] = True
+        on_stem[mesh.faces[on_stem_face].ravel()] = True
         stem_tree = cKDTree(v[on_stem])
     extents = _extents(mesh, labels, [m.traits.leaf_id for m in measurements])
     areas = np.array([m.traits.area_mm2 for m in measurements], float)

@@ -225,3 +225,27 @@ def test_one_ray_scene_serves_the_judge_and_the_measurer(mock_plant, monkeypatch
     assert made == [1]
     measure_plant(labelled)
     assert made == [1]
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_nearest_pieces_are_those_of_one_tree_of_all_the_others(seed):
+    # the pruned search (each piece's own tree, nearest box first) finds the distance and
+    # piece that a tree of every other piece's points gives (the plain way)
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(seed)
+    centres = rng.uniform(0, 100, (12, 3))
+    points = [c + rng.normal(0, rng.uniform(1, 8), (rng.integers(1, 300), 3)) for c in centres]
+    points[3] = np.zeros((0, 3))  # a piece without points has no gap and is no neighbour
+    which = [0, 2, 3, 5, 11]
+    gap, label = pc._nearest_pieces(points, which)
+    for w, i in enumerate(which):
+        others = [j for j in range(len(points)) if j != i and len(points[j])]
+        if not len(points[i]):
+            assert gap[w] == np.inf and label[w] == 0
+            continue
+        allp = np.vstack([points[j] for j in others])
+        owner = np.concatenate([[j + 1] * len(points[j]) for j in others])
+        d, k = cKDTree(allp).query(points[i])
+        assert gap[w] == d.min()  # the same pair's distance, to the bit
+        assert label[w] == owner[k[int(np.argmin(d))]]
