@@ -1217,19 +1217,26 @@ def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = No
     def task(item):
         if item == "geometry":
             return plant_geometry(mesh, PROJECTION_PIXEL_UNITS * unit)
-        if item == "areas":
-            return {kind: _kind_area(labelled, kind) for kind in ("debris", "stem")}
+        if item == "plant":  # what the plant flag and the trust model read of the labels
+            areas = {kind: _kind_area(labelled, kind) for kind in ("debris", "stem")}
+            if not p.trust_model:
+                return areas, None
+            from plantscan_leaves import trust_model as tm
+
+            return areas, tm.plant_context(labelled, leaf_labels)
         return one(item)
 
     # Leaves are measured independently, on both cores: their numpy/scipy work releases
     # the GIL for most of the time (1.2 M-face dicot hull, 12 leaves: 5.6 -> 3.5 s wall,
     # same CPU, same traits).  The plant's own geometry (hull, top-view shadow: 1 s at
-    # 1.7 M faces) goes first, the stem's and debris' areas beside it (the first leaf
-    # finds the base hints, shared), then the leaves largest first, so that no big leaf
-    # is left alone on one core at the end.  Results come back in the leaves' order.
+    # 1.7 M faces) goes first, the stem's and debris' areas and the trust model's plant
+    # context beside it (the first leaf finds the base hints, shared), then the leaves
+    # largest first, so that no big leaf is left alone on one core at the end.  Results
+    # come back in the leaves' order.
     order = sorted(range(len(leaf_labels)), key=lambda i: -leaf_meshes.face_count(leaf_labels[i]))
-    done_sorted = thread_map(task, ["geometry", "areas", *(leaf_labels[i] for i in order)])
-    geometry, kind_areas, done = done_sorted[0], done_sorted[1], [None] * len(leaf_labels)
+    done_sorted = thread_map(task, ["geometry", "plant", *(leaf_labels[i] for i in order)])
+    geometry, (kind_areas, context), done = done_sorted[0], done_sorted[1], [None] * len(
+        leaf_labels)
     for i, result in zip(order, done_sorted[2:]):
         done[i] = result
     measurements = [m for m, _ in done if m is not None]
@@ -1237,7 +1244,7 @@ def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = No
     _thick_and_outline_checks(labelled, measurements, report, unit)
     leaves = [m.traits for m in measurements]
     traits = Traits(leaves, plant_traits(mesh, leaves, geometry=geometry))
-    _judge(traits, measurements, labelled, p, plant_views, report, unit, kind_areas)
+    _judge(traits, measurements, labelled, p, plant_views, report, unit, kind_areas, context)
     return traits, measurements, report
 
 
@@ -1346,7 +1353,8 @@ def stem_share(labelled: LabelledMesh, other_area_mm2: float,
 
 def _judge(traits: Traits, measurements: list[LeafMeasurement], labelled: LabelledMesh,
            p: LeafGeometryParams, plant_views: int | None, report: StageReport,
-           unit_mm: float | None = None, kind_areas: dict[str, float] | None = None) -> None:
+           unit_mm: float | None = None, kind_areas: dict[str, float] | None = None,
+           context=None) -> None:
     """Each leaf's confidence and the plant's quality flag, into ``traits`` and ``report``."""
     from plantscan_leaves.trust import leaf_trust, model_trust, plant_quality, reason_text
 
@@ -1357,7 +1365,8 @@ def _judge(traits: Traits, measurements: list[LeafMeasurement], labelled: Labell
 
         model = tm.load_model(p.trust_model)
         x = tm.leaf_features(traits, measurements, labelled, unit_mm
-                             or geo.mesh_unit(labelled.mesh.vertices, labelled.mesh.faces))
+                             or geo.mesh_unit(labelled.mesh.vertices, labelled.mesh.faces),
+                             context)
         trusts = [model_trust(t, pb, why)
                   for t, pb, why in zip(trusts, model.doubt(x), model.why(x))]
     for m, t in zip(measurements, trusts):

@@ -81,22 +81,29 @@ FEATURE_TEXT = {
 CLASS_NAMES = ("good", "bad")
 
 
-def leaf_features(traits, measurements, labelled, unit_mm: float) -> np.ndarray:
-    """(n, len(FEATURE_NAMES)) features of the measured leaves (``measurements`` order).
+@dataclass
+class PlantContext:
+    """What ``leaf_features`` reads of the labelled plant alone (not of the traits): its
+    height range, the stem's axis and the plant's radius about it, the label borders'
+    counts per kind, the stem's vertices, and each leaf's extent.  Worked out by
+    ``plant_context`` (the measurer does it beside the leaves' measurement)."""
 
-    ``traits``: the plant's ``Traits`` (its ``plant`` dict gives height and total leaf
-    area); ``labelled``: the ``LabelledMesh`` measured; ``unit_mm``: its mesh unit.
-    """
+    z0: float
+    height: float
+    axis: np.ndarray
+    radius: float
+    edge: np.ndarray
+    stem_tree: object | None
+    extents: dict[int, float]
+
+
+def plant_context(labelled, leaf_ids: list[int]) -> PlantContext:
+    """``PlantContext`` of ``labelled`` for the leaves ``leaf_ids``."""
     from plantscan_leaves import geometry as geo
 
-    n = len(measurements)
-    x = np.full((n, len(FEATURE_NAMES)), np.nan)
-    if not n:
-        return x
     mesh = labelled.mesh
     v = mesh.vertices
     z0, z1 = float(v[:, 2].min()), float(v[:, 2].max())
-    height = max(z1 - z0, 1e-9)
     kinds = labelled.kinds
     stem = [k for k, kind in kinds.items() if kind == "stem"]
     labels = labelled.face_labels
@@ -120,7 +127,6 @@ def leaf_features(traits, measurements, labelled, unit_mm: float) -> np.ndarray:
     for a, b in ((la, lb), (lb, la)):
         ok = (a >= 0) & (b >= 0)
         edge += np.bincount(3 * a[ok] + kind_code[b[ok]], minlength=3 * top)
-    edge = edge.reshape(top, 3)
     stem_tree = None
     if on_stem_face.any():
         from scipy.spatial import cKDTree
@@ -128,7 +134,29 @@ def leaf_features(traits, measurements, labelled, unit_mm: float) -> np.ndarray:
         on_stem = np.zeros(len(v), bool)
         on_stem[mesh.faces[on_stem_face].ravel()] = True
         stem_tree = cKDTree(v[on_stem])
-    extents = _extents(mesh, labels, [m.traits.leaf_id for m in measurements])
+    extents = dict(zip(leaf_ids, _extents(mesh, labels, leaf_ids)))
+    return PlantContext(z0, max(z1 - z0, 1e-9), axis, radius, edge.reshape(top, 3), stem_tree,
+                        extents)
+
+
+def leaf_features(traits, measurements, labelled, unit_mm: float,
+                  context: PlantContext | None = None) -> np.ndarray:
+    """(n, len(FEATURE_NAMES)) features of the measured leaves (``measurements`` order).
+
+    ``traits``: the plant's ``Traits`` (its ``plant`` dict gives height and total leaf
+    area); ``labelled``: the ``LabelledMesh`` measured; ``unit_mm``: its mesh unit;
+    ``context``: ``plant_context(labelled, ...)`` of these leaves when the caller has it.
+    """
+    n = len(measurements)
+    x = np.full((n, len(FEATURE_NAMES)), np.nan)
+    if not n:
+        return x
+    ids = [m.traits.leaf_id for m in measurements]
+    c = context if context is not None else plant_context(labelled, ids)
+    z0, height, axis, radius, edge, stem_tree = (c.z0, c.height, c.axis, c.radius, c.edge,
+                                                 c.stem_tree)
+    top = len(edge)
+    extents = np.array([c.extents[i] for i in ids], float)
     areas = np.array([m.traits.area_mm2 for m in measurements], float)
     total = float(traits.plant.get("total_leaf_area_mm2", areas.sum())) or float(areas.sum())
     median_area = float(np.median(areas)) if len(areas) else 1.0

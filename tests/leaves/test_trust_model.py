@@ -48,6 +48,19 @@ def test_features_are_scale_free(measured):
     np.testing.assert_allclose(x_cm, x_mm, rtol=5e-3, atol=1e-6)
 
 
+def test_a_context_worked_out_beforehand_gives_the_same_features(measured):
+    # the measurer works out the labels' part of the features (plant_context) while the
+    # leaves are measured, for every leaf label, measured or not: the same numbers
+    from plantscan_leaves import geometry as geo
+
+    labelled, traits, measurements = measured
+    unit = geo.mesh_unit(labelled.mesh.vertices, labelled.mesh.faces)
+    context = tm.plant_context(labelled, labelled.leaf_labels)
+    some = measurements[1:]  # one measured leaf fewer than the context knows
+    with_context = tm.leaf_features(traits, some, labelled, unit, context)
+    assert with_context.tobytes() == tm.leaf_features(traits, some, labelled, unit).tobytes()
+
+
 def test_edge_contact_shares(measured):
     # the mock plant's leaves sit on petioles labelled stem: each leaf's edge touches the
     # stem and nothing else, so its three contact shares are (1, 0, 0)
