@@ -26,6 +26,7 @@ from __future__ import annotations
 import atexit
 import logging
 import os
+import select
 import subprocess
 import sys
 import threading
@@ -38,6 +39,9 @@ log = logging.getLogger(__name__)
 # A mesh with fewer faces builds its BVH in-process: the helper costs ~0.7 s of CPU to
 # start (Python, numpy, Open3D), more than a BVH of ~400 k faces.
 HELPER_MIN_FACES = 400_000
+# How long a cast waits for the helper's BVH before building one here instead: far more
+# than a build takes (1.7 s at 2.7 M faces), so only a helper that hangs or starves hits it.
+READY_TIMEOUT_S = 120.0
 _HEADER = np.dtype("<u8")
 _READY = b"R"
 
@@ -74,10 +78,8 @@ class HelperScene:
         self._lock = threading.Lock()
         self._ready = False
         self._local: LocalScene | None = None
-        # -P: the script's folder (this package's modules) is not put on the helper's path
-        self._proc = subprocess.Popen([sys.executable, "-P", "-u", os.path.abspath(__file__)],
-                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                      stderr=subprocess.DEVNULL)
+        self._proc = subprocess.Popen(_helper_command(), stdin=subprocess.PIPE,
+                                      stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
         # the mesh goes down the pipe from a thread (the pipe's writes release the GIL):
         # the caller is not held while the helper starts and reads ~50 MB
         self._feeder = threading.Thread(target=self._feed, daemon=True)
@@ -100,7 +102,7 @@ class HelperScene:
             if self._local is None:
                 try:
                     return self._remote(rays)
-                except (OSError, ValueError, EOFError) as exc:
+                except (OSError, ValueError, EOFError) as exc:  # TimeoutError is an OSError
                     log.warning("ray-casting helper failed (%s: %s): the scene is built in "
                                 "this process", type(exc).__name__, exc)
                     self._stop()
@@ -108,11 +110,14 @@ class HelperScene:
             return self._local.t_hit(rays)
 
     def _remote(self, rays: np.ndarray) -> np.ndarray:
-        self._feeder.join()
         out, inp = self._proc.stdin, self._proc.stdout
-        if not self._ready:
+        if not self._ready:  # the helper answers once it has read the whole mesh
+            ready, _, _ = select.select([inp], [], [], READY_TIMEOUT_S)
+            if not ready:
+                raise TimeoutError(f"no scene from the helper within {READY_TIMEOUT_S:g} s")
             if inp.read(1) != _READY:
                 raise EOFError(f"helper exited with code {self._proc.wait()}")
+            self._feeder.join()
             self._ready = True
         out.write(np.array([len(rays)], _HEADER).tobytes())
         out.write(memoryview(rays).cast("B"))
@@ -122,6 +127,9 @@ class HelperScene:
 
     def _stop(self) -> None:
         proc = self._proc
+        if proc.poll() is None and not self._ready:  # it may not even read: no goodbye
+            proc.kill()
+            proc.wait()
         if proc.poll() is None:
             try:
                 proc.stdin.write(np.array([0], _HEADER).tobytes())
@@ -145,6 +153,12 @@ class HelperScene:
 
 
 _LIVE: weakref.WeakSet[HelperScene] = weakref.WeakSet()
+
+
+def _helper_command() -> list[str]:
+    """The helper's command line: this file run by this Python (-P: the script's folder,
+    this package's modules, is not put on its path)."""
+    return [sys.executable, "-P", "-u", os.path.abspath(__file__)]
 
 
 @atexit.register

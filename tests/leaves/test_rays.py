@@ -49,6 +49,24 @@ def test_a_dead_helper_falls_back_to_a_scene_here(slab_and_rays):
     assert t.tobytes() == rays.LocalScene(v, f).t_hit(r).tobytes()
 
 
+def test_a_helper_that_never_answers_is_not_waited_for(slab_and_rays, monkeypatch):
+    # a helper that hangs (here: a Python that sleeps) costs READY_TIMEOUT_S, then the
+    # scene is built in this process and answers as ever
+    import sys
+
+    v, f, r = slab_and_rays
+    monkeypatch.setattr(rays, "_helper_command",
+                        lambda: [sys.executable, "-c", "import time; time.sleep(60)"])
+    monkeypatch.setattr(rays, "READY_TIMEOUT_S", 0.5)
+    helper = rays.HelperScene(v, f)
+    try:
+        t = helper.t_hit(r)
+    finally:
+        helper.close()
+    assert t.tobytes() == rays.LocalScene(v, f).t_hit(r).tobytes()
+    assert helper._proc.poll() is not None  # the sleeper was ended
+
+
 def test_large_meshes_get_a_helper_and_forgetting_ends_it(slab_and_rays, monkeypatch):
     v, f, r = slab_and_rays
     geo.forget_meshes()
