@@ -1195,6 +1195,22 @@ def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = No
         log.warning(msg)
         report.warn("no-leaf", msg)
     unit = geo.mesh_unit(mesh.vertices, mesh.faces)  # one unit for every leaf of the plant
+    geometry, parts, done = _measure_parts(labelled, leaf_labels, p, unit)
+    measurements = [m for m, _ in done if m is not None]
+    report.warnings += [w for _, w in done if w is not None]
+    _thick_and_outline_checks(labelled, measurements, report, unit)
+    leaves = [m.traits for m in measurements]
+    traits = Traits(leaves, plant_traits(mesh, leaves, geometry=geometry))
+    _judge(traits, measurements, labelled, p, plant_views, report, unit, parts)
+    return traits, measurements, report
+
+
+def _measure_parts(labelled: LabelledMesh, leaf_labels: list[int], p: LeafGeometryParams,
+                   unit: float):
+    """``measure_plant``'s work on both cores: the plant's geometry, (the stem's and
+    debris' areas, the trust model's plant context or None), and per leaf of
+    ``leaf_labels`` (measurement or None, warning or None)."""
+    mesh = labelled.mesh
     hints = _Once(lambda: _base_hints(labelled))
     leaf_meshes = _LeafMeshes(labelled)
 
@@ -1235,17 +1251,10 @@ def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = No
     # come back in the leaves' order.
     order = sorted(range(len(leaf_labels)), key=lambda i: -leaf_meshes.face_count(leaf_labels[i]))
     done_sorted = thread_map(task, ["geometry", "plant", *(leaf_labels[i] for i in order)])
-    geometry, (kind_areas, context), done = done_sorted[0], done_sorted[1], [None] * len(
-        leaf_labels)
+    done: list = [None] * len(leaf_labels)
     for i, result in zip(order, done_sorted[2:]):
         done[i] = result
-    measurements = [m for m, _ in done if m is not None]
-    report.warnings += [w for _, w in done if w is not None]
-    _thick_and_outline_checks(labelled, measurements, report, unit)
-    leaves = [m.traits for m in measurements]
-    traits = Traits(leaves, plant_traits(mesh, leaves, geometry=geometry))
-    _judge(traits, measurements, labelled, p, plant_views, report, unit, kind_areas, context)
-    return traits, measurements, report
+    return done_sorted[0], done_sorted[1], done
 
 
 class _Once:
@@ -1353,11 +1362,13 @@ def stem_share(labelled: LabelledMesh, other_area_mm2: float,
 
 def _judge(traits: Traits, measurements: list[LeafMeasurement], labelled: LabelledMesh,
            p: LeafGeometryParams, plant_views: int | None, report: StageReport,
-           unit_mm: float | None = None, kind_areas: dict[str, float] | None = None,
-           context=None) -> None:
-    """Each leaf's confidence and the plant's quality flag, into ``traits`` and ``report``."""
+           unit_mm: float | None = None, parts: tuple | None = None) -> None:
+    """Each leaf's confidence and the plant's quality flag, into ``traits`` and ``report``.
+    ``parts``: (the stem's and debris' areas, the trust model's plant context or None),
+    ``_measure_parts``' when the caller has them."""
     from plantscan_leaves.trust import leaf_trust, model_trust, plant_quality, reason_text
 
+    kind_areas, context = parts or (None, None)
     trusts = [leaf_trust(m.traits, labelled.evidence.get(m.traits.leaf_id))
               for m in measurements]
     if p.trust_model and measurements:
