@@ -36,9 +36,11 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-# A mesh with fewer faces builds its BVH in-process: the helper costs ~0.7 s of CPU to
-# start (Python, numpy, Open3D), more than a BVH of ~400 k faces.
-HELPER_MIN_FACES = 400_000
+# A mesh with fewer faces builds its BVH in-process: the helper's start (Python, numpy,
+# Open3D: ~0.7 s of CPU) and its memory traffic beside the segmenter cost about what a
+# BVH of ~1 M faces does (dicot validation plants of 0.4-0.9 M faces: no faster with it,
+# 1.7-2.7 M: 1-3 s faster; docs/benchmarks/leaf_speed.md, session 26).
+HELPER_MIN_FACES = 1_000_000
 # How long a cast waits for the helper's BVH before building one here instead: far more
 # than a build takes (1.7 s at 2.7 M faces), so only a helper that hangs or starves hits it.
 READY_TIMEOUT_S = 120.0
