@@ -71,3 +71,38 @@ def image_pool(workers: int) -> Iterator[ThreadPoolExecutor]:
     with (opencv_threads(1) if workers > 1 else contextlib.nullcontext(),
           ThreadPoolExecutor(max_workers=workers) as pool):
         yield pool
+
+
+# glibc's mallopt parameters (malloc.h)
+_M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD = -1, -2, -3
+_heap_kept = False
+
+
+def keep_heap_memory() -> bool:
+    """Let glibc's malloc keep freed memory for the next array instead of giving it back.
+
+    By default an array of more than 128 kB is mapped fresh and unmapped when freed (the
+    limit then rises with what was freed, up to 32 MB): the leaf stages allocate and free
+    arrays of tens of MB hundreds of times, and every fresh mapping is zeroed page by page
+    by the kernel on first touch.  With the limit at 32 MB (the default's own maximum)
+    from the start, 256 MB of headroom at the heap's top and no trimming below 1 GB, the
+    same memory is reused: the leaf stages of a 2.7 M-face plant, the first in a process,
+    9.4-10.5 -> 8.5-9.6 s (three runs each, alternating), peak memory +90 MB
+    (docs/benchmarks/leaf_speed.md, session 26).  Once per process, for the rest of it;
+    False where the C library has no ``mallopt`` (not glibc).
+    """
+    global _heap_kept
+    if _heap_kept:
+        return True
+    import ctypes
+    import ctypes.util
+
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or None)
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):
+        return False
+    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+    _heap_kept = all(mallopt(param, value) == 1 for param, value in (
+        (_M_MMAP_THRESHOLD, 32 << 20), (_M_TOP_PAD, 256 << 20), (_M_TRIM_THRESHOLD, 1 << 30)))
+    return _heap_kept

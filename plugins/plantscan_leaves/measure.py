@@ -58,7 +58,7 @@ from scipy.sparse.csgraph import (
 )
 
 from plantscan_core.data import LabelledMesh, LeafTraits, Mesh, Traits
-from plantscan_core.parallel import thread_map
+from plantscan_core.parallel import keep_heap_memory, thread_map
 from plantscan_core.stages import StageParams, StageReport, StageWarning
 from plantscan_leaves import geometry as geo
 
@@ -1176,6 +1176,7 @@ def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = No
     """
     p = params or LeafGeometryParams()
     report = StageReport()
+    keep_heap_memory()  # as the segmenter: big arrays reuse freed memory
     if labelled.mesh.rim_vertices is not None:
         labelled = LabelledMesh(labelled.mesh.measured(), labelled.face_labels, labelled.kinds,
                                 labelled.evidence)

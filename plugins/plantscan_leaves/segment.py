@@ -56,7 +56,7 @@ from scipy.sparse.csgraph import connected_components, dijkstra
 from scipy.spatial import cKDTree
 
 from plantscan_core.data import LabelledMesh, Mesh
-from plantscan_core.parallel import thread_map
+from plantscan_core.parallel import keep_heap_memory, thread_map
 from plantscan_core.stages import StageParams, StageReport
 from plantscan_leaves import geometry as geo
 from plantscan_leaves import kernels
@@ -656,6 +656,7 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None,
     """
     p = params or CurvatureRegionsParams()
     report = StageReport()
+    keep_heap_memory()  # arrays of tens of MB, freed and allocated again: reuse the memory
     if not mesh.is_empty and p.reference_unit_mm is not None:
         unit = geo.mesh_unit(mesh.vertices, mesh.faces)
         scale = p.reference_unit_mm / unit

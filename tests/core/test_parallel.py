@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import platform
+import sys
 import threading
 
 import pytest
@@ -38,3 +40,14 @@ def test_opencv_threads_restored_only_when_the_last_overlapping_block_ends():
     assert cv2.getNumThreads() == 1
     second.__exit__(None, None, None)
     assert cv2.getNumThreads() == before
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux") or platform.libc_ver()[0] != "glibc",
+                    reason="mallopt is glibc's")
+def test_the_heap_keeps_freed_memory_on_glibc():
+    # glibc takes every setting (mallopt returns 1 for each, 0 for one it refuses), once
+    # per process
+    from plantscan_core import parallel
+
+    assert parallel.keep_heap_memory() is True
+    assert parallel.keep_heap_memory() is True  # the second call changes nothing
