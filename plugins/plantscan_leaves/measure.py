@@ -1191,7 +1191,7 @@ def measure_plant(labelled: LabelledMesh, params: LeafGeometryParams | None = No
     leaf_labels = labelled.leaf_labels
     if leaf_labels:  # the thick shares' scene builds while the leaves are measured
         geo.raycasting_scene(mesh.vertices, mesh.faces)
-    if not leaf_labels:
+    else:
         msg = "no leaf in the labelled mesh: traits table left empty"
         log.warning(msg)
         report.warn("no-leaf", msg)
@@ -1235,7 +1235,7 @@ def _measure_parts(labelled: LabelledMesh, leaf_labels: list[int], p: LeafGeomet
         if item == "geometry":
             return plant_geometry(mesh, PROJECTION_PIXEL_UNITS * unit)
         if item == "plant":  # what the plant flag and the trust model read of the labels
-            areas = {kind: _kind_area(labelled, kind) for kind in ("debris", "stem")}
+            areas = _kind_areas(labelled)
             if not p.trust_model:
                 return areas, None
             from plantscan_leaves import trust_model as tm
@@ -1351,6 +1351,11 @@ def _kind_area(labelled: LabelledMesh, kind: str) -> float:
     return float(Mesh(labelled.mesh.vertices, faces).face_areas().sum()) / 2.0
 
 
+def _kind_areas(labelled: LabelledMesh) -> dict[str, float]:
+    """``_kind_area`` of the debris and the stem, what the plant's flag reads."""
+    return {kind: _kind_area(labelled, kind) for kind in ("debris", "stem")}
+
+
 def stem_share(labelled: LabelledMesh, other_area_mm2: float,
                stem_area_mm2: float | None = None) -> float:
     """The stem's share of the plant's surface, one side: the stem's one-side area
@@ -1388,7 +1393,7 @@ def _judge(traits: Traits, measurements: list[LeafMeasurement], labelled: Labell
         if t.low:
             report.warn("low-confidence", f"leaf {leaf.leaf_id}: confidence {t.confidence:.2f}: "
                         + "; ".join(reason_text(r, t) for r in t.reasons), leaf=leaf.leaf_id)
-    kind_areas = kind_areas or {k: _kind_area(labelled, k) for k in ("debris", "stem")}
+    kind_areas = kind_areas or _kind_areas(labelled)
     debris_area = kind_areas["debris"]
     leaf_area = float(traits.plant.get("total_leaf_area_mm2", 0.0))
     share = debris_area / leaf_area if leaf_area > 0 else (1.0 if debris_area > 0 else 0.0)

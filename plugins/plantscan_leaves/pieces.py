@@ -179,7 +179,7 @@ def piece_features(s: PieceSurface, labels: np.ndarray, n: int) -> Pieces:
     lone = [i for i in range(n) if not touching[i]]
     if lone:
         gap[lone], nearest[lone] = _nearest_pieces([s.centroids[p] for p in picked], lone)
-    reach = (to_leaf > 0) | (gap <= JOIN_REACH_UNITS * u)
+    reach = touching | (gap <= JOIN_REACH_UNITS * u)
     partner = np.where(reach, nearest, 0)
 
     thick = np.full(n, np.nan)

@@ -124,8 +124,7 @@ class HelperScene:
         out.write(np.array([len(rays)], _HEADER).tobytes())
         out.write(memoryview(rays).cast("B"))
         out.flush()
-        t = _read_array(inp, np.float32, len(rays))
-        return t
+        return _read_array(inp, np.float32, len(rays))
 
     def _stop(self) -> None:
         proc = self._proc
