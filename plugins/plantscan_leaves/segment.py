@@ -611,6 +611,10 @@ def _stem_parts_judged(s: _Surface, lab: _Labels) -> None:
     s.report.counts["stem_parts_to_leaf"] = n_blades
 
 
+# from this many faces the passes begin the measurer's plant geometry beside them (on a
+# smaller mesh it costs less than a tenth of a second where it is)
+EARLY_MIN_FACES = 200_000
+
 PASSES = (
     ("seed regions", _seed_regions),
     ("region kinds", _region_kinds),
@@ -632,9 +636,10 @@ PASSES = (
 """The passes of ``segment_leaves``, in order, each ``(name, fn(surface, labels))``."""
 
 
+@geo.meshes_unchanged()  # its mesh arrays' digests taken once
 def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None,
                    piece_model=None, stem_part_model=None, pair_model=None,
-                   _given: tuple[np.ndarray, float] | None = None
+                   _given: tuple[np.ndarray, float] | None = None, _early: Mesh | None = None
                    ) -> tuple[LabelledMesh, StageReport]:
     """Label every face of ``mesh`` as one leaf or the stem (``PASSES`` in turn).
 
@@ -642,8 +647,9 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None,
     -> (n, 3)``, ``plantscan_leaves.pieces``; None: the params' file or the shipped one);
     ``stem_part_model`` likewise the judge of ``judge_stem_parts`` (``probabilities(parts)
     -> (m,)``, ``plantscan_leaves.stem_parts``), ``pair_model`` of ``judge_pairs``
-    (``probabilities(pairs) -> (k,)``, ``plantscan_leaves.pairs``).  ``_given``: internal
-    (the vertices as given and their scale, when ``reference_unit_mm`` scales the mesh).
+    (``probabilities(pairs) -> (k,)``, ``plantscan_leaves.pairs``).  ``_given``, ``_early``:
+    internal (the vertices as given and their scale, when ``reference_unit_mm`` scales the
+    mesh; the mesh as given).
 
     Returns
     -------
@@ -666,7 +672,7 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None,
         scaled, report = segment_leaves(Mesh(mesh.vertices * scale, mesh.faces),
                                         p.model_copy(update={"reference_unit_mm": None}),
                                         piece_model, stem_part_model, pair_model,
-                                        _given=(mesh.vertices, scale))
+                                        _given=(mesh.vertices, scale), _early=mesh)
         report.figures.update(mesh_unit_mm=round(unit, 6), scale_to_reference_unit=round(scale, 6))
         return LabelledMesh(mesh, scaled.face_labels, scaled.kinds, scaled.evidence), report
     if mesh.is_empty:
@@ -691,6 +697,10 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None,
         # now, a large mesh's in a helper process on the core the passes leave idle (the
         # surface's fields above keep both busy), and is ready when the judge comes
         geo.raycasting_scene(mesh.vertices if _given is None else _given[0], mesh.faces)
+    if surface.nf >= EARLY_MIN_FACES:  # the measurer's label-free work, on the idle core
+        from plantscan_leaves.measure import start_plant_geometry
+
+        start_plant_geometry(mesh if _early is None else _early)
     for _name, run_pass in PASSES:
         run_pass(surface, lab)
     kinds: dict[int, str] = {new: "leaf" for new in range(1, lab.n_leaves + 1)}
@@ -1038,14 +1048,15 @@ def _split_joined_leaves(labels: np.ndarray, crease: np.ndarray, areas: np.ndarr
     grown = kernels.grow(init, inner[in_split[inner[:, 0]]])
     # faces of a split leaf no seed reaches (cut off by creases) join its biggest seed
     biggest = np.full(len(split), -1)
-    order = np.argsort(seed_area)  # ascending: the biggest seed of a label is written last
-    biggest[seed_label[order[big[order]]]] = order[big[order]]
+    big_ids = np.flatnonzero(big)  # few: most seeds are crumbs between creases
+    order = big_ids[np.argsort(seed_area[big_ids], kind="stable")]
+    biggest[seed_label[order]] = order  # ascending: a label's biggest seed is written last
     lost = in_split & (grown < 0)
     grown[lost] = biggest[labels[lost]]
     # renumber: unsplit leaves keep one id each, each seed of a split leaf gets its own
     key = np.where(in_split, n_seeds + labels.max() + 1 + grown, labels)
     key[labels == 0] = 0
-    _, new = np.unique(key, return_inverse=True)
+    _, new = geo.unique_inverse(key, 2 * n_seeds + int(labels.max()) + 1)
     out = new.reshape(labels.shape).astype(np.int32)
     if (labels > 0).all():  # no stem at all: ids start at 1 anyway
         out += 1
