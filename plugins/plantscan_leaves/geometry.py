@@ -11,7 +11,6 @@ import math
 import threading
 from collections import OrderedDict
 from collections.abc import Callable
-from concurrent.futures import Future
 from contextlib import contextmanager
 from dataclasses import dataclass
 
@@ -986,7 +985,7 @@ _KNOWN_KEYS: dict[tuple[int, int], tuple[bytes, np.ndarray, np.ndarray]] = {}
 def meshes_unchanged():
     """Within, ``mesh_key`` remembers the digest of each (vertices, faces) pair of arrays it
     was given, by identity: a leaf stage asks for the same plant's key a dozen times (its
-    unit, topology, ray scene, early work: 0.06 s each at 2.7 M faces) and changes no
+    unit, topology, ray scene: 0.06 s each at 2.7 M faces) and changes no
     array in place.  The arrays are held until the last scope ends, so no identity is
     reused meanwhile."""
     with _KEY_LOCK:
@@ -1058,49 +1057,15 @@ def _close(value) -> None:
 _UNITS = _MeshCache(8)
 _SCENES = _MeshCache(1)  # an Embree scene of a 1.7 M-face plant holds a few hundred MB
 _TOPOLOGIES = _MeshCache(1)  # ~250 MB at 1.7 M faces
-_EARLY = _MeshCache(2)  # per mesh: {name: Future} of work started early (``start_early``)
 _NO_VERTICES = np.zeros((1, 3))  # the key of a topology: its faces alone
 
 
 def forget_meshes() -> None:
-    """Empty the per-mesh caches (``mesh_unit``, ``raycasting_scene``, ``start_early``'s
-    work): a benchmark times every round from scratch."""
+    """Empty the per-mesh caches (``mesh_unit``, ``raycasting_scene``): a benchmark times
+    every round from scratch."""
     _UNITS.clear()
     _SCENES.clear()
     _TOPOLOGIES.clear()
-    _EARLY.clear()
-
-
-def start_early(name: str, vertices: np.ndarray, faces: np.ndarray,
-                work: Callable[[], object]) -> None:
-    """Start ``work()`` (a function of this mesh alone, named ``name``) in a background
-    thread, for a later ``early_result`` of the same name and mesh: a stage whose own work
-    leaves a core idle (the segmenter's passes) does the next stage's label-free work there.
-    ``work`` should release the GIL (numpy, compiled kernels, qhull), or it slows the caller.
-    Started once per name and mesh."""
-    started = _EARLY.get(vertices, faces, dict)
-    if name in started:
-        return
-    future: Future = Future()
-    started[name] = future
-
-    def run() -> None:
-        if not future.set_running_or_notify_cancel():
-            return
-        try:
-            future.set_result(work())
-        except BaseException as exc:  # handed to whoever asks for the result
-            future.set_exception(exc)
-
-    threading.Thread(target=run, name=f"plantscan-early-{name}", daemon=True).start()
-
-
-def early_result(name: str, vertices: np.ndarray, faces: np.ndarray,
-                 work: Callable[[], object]):
-    """``work()``'s value: the one ``start_early`` began for this name and mesh (waited
-    for), else computed now.  Taken once: a later call computes again."""
-    future = _EARLY.get(vertices, faces, dict).pop(name, None)
-    return work() if future is None else future.result()
 
 
 def mesh_topology(faces: np.ndarray) -> MeshTopology:

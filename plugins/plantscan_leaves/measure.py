@@ -1134,20 +1134,6 @@ def plant_geometry(mesh: Mesh, pixel_mm: float | None = None) -> dict[str, float
     return out
 
 
-PLANT_GEOMETRY = "plant_geometry"  # its name among the work begun early (``start_early``)
-
-
-def start_plant_geometry(mesh: Mesh) -> None:
-    """Begin ``plant_geometry`` of the surface the measurer will measure
-    (``mesh.measured()``, default pixel) in a background thread
-    (``geometry.start_early``): the segmenter calls it where its passes leave a core idle,
-    and ``measure_plant`` takes the result (the hull's volume and the top-view shadow:
-    0.6 s at 2.7 M faces, all of it outside the GIL)."""
-    m = mesh.measured()
-    if not m.is_empty:
-        geo.start_early(PLANT_GEOMETRY, m.vertices, m.faces, lambda: plant_geometry(m))
-
-
 class _LeafMeshes:
     """``labelled.submesh(label)`` of any label, cut when asked (one sort of the labels for
     all; each cut writes only its own arrays, so threads may cut at once)."""
@@ -1247,9 +1233,8 @@ def _measure_parts(labelled: LabelledMesh, leaf_labels: list[int], p: LeafGeomet
         return m, None
 
     def task(item):
-        if item == "geometry":  # begun by the segmenter when it had a core to spare
-            return geo.early_result(PLANT_GEOMETRY, mesh.vertices, mesh.faces,
-                                    lambda: plant_geometry(mesh, PROJECTION_PIXEL_UNITS * unit))
+        if item == "geometry":
+            return plant_geometry(mesh, PROJECTION_PIXEL_UNITS * unit)
         if item == "plant":  # what the plant flag and the trust model read of the labels
             areas = _kind_areas(labelled)
             if not p.trust_model:

@@ -611,10 +611,6 @@ def _stem_parts_judged(s: _Surface, lab: _Labels) -> None:
     s.report.counts["stem_parts_to_leaf"] = n_blades
 
 
-# from this many faces the passes begin the measurer's plant geometry beside them (on a
-# smaller mesh it costs less than a tenth of a second where it is)
-EARLY_MIN_FACES = 200_000
-
 PASSES = (
     ("seed regions", _seed_regions),
     ("region kinds", _region_kinds),
@@ -639,7 +635,7 @@ PASSES = (
 @geo.meshes_unchanged()  # its mesh arrays' digests taken once
 def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None,
                    piece_model=None, stem_part_model=None, pair_model=None,
-                   _given: tuple[np.ndarray, float] | None = None, _early: Mesh | None = None
+                   _given: tuple[np.ndarray, float] | None = None
                    ) -> tuple[LabelledMesh, StageReport]:
     """Label every face of ``mesh`` as one leaf or the stem (``PASSES`` in turn).
 
@@ -647,9 +643,8 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None,
     -> (n, 3)``, ``plantscan_leaves.pieces``; None: the params' file or the shipped one);
     ``stem_part_model`` likewise the judge of ``judge_stem_parts`` (``probabilities(parts)
     -> (m,)``, ``plantscan_leaves.stem_parts``), ``pair_model`` of ``judge_pairs``
-    (``probabilities(pairs) -> (k,)``, ``plantscan_leaves.pairs``).  ``_given``, ``_early``:
-    internal (the vertices as given and their scale, when ``reference_unit_mm`` scales the
-    mesh; the mesh as given).
+    (``probabilities(pairs) -> (k,)``, ``plantscan_leaves.pairs``).  ``_given``: internal
+    (the vertices as given and their scale, when ``reference_unit_mm`` scales the mesh).
 
     Returns
     -------
@@ -672,7 +667,7 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None,
         scaled, report = segment_leaves(Mesh(mesh.vertices * scale, mesh.faces),
                                         p.model_copy(update={"reference_unit_mm": None}),
                                         piece_model, stem_part_model, pair_model,
-                                        _given=(mesh.vertices, scale), _early=mesh)
+                                        _given=(mesh.vertices, scale))
         report.figures.update(mesh_unit_mm=round(unit, 6), scale_to_reference_unit=round(scale, 6))
         return LabelledMesh(mesh, scaled.face_labels, scaled.kinds, scaled.evidence), report
     if mesh.is_empty:
@@ -697,10 +692,6 @@ def segment_leaves(mesh: Mesh, params: CurvatureRegionsParams | None = None,
         # now, a large mesh's in a helper process on the core the passes leave idle (the
         # surface's fields above keep both busy), and is ready when the judge comes
         geo.raycasting_scene(mesh.vertices if _given is None else _given[0], mesh.faces)
-    if surface.nf >= EARLY_MIN_FACES:  # the measurer's label-free work, on the idle core
-        from plantscan_leaves.measure import start_plant_geometry
-
-        start_plant_geometry(mesh if _early is None else _early)
     for _name, run_pass in PASSES:
         run_pass(surface, lab)
     kinds: dict[int, str] = {new: "leaf" for new in range(1, lab.n_leaves + 1)}
