@@ -56,7 +56,10 @@ _DEV = {"dicot": list(range(20)), "grass": list(range(10)), "branched": list(ran
         "rosette": list(range(6)), "seedling": list(range(16))}
 # (session 21: the dicot model retrained on the dicot recipe's new rules, 30 dev plants;
 # the all-family model keeps the 20 it was trained on)
-SHIPPED = {**{f"trust_model_{f}.json.gz": {f: _DEV[f]} for f in ("grass", "branched", "rosette")},
+# (session 27: the rosette model retrained on the rosette recipe's plant-only masks, 10 dev
+# plants; the all-family model keeps the rosettes 0-5 of the lab-shadow recipe it saw)
+SHIPPED = {**{f"trust_model_{f}.json.gz": {f: _DEV[f]} for f in ("grass", "branched")},
+           "trust_model_rosette.json.gz": {"rosette": list(range(10))},
            "trust_model_dicot.json.gz": {"dicot": list(range(30))},
            "trust_model_all.json.gz": _DEV}
 MODELS_DIR = REPO / "plugins/plantscan_leaves/models"
