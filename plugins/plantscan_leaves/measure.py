@@ -1272,20 +1272,26 @@ class _Once:
             return self._value
 
 
+def stem_faces_and_tree(labelled: LabelledMesh):
+    """The faces labelled stem ((F,) bool) and a ``cKDTree`` of their vertices (None without
+    any): what the base hints and the trust model's plant context look up."""
+    mesh = labelled.mesh
+    stem_labels = [k for k, kind in labelled.kinds.items() if kind == "stem"]
+    stem_faces = (np.isin(labelled.face_labels, stem_labels) if stem_labels
+                  else np.zeros(len(labelled.face_labels), bool))
+    if not stem_faces.any():
+        return stem_faces, None
+    from scipy.spatial import cKDTree
+
+    used = np.zeros(len(mesh.vertices), bool)
+    used[mesh.faces[stem_faces].ravel()] = True  # a mask, not np.unique: no sort
+    return stem_faces, cKDTree(mesh.vertices[used])
+
+
 def _base_hints(labelled: LabelledMesh):
     """``hint(leaf_id, leaf_mesh)``: where the leaf attaches, for ``measure_leaf`` (its stem
     contact, ``_stem_contacts``; else its point nearest to the stem; None without a stem)."""
-    mesh = labelled.mesh
-    stem_labels = [k for k, kind in labelled.kinds.items() if kind == "stem"]
-    stem_faces = np.isin(labelled.face_labels, stem_labels)
-    used = np.zeros(len(mesh.vertices), bool)
-    used[mesh.faces[stem_faces].ravel()] = True  # a mask, not np.unique: no sort
-    stem_vertices = np.flatnonzero(used)
-    tree = None
-    if len(stem_vertices):
-        from scipy.spatial import cKDTree
-
-        tree = cKDTree(mesh.vertices[stem_vertices])
+    stem_faces, tree = stem_faces_and_tree(labelled)
     contacts = _stem_contacts(labelled, stem_faces)
 
     def hint(leaf_id: int, sub: Mesh) -> np.ndarray | None:

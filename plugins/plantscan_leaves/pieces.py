@@ -122,7 +122,6 @@ def _strided(idx: np.ndarray, k: int) -> np.ndarray:
 
 def piece_features(s: PieceSurface, labels: np.ndarray, n: int) -> Pieces:
     """The features of leaves 1..n of ``labels`` (F,) (0 stem), their partners and areas."""
-
     from plantscan_leaves.features import inward_thickness
 
     u = s.unit

@@ -100,15 +100,15 @@ class PlantContext:
 def plant_context(labelled, leaf_ids: list[int]) -> PlantContext:
     """``PlantContext`` of ``labelled`` for the leaves ``leaf_ids``."""
     from plantscan_leaves import geometry as geo
+    from plantscan_leaves.measure import stem_faces_and_tree
 
     mesh = labelled.mesh
     v = mesh.vertices
     z0, z1 = float(v[:, 2].min()), float(v[:, 2].max())
     kinds = labelled.kinds
-    stem = [k for k, kind in kinds.items() if kind == "stem"]
     labels = labelled.face_labels
-    on_stem_face = np.isin(labels, stem) if stem else np.zeros(len(labels), bool)
-    if on_stem_face.any():
+    on_stem_face, stem_tree = stem_faces_and_tree(labelled)
+    if stem_tree is not None:
         axis = v[mesh.faces[on_stem_face].ravel()][:, :2].mean(axis=0)
     else:
         axis = np.median(v[:, :2], axis=0)
@@ -127,13 +127,6 @@ def plant_context(labelled, leaf_ids: list[int]) -> PlantContext:
     for a, b in ((la, lb), (lb, la)):
         ok = (a >= 0) & (b >= 0)
         edge += np.bincount(3 * a[ok] + kind_code[b[ok]], minlength=3 * top)
-    stem_tree = None
-    if on_stem_face.any():
-        from scipy.spatial import cKDTree
-
-        on_stem = np.zeros(len(v), bool)
-        on_stem[mesh.faces[on_stem_face].ravel()] = True
-        stem_tree = cKDTree(v[on_stem])
     extents = dict(zip(leaf_ids, _extents(mesh, labels, leaf_ids)))
     return PlantContext(z0, max(z1 - z0, 1e-9), axis, radius, edge.reshape(top, 3), stem_tree,
                         extents)
