@@ -135,6 +135,15 @@ class LeafGeometryParams(StageParams):
                     "petiole; the taper from the first station at 0.9 of the width back to "
                     "the measured base is continued to zero width (1 at the dicot family's "
                     "1296x864 and 512^3); 0: off")
+    stalk_width_units: float = Field(
+        0.0, ge=0,
+        description="width, mesh units, below which the stations at the leaf's base are a "
+                    "stalk (a leaflet's petiolule the segmentation left on it), not blade: "
+                    "the base is put where the blade's taper, fitted from the first two "
+                    "stations at least this wide to the first at half the width, reaches "
+                    "zero width, and the stalk's length, area and edges are left out "
+                    "(docs/leaves.md, \"Stalks\"; 2.5 at the branched family's 1296x864 and "
+                    "512^3); 0: off")
     outline_offset_units: float = Field(
         0.0, ge=0,
         description="mesh units by which the hull's outline of a thin leaf lies inside the "
@@ -173,7 +182,8 @@ class LeafGeometryParams(StageParams):
             self.outline_smoothing_units * u,
             self.graph_spacing_units * u, u, self.width_stations, self.graph_points_per_size,
             self.rim_correction, self.min_leaf_faces, self.tip_taper_units * u,
-            self.base_taper_units * u, self.outline_offset_units * u)
+            self.base_taper_units * u, self.outline_offset_units * u,
+            self.stalk_width_units * u)
 
 
 @dataclass(frozen=True)
@@ -193,6 +203,7 @@ class LeafScales:
     tip_taper_mm: float = 0.0
     base_taper_mm: float = 0.0
     outline_offset_mm: float = 0.0
+    stalk_width_mm: float = 0.0
 
 
 @dataclass
@@ -404,25 +415,83 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
         area += ext_area
     width, extent = _width(sides, mid_pts, dist_b, outline_lines, sheet, slab.edge_mm,
                            rim_excess, p)
-    taper_mm = base_taper_mm = 0.0
     seen_mm = geo.polyline_length(mid_pts) + tip_extension_mm
-    if p.tip_taper_mm > 0:
-        taper_mm = _lost_tip(extent, seen_mm, p.tip_taper_mm)
-    if p.base_taper_mm > 0:  # the same taper read from the other end
-        base_taper_mm = _lost_tip(extent[::-1], seen_mm, p.base_taper_mm)
-    for lost_width, lost_mm in ((p.tip_taper_mm, taper_mm), (p.base_taper_mm, base_taper_mm)):
-        length += lost_mm
-        perimeter += 2.0 * lost_mm  # both edges of the lost end
-        area += 0.5 * lost_width * lost_mm  # the lost triangle
-    traits = LeafTraits(leaf_id, float(length), float(width), area, perimeter)
+    d_length, d_perimeter, d_area, ends = _end_corrections(extent, seen_mm, p)
+    traits = LeafTraits(leaf_id, float(length + d_length), float(width), area + d_area,
+                        perimeter + d_perimeter)
     base_v, tip_v = sides.nodes[base], sides.nodes[tip]
+    base_point = slab.v[base_v] if ends["stalk_mm"] <= 0 else _along(mid_pts, ends["stalk_mm"])
     tip_point = slab.v[tip_v] if ext_tip is None else ext_tip
-    return LeafMeasurement(traits, thickness, slab.v[base_v], tip_point,
+    return LeafMeasurement(traits, thickness, base_point, tip_point,
                            slab.v[sides.nodes[midrib_idx]],
                            {"rim_length_mm": rim_length, "outline": outline_kind,
                             "border_length_mm": slab.border_length,
-                            "tip_extension_mm": tip_extension_mm, "lost_tip_mm": taper_mm,
-                            "lost_base_mm": base_taper_mm})
+                            "tip_extension_mm": tip_extension_mm, **ends})
+
+
+def _end_corrections(extent: np.ndarray, seen_mm: float, p: LeafScales
+                     ) -> tuple[float, float, float, dict[str, float]]:
+    """What the leaf's two ends add to its length, perimeter and area (mm, mm, mm²): a tip
+    or a base the hull lost (``_lost_tip``), a stalk at the base that is not blade
+    (``_stalk``, negative); and those lengths by name."""
+    taper_mm = base_taper_mm = stalk_mm = stalk_area = 0.0
+    if p.tip_taper_mm > 0:
+        taper_mm = _lost_tip(extent, seen_mm, p.tip_taper_mm)
+    if p.stalk_width_mm > 0:
+        stalk_mm, stalk_area = _stalk(extent, seen_mm, p.stalk_width_mm)
+    if p.base_taper_mm > 0 and stalk_mm <= 0:  # the same taper read from the other end
+        base_taper_mm = _lost_tip(extent[::-1], seen_mm, p.base_taper_mm)
+    d_length, d_perimeter, d_area = -stalk_mm, -2.0 * stalk_mm, -stalk_area
+    for lost_width, lost_mm in ((p.tip_taper_mm, taper_mm), (p.base_taper_mm, base_taper_mm)):
+        d_length += lost_mm
+        d_perimeter += 2.0 * lost_mm  # both edges of the lost end
+        d_area += 0.5 * lost_width * lost_mm  # the lost triangle
+    return d_length, d_perimeter, d_area, {"lost_tip_mm": taper_mm, "lost_base_mm": base_taper_mm,
+                                           "stalk_mm": stalk_mm}
+
+
+def _along(points: np.ndarray, distance_mm: float) -> np.ndarray:
+    """The point ``distance_mm`` along the polyline ``points`` from its first point."""
+    run = np.concatenate([[0.0], np.cumsum(geo.row_norm(np.diff(points, axis=0)))])
+    return np.array([np.interp(distance_mm, run, points[:, k]) for k in range(3)])
+
+
+# the blade's base taper is fitted up to the first station this share of the leaf's width:
+# a blade widening with a rounded shoulder (its taper concave) would pull a longer fit's zero
+# toward the stalk
+STALK_RISE_SHARE = 0.5
+
+
+def _stalk(extent: np.ndarray, length_mm: float, stalk_width_mm: float) -> tuple[float, float]:
+    """Length and area of a stalk at the leaf's base (0, 0 without one).
+
+    ``extent`` is the leaf's width at stations from base to tip, ``length_mm`` long in all.
+    The blade begins at the first two stations at least ``stalk_width_mm`` wide; its base
+    taper (those stations up to the first at ``STALK_RISE_SHARE`` of the leaf's width) is
+    fitted with a straight line, and the blade's base is where the line reaches zero width,
+    between the measured base and the blade's first station.  What lies before it is
+    stalk: a leaflet's petiolule, narrower than any blade station, carried by the label.
+    A blade that widens from its first station has no stalk.
+    """
+    n = len(extent)
+    wide = extent >= stalk_width_mm
+    starts = np.flatnonzero(wide[:-1] & wide[1:])
+    if n < 3 or not len(starts) or starts[0] == 0:
+        return 0.0, 0.0
+    first, step = int(starts[0]), length_mm / n
+    x = (np.arange(n) + 1.0) * step  # a station's extent is its widest: on a rise, its end
+    width = float(np.percentile(extent[extent > 0], 95))
+    risen = np.flatnonzero(extent[first:] >= STALK_RISE_SHARE * width)
+    rise = np.arange(first, first + (int(risen[0]) if len(risen) else n - first) + 1)
+    rise = rise[rise < n]
+    base_mm = first * step  # no fit: the blade's first station's start
+    if len(rise) >= 2:
+        slope, offset = np.polyfit(x[rise], extent[rise], 1)
+        if slope > 0:
+            base_mm = -offset / slope
+    base_mm = float(np.clip(base_mm, 0.0, x[first]))
+    stalk = x <= base_mm
+    return base_mm, float(np.sum(extent[stalk]) * step)
 
 
 def _closed_slab(mesh: Mesh, p: LeafScales) -> _Slab:
