@@ -145,12 +145,20 @@ class LeafGeometryParams(StageParams):
                     "(docs/leaves.md, \"Stalks\"; 2.5 at the branched family's 1296x864 and "
                     "512^3); 0: off")
     outline_offset_units: float = Field(
-        0.0, ge=0,
+        0.0, ge=-10.0, le=10.0,
         description="mesh units by which the hull's outline of a thin leaf lies inside the "
                     "leaf's (what is left after the mesher's thin rims): the area gains "
                     "this band along the seen outline (0.1 at the grass family's 1296x864 "
                     "and 512^3, chosen on its virtual twin's development plants; "
-                    "docs/leaves.md, \"Outline offset\"); 0: off")
+                    "docs/leaves.md, \"Outline offset\"); negative where the outline lies "
+                    "outside (a band of phantom volume the views cannot carve around leaves "
+                    "lying low in a dense rosette): the area loses the band; 0: off")
+    width_offset_units: float = Field(
+        0.0, ge=-10.0, le=10.0,
+        description="the same for the width: mesh units by which each side of the hull's "
+                    "outline lies inside the leaf's at its widest (the width gains twice "
+                    "this), negative where it lies outside (-2 at the rosette family's "
+                    "1296x864 and 512^3; docs/leaves.md, \"Outline offset\"); 0: off")
     min_plant_views: int = Field(
         0, ge=0, description="plant views this recipe's plants need (the family's protocol): "
                              "fewer flag the plant 'check', fewer than half 'fail' "
@@ -183,7 +191,7 @@ class LeafGeometryParams(StageParams):
             self.graph_spacing_units * u, u, self.width_stations, self.graph_points_per_size,
             self.rim_correction, self.min_leaf_faces, self.tip_taper_units * u,
             self.base_taper_units * u, self.outline_offset_units * u,
-            self.stalk_width_units * u)
+            self.stalk_width_units * u, self.width_offset_units * u)
 
 
 @dataclass(frozen=True)
@@ -204,6 +212,7 @@ class LeafScales:
     base_taper_mm: float = 0.0
     outline_offset_mm: float = 0.0
     stalk_width_mm: float = 0.0
+    width_offset_mm: float = 0.0
 
 
 @dataclass
@@ -417,6 +426,7 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
                            rim_excess, p)
     seen_mm = geo.polyline_length(mid_pts) + tip_extension_mm
     d_length, d_perimeter, d_area, ends = _end_corrections(extent, seen_mm, p)
+    width = max(width + 2.0 * p.width_offset_mm, 0.0)  # the outline's offset on both sides
     traits = LeafTraits(leaf_id, float(length + d_length), float(width), area + d_area,
                         perimeter + d_perimeter)
     base_v, tip_v = sides.nodes[base], sides.nodes[tip]

@@ -414,6 +414,30 @@ def test_the_outline_offset_adds_its_band_to_the_area_alone():
         assert getattr(off.traits, name) == getattr(plain.traits, name)
 
 
+def test_a_band_of_phantom_volume_around_the_leaf_is_taken_off():
+    """Negative offsets (the rosette's): a leaf whose hull outline lies 0.8 mm outside it
+    all round (here a slab 0.8 mm larger on both semi-axes) measures the leaf's own area and
+    width with ``outline_offset_units`` and ``width_offset_units`` at -0.8 mm; length and
+    perimeter stay as measured."""
+    leaf, band = ph.EllipseLeaf(40.0, 12.0), 0.8
+    grown = ph.EllipseLeaf(40.0 + band, 12.0 + band)
+    mesh = ph.mesh_field(ph.ellipse_slab_field(grown.a, grown.b, 1.0), (-44, -15, -3),
+                         (44, 15, 3), 0.4)
+    u = geo.mesh_unit(mesh.vertices, mesh.faces)
+    plain = measure_leaf(mesh, 1, LeafGeometryParams())
+    off = measure_leaf(mesh, 1, LeafGeometryParams(outline_offset_units=-band / u,
+                                                   width_offset_units=-band / u))
+    # without them, the grown leaf (+6 % area, +7 % width); with them, the leaf's own within
+    # the slab's tolerances (2 % width; area 1.5 % plus 1 %: the band along the grown
+    # ellipse's outline, 0.8 x 180 mm, is ~0.7 % larger than the ring it grew by)
+    assert _rel(plain.traits.area_mm2, leaf.area_mm2) > 0.05, plain.traits
+    assert _rel(plain.traits.width_mm, leaf.width_mm) > 0.05, plain.traits
+    assert _rel(off.traits.area_mm2, leaf.area_mm2) < 0.025, off.traits
+    assert _rel(off.traits.width_mm, leaf.width_mm) < 0.02, off.traits
+    for name in ("length_mm", "perimeter_mm"):
+        assert getattr(off.traits, name) == getattr(plain.traits, name)
+
+
 def test_a_stalk_at_the_base_is_not_blade():
     # a leaflet (a blade 60 mm long, 16 mm wide, widening over its first 15 mm) carried on
     # a 12 mm stalk 1.6 mm across (its petiolule, which the segmentation left on it): with
