@@ -59,7 +59,7 @@ _DEV = {"dicot": list(range(20)), "grass": list(range(10)), "branched": list(ran
 # (session 27: the rosette model retrained on the rosette recipe's plant-only masks, 10 dev
 # plants; the all-family model keeps the rosettes 0-5 of the lab-shadow recipe it saw)
 # (session 28: the rosette model retrained on the same 10 dev plants measured with the
-# negative outline and width offsets)
+# negative outline and width offsets and the outline smoothed over 12 units)
 # (session 28: the branched model retrained on the recipe's stalk and tip measurement, 28 dev
 # plants; the all-family model keeps the 14 it was trained on)
 SHIPPED = {"trust_model_grass.json.gz": {"grass": _DEV["grass"]},
