@@ -819,6 +819,17 @@ def smoothing_shrinkage(points: np.ndarray, sigma_mm: float, closed: bool = Fals
     return float(np.sum(true_arc * (1.0 - np.exp(-0.5 * (sigma_mm / radius) ** 2))))
 
 
+def arclength(points: np.ndarray) -> np.ndarray:
+    """(N,) distance along the polyline ``points`` from its first point to each point."""
+    return np.concatenate([[0.0], np.cumsum(row_norm(np.diff(points, axis=0)))])
+
+
+def points_at(points: np.ndarray, s: np.ndarray, t) -> np.ndarray:
+    """The points at arclengths ``t`` along ``points`` (``s``: their ``arclength``),
+    linearly between vertices."""
+    return np.stack([np.interp(t, s, points[:, k]) for k in range(3)], axis=-1)
+
+
 def smooth_polyline(points: np.ndarray, sigma_mm: float, closed: bool = False) -> np.ndarray:
     """Gaussian smoothing of a polyline by arclength (ends kept when open).
 
@@ -830,15 +841,14 @@ def smooth_polyline(points: np.ndarray, sigma_mm: float, closed: bool = False) -
 
     if len(points) < 3 or sigma_mm <= 0:
         return points
-    seg = row_norm(np.diff(points, axis=0))
-    s = np.concatenate([[0.0], np.cumsum(seg)])
+    s = arclength(points)
     total = s[-1]
     if total <= 1e-9 * sigma_mm:  # a polyline of coincident points: nothing to smooth
         return points
     step = min(sigma_mm / 4.0, total / 8.0)
     n = max(int(np.ceil(total / step)) + 1, 4)
     t = np.linspace(0.0, total, n)
-    res = np.stack([np.interp(t, s, points[:, k]) for k in range(3)], axis=1)
+    res = points_at(points, s, t)
     # Beyond a few times the curve's own length a wider kernel changes nothing (the curve
     # is already flattened to its mean) but its size: cap it so a ~1e-7 mm curve cannot ask
     # scipy for a 1e15-sample kernel (seen on a hull leaf).

@@ -430,7 +430,9 @@ def measure_leaf(mesh: Mesh, leaf_id: int, params: LeafGeometryParams,
     traits = LeafTraits(leaf_id, float(length + d_length), float(width), area + d_area,
                         perimeter + d_perimeter)
     base_v, tip_v = sides.nodes[base], sides.nodes[tip]
-    base_point = slab.v[base_v] if ends["stalk_mm"] <= 0 else _along(mid_pts, ends["stalk_mm"])
+    base_point = slab.v[base_v]
+    if ends["stalk_mm"] > 0:  # the blade's base, up the midrib past the stalk
+        base_point = geo.points_at(mid_pts, geo.arclength(mid_pts), ends["stalk_mm"])
     tip_point = slab.v[tip_v] if ext_tip is None else ext_tip
     return LeafMeasurement(traits, thickness, base_point, tip_point,
                            slab.v[sides.nodes[midrib_idx]],
@@ -458,12 +460,6 @@ def _end_corrections(extent: np.ndarray, seen_mm: float, p: LeafScales
         d_area += 0.5 * lost_width * lost_mm  # the lost triangle
     return d_length, d_perimeter, d_area, {"lost_tip_mm": taper_mm, "lost_base_mm": base_taper_mm,
                                            "stalk_mm": stalk_mm}
-
-
-def _along(points: np.ndarray, distance_mm: float) -> np.ndarray:
-    """The point ``distance_mm`` along the polyline ``points`` from its first point."""
-    run = np.concatenate([[0.0], np.cumsum(geo.row_norm(np.diff(points, axis=0)))])
-    return np.array([np.interp(distance_mm, run, points[:, k]) for k in range(3)])
 
 
 # the blade's base taper is fitted up to the first station this share of the leaf's width:
