@@ -97,8 +97,9 @@ class PlantContext:
     extents: dict[int, float]
 
 
-def plant_context(labelled, leaf_ids: list[int]) -> PlantContext:
-    """``PlantContext`` of ``labelled`` for the leaves ``leaf_ids``."""
+def plant_context(labelled, leaf_ids: list[int], stem: tuple | None = None) -> PlantContext:
+    """``PlantContext`` of ``labelled`` for the leaves ``leaf_ids``; ``stem``:
+    ``measure.stem_faces_and_tree(labelled)`` when the caller has it."""
     from plantscan_leaves import geometry as geo
     from plantscan_leaves.measure import stem_faces_and_tree
 
@@ -107,7 +108,7 @@ def plant_context(labelled, leaf_ids: list[int]) -> PlantContext:
     z0, z1 = float(v[:, 2].min()), float(v[:, 2].max())
     kinds = labelled.kinds
     labels = labelled.face_labels
-    on_stem_face, stem_tree = stem_faces_and_tree(labelled)
+    on_stem_face, stem_tree = stem if stem is not None else stem_faces_and_tree(labelled)
     if stem_tree is not None:
         axis = v[mesh.faces[on_stem_face].ravel()][:, :2].mean(axis=0)
     else:
