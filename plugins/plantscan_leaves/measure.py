@@ -1327,21 +1327,15 @@ def _measure_parts(labelled: LabelledMesh, leaf_labels: list[int], p: LeafGeomet
     # the stem's k-d tree the trust model's plant context reuses) and the stem's and
     # debris' areas; then the leaves largest first, so that no big leaf is left alone on
     # one core at the end, with the trust model's plant context (needed only after them)
-    # half-way (rosette 1001, 2.9 M faces: the leaves start about 0.5 s sooner than when
-    # the context went first and the first leaf found the hints).  Results come back in
-    # the leaves' order.
-    order = sorted(range(len(leaf_labels)), key=lambda i: -leaf_meshes.face_count(leaf_labels[i]))
-    leaves = [leaf_labels[i] for i in order]
-    half = len(leaves) // 2
-    context = ["context"] if p.trust_model else []
-    done_sorted = thread_map(task, ["geometry", "plant", *leaves[:half], *context,
-                                    *leaves[half:]])
-    results = done_sorted[2:2 + half] + done_sorted[2 + half + len(context):]
-    done: list = [None] * len(leaf_labels)
-    for i, result in zip(order, results):
-        done[i] = result
-    plant = (done_sorted[1], done_sorted[2 + half] if context else None)
-    return done_sorted[0], plant, done
+    # half-way (rosette 1001, 2.9 M faces: measure 5.6-5.8 s wall against 5.9 s when the
+    # context went first and the first leaf found the hints).  Results come back in the
+    # leaves' order.
+    order = sorted(leaf_labels, key=lambda leaf: -leaf_meshes.face_count(leaf))
+    half = len(order) // 2
+    items = ["geometry", "plant", *order[:half], *(["context"] if p.trust_model else []),
+             *order[half:]]
+    out = dict(zip(items, thread_map(task, items)))  # leaf labels are ints, the rest names
+    return out["geometry"], (out["plant"], out.get("context")), [out[k] for k in leaf_labels]
 
 
 class _Once:
