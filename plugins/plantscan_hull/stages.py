@@ -287,6 +287,13 @@ class MarchingCubesMesher(Mesher):
         p = self.params
         if p.pot == "auto":
             cylinders = fit_pot(volume)
+            if not cylinders:
+                self.report.warn(
+                    "no-pot", "pot: auto found no pot at the bottom of the hull (no run of "
+                    "disc-like slices); if the plant stands in a pot, the pot is in the mesh, "
+                    "in the plant's height and perhaps as a leaf: give the pot's tapered "
+                    "cylinders (pot: [{z_bottom_mm, z_top_mm, r_bottom_mm, r_top_mm}]), or "
+                    "pot: none if there is none")
         elif p.pot == "none":
             cylinders = []
         else:

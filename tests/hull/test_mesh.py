@@ -304,6 +304,7 @@ def test_auto_pot_fit_and_removal(potted_volume):
     assert c.r_bottom_mm == pytest.approx(POT.r0, abs=1.5 * s + 0.04 * POT.r0)
     mesher = MarchingCubesMesher(MarchingCubesMesher.Params(pot="auto"))
     mesh = mesher.mesh(potted_volume)
+    assert not mesher.report.warnings_about(code="no-pot")
     assert topology_report(mesh)["watertight"]
     v = mesh.vertices
     rho = np.hypot(v[:, 0], v[:, 1])
@@ -316,6 +317,23 @@ def test_auto_pot_fit_and_removal(potted_volume):
     assert sphere_top == pytest.approx(17.0, abs=1.5 * s)
     leaf = (v[:, 0] > 30) & (v[:, 2] < -10)
     assert leaf.sum() > 20
+
+
+def test_auto_pot_finding_no_pot_says_so():
+    # A hull with no pot at its bottom (a slab 30 x 10 x 10 mm: no slice is disc-like):
+    # nothing is removed, and the user is told that a pot, if there is one, stays in the mesh
+    # (its height, perhaps a leaf), and how to give it or to say there is none.
+    xs = np.arange(-20.0, 21.0)
+    x, y, z = np.meshgrid(xs, xs, xs, indexing="ij")
+    inside = np.minimum(np.minimum(15.0 - np.abs(x), 5.0 - np.abs(y)), 5.0 - np.abs(z))
+    slab = Volume(np.clip(inside, -1, 1).astype(np.float32), np.full(3, -20.0), 1.0)
+    mesher = MarchingCubesMesher(MarchingCubesMesher.Params(pot="auto"))
+    mesher.mesh(slab)
+    (w,) = mesher.report.warnings_about(code="no-pot")
+    assert "pot: none" in w.message and "height" in w.message
+    quiet = MarchingCubesMesher(MarchingCubesMesher.Params(pot="none"))
+    quiet.mesh(slab)
+    assert not quiet.report.warnings
 
 
 def test_auto_pot_fit_survives_speckled_silhouettes(potted_volume):
