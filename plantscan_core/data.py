@@ -865,11 +865,16 @@ class Mesh:
         field says (``marching-cubes``' ``thin_rims: measure``): the segmenter labels the
         faces on ``vertices``, the measurer measures them on these (docs/reconstruction.md,
         "Thin rims").  None: measure on ``vertices``.
+    base_z_mm : float or None
+        Height (mm, turntable frame) of the plant's base where the mesher cut the pot
+        away: the pot's rim.  The plant's height is measured from it (drooping leaves
+        hang below the rim).  None: no pot removed; the height is the vertical extent.
     """
 
     vertices: np.ndarray
     faces: np.ndarray
     rim_vertices: np.ndarray | None = None
+    base_z_mm: float | None = None
 
     def __post_init__(self) -> None:
         self.vertices = np.asarray(self.vertices, dtype=np.float64).reshape(-1, 3)
@@ -882,7 +887,8 @@ class Mesh:
 
     def measured(self) -> Mesh:
         """The surface the measurer measures: ``rim_vertices`` when the mesher gave them."""
-        return self if self.rim_vertices is None else Mesh(self.rim_vertices, self.faces)
+        return self if self.rim_vertices is None else Mesh(self.rim_vertices, self.faces,
+                                                           base_z_mm=self.base_z_mm)
 
     @property
     def is_empty(self) -> bool:
@@ -938,16 +944,22 @@ class Mesh:
     @classmethod
     def load(cls, path: Path) -> Mesh:
         with np.load(Path(path)) as z:
-            return cls(z["vertices"], z["faces"], _rim_of(z))
+            return _mesh_of(z)
 
 
 def _rim_arrays(mesh: Mesh) -> dict[str, np.ndarray]:
-    """``rim_vertices`` for an ``.npz`` (absent when the mesh has none)."""
-    return {} if mesh.rim_vertices is None else {"rim_vertices": mesh.rim_vertices}
+    """``rim_vertices`` and ``base_z_mm`` for an ``.npz`` (absent when the mesh has none)."""
+    out = {} if mesh.rim_vertices is None else {"rim_vertices": mesh.rim_vertices}
+    if mesh.base_z_mm is not None:
+        out["base_z_mm"] = np.array(float(mesh.base_z_mm))
+    return out
 
 
-def _rim_of(z) -> np.ndarray | None:
-    return z["rim_vertices"] if "rim_vertices" in z else None  # files before the field: none
+def _mesh_of(z) -> Mesh:
+    """The mesh of an ``.npz`` written with ``_rim_arrays`` (files before a field: none)."""
+    return Mesh(z["vertices"], z["faces"],
+                z["rim_vertices"] if "rim_vertices" in z else None,
+                float(z["base_z_mm"]) if "base_z_mm" in z else None)
 
 
 def _compact_indices(faces: np.ndarray) -> np.ndarray:
@@ -1020,8 +1032,7 @@ class LabelledMesh:
             kinds = {int(k): LABEL_KINDS[int(v)] for k, v in z["kinds"]}
             evidence = ({int(k): v for k, v in json.loads(str(z["evidence"])).items()}
                         if "evidence" in z else {})  # files before the field have none
-            return cls(Mesh(z["vertices"], z["faces"], _rim_of(z)), z["face_labels"], kinds,
-                       evidence)
+            return cls(_mesh_of(z), z["face_labels"], kinds, evidence)
 
 
 # --------------------------------------------------------------------------- traits
@@ -1172,8 +1183,10 @@ def _plant(name: str, unit: str, description: str, **info: Any) -> TraitColumn:
 
 
 PLANT_TRAITS: tuple[TraitColumn, ...] = (
-    _plant("height_mm", "mm", "plant height: vertical extent of the reconstructed plant, pot "
-           "removed", method="highest minus lowest point of the plant surface"),
+    _plant("height_mm", "mm", "plant height: highest point of the plant above the pot's rim "
+           "(the vertical extent when no pot was removed)",
+           method="highest point of the plant surface minus the rim of the pot the mesher "
+                  "removed, or minus the lowest point"),
     _plant("total_leaf_area_mm2", "mm2", "sum of the one-sided areas of the leaves found",
            method=_FLAT, decimals=0),
     _plant("leaf_count", "1", "number of leaves found", decimals=0),

@@ -330,6 +330,8 @@ class MarchingCubesMesher(Mesher):
             if undo:
                 restore(own, undo)
         mesh = postprocess(mesh, p.smooth_iterations, p.target_faces)
+        if cylinders:  # the plant's height is from the pot's rim, not its lowest drooping leaf
+            mesh.base_z_mm = float(max(c.z_top_mm for c in cylinders))
         report = {"pot": [c.model_dump() for c in cylinders], "pot_mode": p.pot
                   if isinstance(p.pot, str) else "given", "pot_margin_mm": margin,
                   "pot_voxels_removed": removed,

@@ -354,7 +354,8 @@ def evaluate_traits(run_dir: Path, truth_dir: Path) -> dict[str, Any] | None:
     said = {lf.leaf_id for lf in measured.leaves if warned(lf)}
     unwarned = [p for p in m["pairs"] if p[1] not in said]
     quiet = trait_errors(truth, measured, unwarned)["mean_relative_error"]
-    plant = plant_errors(run_dir / "plant_traits.json", truth_dir / "plant_traits.json")
+    plant = plant_errors(run_dir / "plant_traits.json", truth_dir / "plant_traits.json",
+                         from_rim=labelled.mesh.base_z_mm is not None)
     counts = instance_counts(m, measured)
     return {
         "traits": {
@@ -382,18 +383,23 @@ def evaluate_traits(run_dir: Path, truth_dir: Path) -> dict[str, Any] | None:
 PLANT_TRAITS = ("height_mm", "total_leaf_area_mm2", "leaf_count")
 
 
-def plant_errors(measured_path: Path, truth_path: Path) -> dict[str, Any] | None:
+def plant_errors(measured_path: Path, truth_path: Path,
+                 from_rim: bool = False) -> dict[str, Any] | None:
     """Plant-level traits against the truth: measured, truth and relative error of each.
 
-    The truth's height is from the soil; a hull cannot see the soil inside an
-    opaque pot, so the measured height (the mesh's vertical extent) starts at
-    the pot cut, at the rim: expect it short by the soil's depth below the rim.
+    The truth's ``height_mm`` is from the soil, which a hull cannot see inside an opaque
+    pot.  ``from_rim``: the measured height is above the pot's rim (the mesher removed a
+    pot), so it is compared with the truth's top above the truth pot's rim (``pot.yaml``
+    beside ``truth_path``; without it, with the height from the soil).
     """
     try:
         measured = json.loads(measured_path.read_text())
         truth = json.loads(truth_path.read_text())
     except (OSError, ValueError):
         return None
+    rim = _truth_rim_z(truth_path.parent / "pot.yaml") if from_rim else None
+    if rim is not None and "top_z_mm" in truth:
+        truth = {**truth, "height_mm": truth["top_z_mm"] - rim}
     out: dict[str, Any] = {}
     for name in PLANT_TRAITS:
         if name in measured and name in truth and truth[name]:
@@ -401,3 +407,13 @@ def plant_errors(measured_path: Path, truth_path: Path) -> dict[str, Any] | None
                          "error": measured[name] - truth[name],
                          "relative_error": (measured[name] - truth[name]) / truth[name]}
     return out or None
+
+
+def _truth_rim_z(pot_path: Path) -> float | None:
+    """The truth pot's rim height (mm) from the virtual scanner's ``pot.yaml``, or None."""
+    try:
+        import yaml
+
+        return float(yaml.safe_load(pot_path.read_text())["pot"]["z_top_mm"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None

@@ -1169,7 +1169,8 @@ def plant_traits(mesh: Mesh, leaves: list[LeafTraits], pixel_mm: float | None = 
                  geometry: dict[str, float] | None = None) -> dict[str, float]:
     """Plant-level traits of the whole mesh (stem and leaves).
 
-    ``height_mm`` (vertical extent), ``total_leaf_area_mm2``, ``leaf_count``,
+    ``height_mm`` (above the pot's rim, ``mesh.base_z_mm``; without it the vertical
+    extent), ``total_leaf_area_mm2``, ``leaf_count``,
     ``convex_hull_volume_mm3`` and ``projected_area_mm2`` (area of the top
     view shadow, rasterised at ``pixel_mm``; default a quarter of the mesh unit).
     ``geometry``: ``plant_geometry(mesh, pixel_mm)`` when the caller has it.
@@ -1191,7 +1192,8 @@ def plant_geometry(mesh: Mesh, pixel_mm: float | None = None) -> dict[str, float
     if mesh.is_empty:
         return out
     v = mesh.vertices
-    out["height_mm"] = float(v[:, 2].max() - v[:, 2].min())
+    base = v[:, 2].min() if mesh.base_z_mm is None else mesh.base_z_mm
+    out["height_mm"] = float(v[:, 2].max() - base)
     pixel_mm = pixel_mm or PROJECTION_PIXEL_UNITS * geo.mesh_unit(v, mesh.faces)
     try:
         from scipy.spatial import ConvexHull

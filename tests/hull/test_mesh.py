@@ -220,6 +220,13 @@ def test_thin_rims_for_measuring_keep_the_mesh_and_carry_the_rims(tmp_path):
     labelled.save(tmp_path / "labelled.npz")
     np.testing.assert_array_equal(LabelledMesh.load(tmp_path / "labelled.npz").mesh.rim_vertices,
                                   snapped.vertices)
+    # the pot's rim, where the plant's height starts, is kept by both files too
+    both.base_z_mm = 3.25
+    both.save(tmp_path / "mesh.npz")
+    assert Mesh.load(tmp_path / "mesh.npz").base_z_mm == 3.25
+    assert both.measured().base_z_mm == 3.25
+    LabelledMesh(both, np.zeros(len(both.faces)), {0: "leaf"}).save(tmp_path / "labelled.npz")
+    assert LabelledMesh.load(tmp_path / "labelled.npz").mesh.base_z_mm == 3.25
     with pytest.raises(ValueError, match="rim_vertices has 3 rows"):
         Mesh(plain.vertices, plain.faces, plain.vertices[:3])
 
@@ -305,6 +312,9 @@ def test_auto_pot_fit_and_removal(potted_volume):
     mesher = MarchingCubesMesher(MarchingCubesMesher.Params(pot="auto"))
     mesh = mesher.mesh(potted_volume)
     assert not mesher.report.warnings_about(code="no-pot")
+    # the plant's base, for its height, is the rim (the leaf over the rim droops below it)
+    assert mesh.base_z_mm == pytest.approx(POT.z1, abs=1.5 * s)
+    assert mesh.vertices[:, 2].min() < mesh.base_z_mm - 5.0
     assert topology_report(mesh)["watertight"]
     v = mesh.vertices
     rho = np.hypot(v[:, 0], v[:, 1])
@@ -332,7 +342,7 @@ def test_auto_pot_finding_no_pot_says_so():
     (w,) = mesher.report.warnings_about(code="no-pot")
     assert "pot: none" in w.message and "height" in w.message
     quiet = MarchingCubesMesher(MarchingCubesMesher.Params(pot="none"))
-    quiet.mesh(slab)
+    assert quiet.mesh(slab).base_z_mm is None  # no pot removed: no base, height = extent
     assert not quiet.report.warnings
 
 

@@ -161,6 +161,11 @@ def test_no_leaf_label_gives_empty_traits(caplog):
         traits, _, _ = measure_plant(LabelledMesh(mesh, np.zeros(len(mesh.faces)), {0: "stem"}))
     assert traits.leaves == [] and "no leaf" in caplog.text
     assert traits.plant["height_mm"] == pytest.approx(61.0, abs=1.5)  # the stem still counts
+    # A plant whose pot the mesher removed is measured from the pot's rim (here 20 mm up the
+    # stem, as a leaf drooping 20 mm below the rim would leave it): the top minus the rim.
+    mesh.base_z_mm = 20.0
+    traits, _, _ = measure_plant(LabelledMesh(mesh, np.zeros(len(mesh.faces)), {0: "stem"}))
+    assert traits.plant["height_mm"] == pytest.approx(41.0, abs=1.5)
 
 
 def test_leaf_label_without_faces_is_skipped_not_fatal():

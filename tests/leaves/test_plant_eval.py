@@ -21,6 +21,21 @@ def test_plant_errors_compare_each_trait(tmp_path):
     assert set(out) == {"height_mm", "total_leaf_area_mm2", "leaf_count"}  # shared traits only
 
 
+def test_plant_height_from_the_rim_is_compared_with_the_truth_above_its_rim(tmp_path):
+    # The mesher removed the pot: the measured height is above the rim, so the truth's is
+    # taken above the truth pot's rim (pot.yaml beside the truth), not from the soil below it.
+    (tmp_path / "m.json").write_text(json.dumps({"height_mm": 139.0}))
+    (tmp_path / "t.json").write_text(json.dumps(
+        {"height_mm": 148.0, "top_z_mm": 290.0, "soil_z_mm": 142.0}))
+    (tmp_path / "pot.yaml").write_text("pot: {z_bottom_mm: 30, z_top_mm: 150, r_bottom_mm: 52, "
+                                       "r_top_mm: 68, soil_z_mm: 142}\n")
+    out = plant_errors(tmp_path / "m.json", tmp_path / "t.json", from_rim=True)
+    assert out["height_mm"]["truth"] == pytest.approx(140.0)
+    assert out["height_mm"]["relative_error"] == pytest.approx(-1 / 140)
+    # without a pot removed the truth stays from the soil
+    assert plant_errors(tmp_path / "m.json", tmp_path / "t.json")["height_mm"]["truth"] == 148.0
+
+
 def test_plant_errors_absent_without_both_files(tmp_path):
     (tmp_path / "t.json").write_text("{}")
     assert plant_errors(tmp_path / "missing.json", tmp_path / "t.json") is None
