@@ -99,7 +99,7 @@ def _fmt(x, nd=1):
 def table(scan: Path, results: dict[str, dict]) -> str:
     head = ("| config | " + " | ".join(STAGES) + " | export | process total | command wall "
             "| CPU | peak RSS MB | leaves (found/truth, merged) | ε L / W / A / P % "
-            "| height % (truth: from the soil) |")
+            "| height % (both above the pot's rim when a pot was removed) |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for name, r in results.items():
         stages = " | ".join(f"{_fmt(r['stages_wall'][s])} ({_fmt(r['stages_cpu'][s])})"

@@ -515,7 +515,8 @@ def tabulate(plants: list[dict], leaves: list[dict]) -> str:
                  for n in TRAITS]
         out.append(f"| {f} | {s['leaves_matched']} | " + " | ".join(cells) + " |")
     out += ["", "Plant-level errors, |relative error| %, mean / median / 90th percentile "
-            "(height: the truth's is from the soil, the hull's from the pot cut at the rim); "
+            "(height: the top above the pot's rim, measured and truth, where the mesher removed "
+            "a pot; else the vertical extent against the truth's height from the soil); "
             "leaf count: share of plants exactly right, mean |error| in leaves; seconds per "
             "plant: processing (median wall, CPU; session calibration, renders excluded).", "",
             "| family | height | total leaf area | leaf count (exact %, mean abs) "
