@@ -939,7 +939,7 @@ class Mesh:
         Faces are stored as int32 when they fit (lossless; read back as int64).
         """
         np.savez(Path(path), vertices=self.vertices, faces=_compact_indices(self.faces),
-                 **_rim_arrays(self))
+                 **_optional_arrays(self))
 
     @classmethod
     def load(cls, path: Path) -> Mesh:
@@ -947,7 +947,7 @@ class Mesh:
             return _mesh_of(z)
 
 
-def _rim_arrays(mesh: Mesh) -> dict[str, np.ndarray]:
+def _optional_arrays(mesh: Mesh) -> dict[str, np.ndarray]:
     """``rim_vertices`` and ``base_z_mm`` for an ``.npz`` (absent when the mesh has none)."""
     out = {} if mesh.rim_vertices is None else {"rim_vertices": mesh.rim_vertices}
     if mesh.base_z_mm is not None:
@@ -956,7 +956,7 @@ def _rim_arrays(mesh: Mesh) -> dict[str, np.ndarray]:
 
 
 def _mesh_of(z) -> Mesh:
-    """The mesh of an ``.npz`` written with ``_rim_arrays`` (files before a field: none)."""
+    """The mesh of an ``.npz`` written with ``_optional_arrays`` (files before a field: none)."""
     return Mesh(z["vertices"], z["faces"],
                 z["rim_vertices"] if "rim_vertices" in z else None,
                 float(z["base_z_mm"]) if "base_z_mm" in z else None)
@@ -1022,7 +1022,7 @@ class LabelledMesh:
         evidence = json.dumps({str(k): v for k, v in self.evidence.items()})
         np.savez(Path(path), vertices=self.mesh.vertices, faces=_compact_indices(self.mesh.faces),
                  face_labels=self.face_labels, kinds=kinds, evidence=np.array(evidence),
-                 **_rim_arrays(self.mesh))
+                 **_optional_arrays(self.mesh))
 
     @classmethod
     def load(cls, path: Path) -> LabelledMesh:

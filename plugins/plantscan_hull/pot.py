@@ -221,14 +221,14 @@ def fit_pot(volume: Volume) -> list[TaperedCylinder]:
             k += 1
         if k - ks >= 3:
             run = np.arange(ks, k)
-            pieces = _pot_pieces(np.array([stats[int(kk)].r_eq for kk in run]), s)
+            r_eq = np.array([stats[int(kk)].r_eq for kk in run])
+            pieces = _pot_pieces(r_eq, s)
             if pieces:
                 break
             ks = k  # a later start in the same run ends at k with the same (no) pieces
         ks += 1
     if not pieces:
         return []
-    r_eq = np.array([stats[int(kk)].r_eq for kk in run])
     cylinders = []
     for n, piece in enumerate(pieces):
         slope, intercept = np.polyfit(z[run[piece]], r_eq[piece], 1)
