@@ -986,6 +986,18 @@ def components_reference(n: int, pairs: np.ndarray, keep: np.ndarray) -> np.ndar
     return lab
 
 
+def dilate_faces(mask: np.ndarray, pairs: np.ndarray, rings: int) -> np.ndarray:
+    """(n,) ``mask`` grown by ``rings`` rings of neighbours over ``pairs`` (P, 2); a copy."""
+    out = np.asarray(mask, bool).copy()
+    a, b = pairs[:, 0], pairs[:, 1]
+    for _ in range(rings):
+        grown = out.copy()
+        grown[a[out[b]]] = True
+        grown[b[out[a]]] = True
+        out = grown
+    return out
+
+
 _KEY_LOCK = threading.Lock()
 _KEY_SCOPES = [0]  # stages running inside ``meshes_unchanged``
 _KNOWN_KEYS: dict[tuple[int, int], tuple[bytes, np.ndarray, np.ndarray]] = {}

@@ -163,14 +163,18 @@ def pair_features(s: pc.PieceSurface, labels: np.ndarray, n: int) -> Pairs:
 
 
 def merge_pairs(labels: np.ndarray, n: int, pairs: Pairs, prob: np.ndarray,
-                threshold: float = MERGE_PROBABILITY
+                threshold: float = MERGE_PROBABILITY, parent: np.ndarray | None = None
                 ) -> tuple[np.ndarray, int, dict[int, tuple[int, float]], np.ndarray]:
     """Labels with the pairs at ``threshold`` or more merged, most likely first.
 
     Returns the new labels (0 stem, 1..n' leaves numbered in the order of their lowest old
     label, n' + 1 debris when there was debris), n', {new leaf: (old leaves merged into
     it, weakest merge probability)} and the new label of every old one (n + 2,).
+    ``parent`` (n + 1,): the leaf each old leaf was cut from by an earlier tentative split
+    (None: each its own); leaves of one parent merged count as one, and their merge is
+    not a join (the weakest probability is that of merges across parents, 1 when none).
     """
+    parent = np.arange(n + 1) if parent is None else np.asarray(parent)
     root = np.arange(n + 1)
 
     def find(i: int) -> int:
@@ -183,11 +187,13 @@ def merge_pairs(labels: np.ndarray, n: int, pairs: Pairs, prob: np.ndarray,
     for j in np.argsort(-prob, kind="stable"):
         if prob[j] < threshold:
             break
-        ra, rb = find(int(pairs.pairs[j, 0])), find(int(pairs.pairs[j, 1]))
+        a, b = int(pairs.pairs[j, 0]), int(pairs.pairs[j, 1])
+        ra, rb = find(a), find(b)
         if ra != rb:
             lo, hi = min(ra, rb), max(ra, rb)
             root[hi] = lo
-            weakest[lo] = min(weakest.get(lo, 1.0), weakest.pop(hi, 1.0), float(prob[j]))
+            join = float(prob[j]) if parent[a] != parent[b] else 1.0
+            weakest[lo] = min(weakest.get(lo, 1.0), weakest.pop(hi, 1.0), join)
     group = np.array([find(i) for i in range(n + 1)])
     firsts = np.unique(group[1:])
     new_of_group = {int(g): i + 1 for i, g in enumerate(firsts)}
@@ -197,7 +203,8 @@ def merge_pairs(labels: np.ndarray, n: int, pairs: Pairs, prob: np.ndarray,
     new[n + 1] = n_new + 1  # debris keeps its place after the leaves
     lab = np.where(labels > n, n + 1, labels).astype(np.int64)
     counts = np.bincount(group[1:], minlength=n + 1)
-    merged = {new_of_group[int(g)]: (int(counts[g]), weakest.get(int(g), 1.0))
+    merged = {new_of_group[int(g)]: (len(set(parent[1:][group[1:] == g].tolist())),
+                                     weakest.get(int(g), 1.0))
               for g in firsts if counts[g] > 1}
     return new[lab], n_new, merged, new
 

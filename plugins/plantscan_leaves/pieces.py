@@ -290,7 +290,8 @@ class Verdict:
     joined: dict[int, tuple[int, float]]
 
 
-def apply_verdict(labels: np.ndarray, pieces: Pieces, prob: np.ndarray) -> Verdict:
+def apply_verdict(labels: np.ndarray, pieces: Pieces, prob: np.ndarray,
+                  parent: np.ndarray | None = None) -> Verdict:
     """New labels from the class probabilities ``prob`` (n, 3) of the pieces of ``labels``.
 
     Each piece takes its most likely class, except that a piece thicker than
@@ -300,9 +301,13 @@ def apply_verdict(labels: np.ndarray, pieces: Pieces, prob: np.ndarray) -> Verdi
     itself).  A ``join`` piece joins its partner unless the partner is debris or it has
     none in reach; then it is whichever of leaf and debris is more likely.  Joined
     groups (a leaf and the fragments joined to it, or fragments joined to each other)
-    are one leaf each, numbered in the order of their lowest piece.
+    are one leaf each, numbered in the order of their lowest piece.  ``parent`` (n + 1,):
+    the leaf each piece was before a tentative split (None: each its own); pieces of one
+    parent joined count as one, and their join undoes the split: ``joined`` counts the
+    parents and keeps the weakest join across parents (1 when there is none).
     """
     n = len(pieces.area)
+    parent = np.arange(n + 1) if parent is None else np.asarray(parent)
     cls = prob.argmax(axis=1) if n else np.zeros(0, np.int64)
     # thicker than THICK_TIMES the plant's pieces is no blade (trees do not extrapolate to a
     # lump thicker than any they were shown; dev seeds 0-7: every leaf piece under 2.7x)
@@ -335,9 +340,12 @@ def apply_verdict(labels: np.ndarray, pieces: Pieces, prob: np.ndarray) -> Verdi
         n_leaves += 1
         members = np.flatnonzero((group[1:] == g) & (cls != DEBRIS))
         new[members + 1] = n_leaves
-        if len(members) > 1:
+        parents = len(set(parent[members + 1].tolist()))
+        if parents > 1:
             fragments = members[cls[members] == JOIN]
-            joined[n_leaves] = (len(members), float(prob[fragments, JOIN].min()))
+            across = fragments[parent[fragments + 1] != parent[target[fragments]]]
+            joined[n_leaves] = (parents, float(prob[across, JOIN].min()) if len(across)
+                                else 1.0)
     debris = bool((cls == DEBRIS).any())
     new[np.flatnonzero(cls == DEBRIS) + 1] = n_leaves + 1
     return Verdict(new[labels], n_leaves, debris, cls, joined)
@@ -445,16 +453,16 @@ def read_model(path: str | None, default: str, feature_names: tuple[str, ...], w
     return lgb.Booster(model_str=body["booster"]), body
 
 
-def judge(s: PieceSurface, labels: np.ndarray, n: int, model) -> tuple[Verdict, Pieces,
-                                                                        np.ndarray]:
+def judge(s: PieceSurface, labels: np.ndarray, n: int, model,
+          parent: np.ndarray | None = None) -> tuple[Verdict, Pieces, np.ndarray]:
     """Judge leaves 1..n of ``labels``: the verdict, the pieces and their probabilities.
 
     ``model`` has ``probabilities(pieces) -> (n, 3)`` (a ``PieceModel``; training passes
-    one that records the pieces).
+    one that records the pieces); ``parent``: as ``apply_verdict``'s.
     """
     pieces = piece_features(s, labels, n)
     prob = model.probabilities(pieces)
-    return apply_verdict(labels, pieces, prob), pieces, prob
+    return apply_verdict(labels, pieces, prob, parent), pieces, prob
 
 
 def verdict_labelled(mesh, verdict: Verdict):

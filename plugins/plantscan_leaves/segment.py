@@ -132,6 +132,13 @@ class CurvatureRegionsParams(StageParams):
         description="a leaf holding two big regions separated by creases sharper than this "
                     "(1/mm, below concave_curvature_per_mm) is split in two (touching "
                     "leaves); None: off")
+    split_crease_rings: int = Field(
+        0, ge=0, le=8,
+        description="the touching-leaf split (split_curvature_per_mm) widens the creases by "
+                    "this many rings of faces: two touching leaves whose crease has a gap (a "
+                    "few faces where the hull is smooth) come apart; a leaf it cuts that is "
+                    "one is joined back by the piece and pair judges, and that join is not "
+                    "counted as one (trust's rejoined); 0: the creases as they are")
     fork_branch_mm: float | None = Field(
         None, gt=0,
         description="a leaf whose surface forks, going out from where it meets the stem "
@@ -349,6 +356,9 @@ class _Labels:
     n_leaves: int = 0
     debris: bool = False
     evidence: dict = dataclasses.field(default_factory=dict)
+    # (F,) each face's leaf before the touching-leaf split at widened creases, when it split
+    # any (the judges' joins that only undo it are not joins of broken pieces)
+    split_from: np.ndarray | None = None
 
     def faces_from_regions(self) -> None:
         self.leaf_face, self.stem_face = self.leafy[self.regions], self.tube[self.regions]
@@ -517,8 +527,13 @@ def _touching_leaves_split(s: _Surface, lab: _Labels) -> None:
     p = s.p
     if p.split_curvature_per_mm is None or not lab.n_leaves:
         return
-    lab.out, n_split = _split_joined_leaves(lab.out, s.curvature < -p.split_curvature_per_mm,
-                                            s.areas, s.pairs, p.min_leaf_area_mm2)
+    crease = geo.dilate_faces(s.curvature < -p.split_curvature_per_mm, s.pairs,
+                              p.split_crease_rings)
+    before = lab.out
+    lab.out, n_split = _split_joined_leaves(lab.out, crease, s.areas, s.pairs,
+                                            p.min_leaf_area_mm2)
+    if n_split and p.split_crease_rings:
+        lab.split_from = before  # a tentative split: the judges may undo it
     s.report.counts["leaves_split"] = n_split
     lab.n_leaves = int(lab.out.max())
 
@@ -561,7 +576,8 @@ def _pieces_judged(s: _Surface, lab: _Labels) -> None:
     from plantscan_leaves import pieces
 
     model = s.piece_model or pieces.load_model(s.p.piece_model)
-    verdict, _, _ = pieces.judge(s.piece_surface, lab.out, lab.n_leaves, model)
+    verdict, _, _ = pieces.judge(s.piece_surface, lab.out, lab.n_leaves, model,
+                                 _split_parents(lab))
     for k, name in enumerate(pieces.CLASS_NAMES):
         s.report.counts[f"pieces_{name}"] = int(np.count_nonzero(verdict.verdict == k))
     lab.out = verdict.labels.astype(np.int32)
@@ -578,7 +594,8 @@ def _pairs_judged(s: _Surface, lab: _Labels) -> None:
     model = s.pair_model or pairs.load_model(s.p.pair_model)
     found = pairs.pair_features(s.piece_surface, lab.out, lab.n_leaves)
     prob = model.probabilities(found)
-    out, n, merged, new_of_old = pairs.merge_pairs(lab.out, lab.n_leaves, found, prob)
+    out, n, merged, new_of_old = pairs.merge_pairs(lab.out, lab.n_leaves, found, prob,
+                                                   parent=_split_parents(lab))
     s.report.counts["pairs_touching"] = len(found.pairs)
     s.report.counts["pairs_merged"] = lab.n_leaves - n
     evidence: dict[int, dict] = {}
@@ -588,12 +605,34 @@ def _pairs_judged(s: _Surface, lab: _Labels) -> None:
             if ev:
                 evidence[new] = ev
             continue
-        cur = evidence.setdefault(new, {"fragments": 0, "weakest_merge": merged[new][1]})
-        cur["fragments"] += int(ev.get("fragments", 1))
+        # the pieces: one per parent merged (``merge_pairs``), plus those joined before
+        cur = evidence.setdefault(new, {"fragments": merged[new][0],
+                                        "weakest_merge": merged[new][1]})
+        cur["fragments"] += int(ev.get("fragments", 1)) - 1
         cur["weakest_merge"] = round(min(cur["weakest_merge"], ev.get("weakest_merge", 1.0)), 4)
     lab.out = out.astype(np.int32)
+    lab.evidence = {k: ev for k, ev in evidence.items() if ev["fragments"] > 1}
     lab.n_leaves = n
-    lab.evidence = evidence
+
+
+def _split_parents(lab: _Labels) -> np.ndarray | None:
+    """(n + 1,) the leaf each leaf 1..n of ``lab.out`` was before the touching-leaf split at
+    widened creases (the one most of its faces were; None when it cut none): the judges'
+    joins among leaves of one parent undo that split and are no joins of their own."""
+    if lab.split_from is None:
+        return None
+    n = lab.n_leaves
+    on = (lab.out >= 1) & (lab.out <= n)
+    width = int(lab.split_from.max()) + 1
+    keys, counts = np.unique(lab.out[on].astype(np.int64) * width + lab.split_from[on],
+                             return_counts=True)
+    parent = np.arange(n + 1) + width  # a leaf with no faces: a parent of its own
+    most = np.zeros(n + 1, np.int64)
+    for key, c in zip(keys.tolist(), counts.tolist()):
+        leaf, was = divmod(key, width)
+        if c > most[leaf]:
+            most[leaf], parent[leaf] = c, was
+    return parent
 
 
 def _stem_parts_judged(s: _Surface, lab: _Labels) -> None:

@@ -86,6 +86,16 @@ def test_merge_rules():
     assert out.tolist() == [0, 1, 1, 1, 2, 3, 1]
     assert merged == {1: (3, pytest.approx(0.6))}
     assert new_of_old[1:5].tolist() == [1, 1, 1, 2]
+    # 1 and 2 were one leaf before a tentative split (parent 7): their merge undoes it, not
+    # a join; the leaf is two pieces (leaf 7 and leaf 3) and its one join is 2-3's 0.6
+    parent = np.array([0, 7, 7, 3, 4])
+    _, _, merged, _ = pr.merge_pairs(labels, 4, found, np.array([0.9, 0.6, 0.4]), parent=parent)
+    assert merged == {1: (2, pytest.approx(0.6))}
+    _, _, merged, _ = pr.merge_pairs(labels, 4, found, np.array([0.6, 0.9, 0.4]), parent=parent)
+    assert merged == {1: (2, pytest.approx(0.9))}  # the uncertain merge was the undo
+    # only the undo: one piece, nothing joined
+    _, _, merged, _ = pr.merge_pairs(labels, 4, found, np.array([0.6, 0.4, 0.4]), parent=parent)
+    assert merged == {1: (1, 1.0)}
 
 
 def test_the_judge_merges_in_the_segmenter_and_says_so():

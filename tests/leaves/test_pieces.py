@@ -203,6 +203,10 @@ def test_verdict_rules():
     assert v.labels.tolist() == [0, 1, 1, 2, 2, 3, 3, 4]
     assert v.n_leaves == 3 and v.debris
     assert v.joined == {2: (2, pytest.approx(0.8))}
+    # pieces 2 and 3 were one leaf before a tentative split: the join undoes it (one piece)
+    v = pc.apply_verdict(labels, _pieces([10, 2, 5, 3, 1], [0, 3, 0, 5, 0]), prob,
+                         parent=np.array([0, 1, 3, 3, 4, 5]))
+    assert v.labels.tolist() == [0, 1, 1, 2, 2, 3, 3, 4] and v.joined == {}
 
 
 def test_one_ray_scene_serves_the_judge_and_the_measurer(mock_plant, monkeypatch):

@@ -209,6 +209,59 @@ def test_leaf_with_two_big_regions_at_the_finer_threshold_is_split():
     assert n_split == 0 and np.array_equal(out, labels)
 
 
+def test_touching_leaves_whose_crease_has_a_gap_split_with_widened_creases():
+    # one leaf label on a 4 x 20 grid of faces (4-neighbour pairs) whose column 10 is a
+    # crease in three rows of four: the fourth row bridges the two halves (the hull smooth
+    # there), so the halves are one region; one ring of widening closes the gap
+    from plantscan_leaves.geometry import dilate_faces
+    from plantscan_leaves.segment import _split_joined_leaves
+
+    rows, cols = 4, 20
+    idx = np.arange(rows * cols).reshape(rows, cols)
+    pairs = np.concatenate([np.c_[idx[:, :-1].ravel(), idx[:, 1:].ravel()],
+                            np.c_[idx[:-1].ravel(), idx[1:].ravel()]])
+    labels = np.ones(rows * cols, np.int64)
+    areas = np.full(rows * cols, 20.0)  # each half: 36-40 faces, 360-400 mm² one side
+    crease = np.zeros(rows * cols, bool)
+    crease[idx[:3, 10]] = True
+    out, n_split = _split_joined_leaves(labels, crease, areas, pairs, 250.0)
+    assert n_split == 0  # the bridge joins the halves
+    wide = dilate_faces(crease, pairs, 1)
+    assert wide[idx[3, 10]] and not wide[idx[3, 8]]  # one ring, no more
+    out, n_split = _split_joined_leaves(labels, wide, areas, pairs, 250.0)
+    assert n_split == 1
+    left, right = out[idx[:, :9]], out[idx[:, 12:]]
+    assert len(set(left.ravel())) == 1 and len(set(right.ravel())) == 1
+    assert left[0, 0] != right[0, 0]
+
+
+def test_the_split_at_widened_creases_remembers_the_leaf_it_cut():
+    # the same kind of grid as one leaf, its crease column gapped: with one ring the
+    # touching-leaf pass splits it and remembers the leaf each face was (the judges'
+    # parents: joining the halves back undoes the split, it is no join of broken pieces)
+    from types import SimpleNamespace
+
+    from plantscan_leaves.segment import StageReport, _Labels, _split_parents
+    from plantscan_leaves.segment import _touching_leaves_split as split
+
+    rows, cols = 4, 26
+    idx = np.arange(rows * cols).reshape(rows, cols)
+    pairs = np.concatenate([np.c_[idx[:, :-1].ravel(), idx[:, 1:].ravel()],
+                            np.c_[idx[:-1].ravel(), idx[1:].ravel()]])
+    curvature = np.zeros(rows * cols)
+    curvature[idx[:3, 13]] = -1.0
+    for rings, leaves in ((0, 1), (1, 2)):
+        params = CurvatureRegionsParams(split_crease_rings=rings, min_leaf_area_mm2=250)
+        s = SimpleNamespace(p=params, curvature=curvature, pairs=pairs,
+                            areas=np.full(rows * cols, 20.0), report=StageReport())
+        lab = _Labels(regions=np.zeros(rows * cols, np.int64))
+        lab.out, lab.n_leaves = np.ones(rows * cols, np.int32), 1
+        split(s, lab)
+        assert lab.n_leaves == leaves
+    assert lab.out[idx[0, 0]] != lab.out[idx[0, 25]]
+    assert _split_parents(lab).tolist()[1:] == [1, 1]  # both halves were leaf 1
+
+
 def test_thick_stem_grown_into_a_leaf_goes_back_to_the_stem():
     # a 9 mm stem (the plastic dicot's, as a hull) with a 2 mm blade on its top end-on, every
     # face handed to the leaf, as region growing does where no crease parts a stem from a
