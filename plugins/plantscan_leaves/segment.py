@@ -626,11 +626,12 @@ def _split_parents(lab: _Labels) -> np.ndarray | None:
     width = int(lab.split_from.max()) + 1
     keys, counts = np.unique(lab.out[on].astype(np.int64) * width + lab.split_from[on],
                              return_counts=True)
-    parent = np.arange(n + 1) + width  # a leaf with no faces: a parent of its own
+    # a leaf with no faces that were a leaf (all stem before): a parent of its own
+    parent = np.arange(n + 1) + width
     most = np.zeros(n + 1, np.int64)
     for key, c in zip(keys.tolist(), counts.tolist()):
         leaf, was = divmod(key, width)
-        if c > most[leaf]:
+        if was != STEM_LABEL and c > most[leaf]:
             most[leaf], parent[leaf] = c, was
     return parent
 

@@ -682,3 +682,15 @@ def test_compiled_region_growing_matches_the_reference(seed):
     assert got.dtype == want.dtype and np.array_equal(got, want)
     assert np.array_equal(kernels.grow(labels, pairs[::-1]), want)  # order-free
     assert (want >= 0).sum() > (labels >= 0).sum()  # it grew
+
+
+def test_leaves_that_were_stem_before_the_split_have_no_common_parent():
+    # two leaves whose faces were all stem before the widened-crease split (given to them
+    # by later passes) are not halves of one leaf: merging them would be a join
+    from plantscan_leaves.segment import _Labels, _split_parents
+
+    lab = _Labels(regions=np.zeros(6, np.int64))
+    lab.out, lab.n_leaves = np.array([1, 1, 2, 2, 3, 3]), 3
+    lab.split_from = np.array([0, 0, 0, 0, 1, 1])
+    parent = _split_parents(lab)
+    assert parent[1] != parent[2] and parent[3] == 1
