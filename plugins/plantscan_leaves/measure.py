@@ -48,7 +48,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 from scipy import sparse
 from scipy.sparse.csgraph import (
     breadth_first_order,
@@ -61,6 +61,7 @@ from plantscan_core.data import LabelledMesh, LeafTraits, Mesh, Traits
 from plantscan_core.parallel import keep_heap_memory, thread_map
 from plantscan_core.stages import StageParams, StageReport, StageWarning
 from plantscan_leaves import geometry as geo
+from plantscan_leaves import tips
 
 log = logging.getLogger(__name__)
 
@@ -128,6 +129,14 @@ class LeafGeometryParams(StageParams):
                     "the last station at 0.9 of its width to its measured end, is "
                     "continued to zero width (docs/leaves.md, \"Lost tips\"); 1 for the "
                     "dicot family's; 0: off")
+    tip_model: str | None = Field(
+        None,
+        description="a learned tip model (scripts/train_tip_model.py writes one): the lost "
+                    "tip's length predicted from the leaf's width profile instead of the "
+                    "straight taper (needs tip_taper_units, the width it reads the profile "
+                    "against; docs/leaves.md, \"Lost tips\"); a file name without a folder "
+                    "is a model shipped in the package (tip_model_grass.json.gz), else a "
+                    "path; None: the taper rule")
     base_taper_units: float = Field(
         0.0, ge=0,
         description="the same at the leaf's base: width, mesh units, below which a blade "
@@ -182,6 +191,20 @@ class LeafGeometryParams(StageParams):
 
         return check_model_name(value, "scripts/train_trust_model.py")
 
+    @field_validator("tip_model")
+    @classmethod
+    def _tip_model_exists(cls, value: str | None) -> str | None:
+        from plantscan_leaves.pieces import check_model_name
+
+        return check_model_name(value, "scripts/train_tip_model.py")
+
+    @model_validator(mode="after")
+    def _tip_model_needs_width(self) -> LeafGeometryParams:
+        if self.tip_model is not None and self.tip_taper_units <= 0:
+            raise ValueError("tip_model needs tip_taper_units > 0 (the width the model reads "
+                             "the leaf's profile against)")
+        return self
+
     def scales(self, unit_mm: float) -> LeafScales:
         """These parameters with their lengths in mm for a mesh unit of ``unit_mm``."""
         u = float(unit_mm)
@@ -191,7 +214,7 @@ class LeafGeometryParams(StageParams):
             self.graph_spacing_units * u, u, self.width_stations, self.graph_points_per_size,
             self.rim_correction, self.min_leaf_faces, self.tip_taper_units * u,
             self.base_taper_units * u, self.outline_offset_units * u,
-            self.stalk_width_units * u, self.width_offset_units * u)
+            self.stalk_width_units * u, self.width_offset_units * u, self.tip_model)
 
 
 @dataclass(frozen=True)
@@ -213,6 +236,7 @@ class LeafScales:
     outline_offset_mm: float = 0.0
     stalk_width_mm: float = 0.0
     width_offset_mm: float = 0.0
+    tip_model: str | None = None
 
 
 @dataclass
@@ -447,8 +471,12 @@ def _end_corrections(extent: np.ndarray, seen_mm: float, p: LeafScales
     or a base the hull lost (``_lost_tip``), a stalk at the base that is not blade
     (``_stalk``, negative); and those lengths by name."""
     taper_mm = base_taper_mm = stalk_mm = stalk_area = 0.0
+    features = None
     if p.tip_taper_mm > 0:
         taper_mm = _lost_tip(extent, seen_mm, p.tip_taper_mm)
+        features = tips.tip_features(extent, seen_mm, p.tip_taper_mm, taper_mm)
+        if p.tip_model is not None and features is not None:
+            taper_mm = tips.load_model(p.tip_model).lost_mm(features, seen_mm)
     if p.stalk_width_mm > 0:
         stalk_mm, stalk_area = _stalk(extent, seen_mm, p.stalk_width_mm)
     if p.base_taper_mm > 0 and stalk_mm <= 0:  # the same taper read from the other end
@@ -459,7 +487,8 @@ def _end_corrections(extent: np.ndarray, seen_mm: float, p: LeafScales
         d_perimeter += 2.0 * lost_mm  # both edges of the lost end
         d_area += 0.5 * lost_width * lost_mm  # the lost triangle
     return d_length, d_perimeter, d_area, {"lost_tip_mm": taper_mm, "lost_base_mm": base_taper_mm,
-                                           "stalk_mm": stalk_mm}
+                                           "stalk_mm": stalk_mm, "tip_features": features,
+                                           "seen_mm": seen_mm}
 
 
 # the blade's base taper is fitted up to the first station this share of the leaf's width:

@@ -73,11 +73,12 @@ class LeafGeometry(Measurer):
     Params = LeafGeometryParams
 
     def input_files(self, scan) -> list[Path]:
-        """The trust model's file when one is named: the run's cache key hashes its content."""
+        """The trust and tip models' files when named: the run's cache key hashes their
+        content."""
         from plantscan_leaves.pieces import model_location
 
-        name = self.params.trust_model
-        return [] if name is None else [Path(str(model_location(name, name)))]
+        names = (self.params.trust_model, self.params.tip_model)
+        return [Path(str(model_location(n, n))) for n in names if n is not None]
 
     def measure(self, labelled: LabelledMesh) -> Traits:
         scan = self.context.scan
