@@ -191,6 +191,43 @@ def plant_pieces(run_dir: Path, params: dict, cache: Path) -> dict:
     return d
 
 
+def cached_run(run_dir: Path, sections: dict, cache: Path, config: dict) -> tuple[Path, Path]:
+    """Where a training script caches one run's rows, and the folder its labels, traits
+    and evaluation go to: keyed by the mesh file, the recipe sections and the script's
+    training configuration (``config``)."""
+    mesh_file = run_dir / "mesh.npz"
+    key = hashlib.sha256(json.dumps([str(mesh_file), mesh_file.stat().st_size,
+                                     mesh_file.stat().st_mtime, sections,
+                                     config]).encode()).hexdigest()[:16]
+    path = cache / f"{run_dir.parent.name}-{run_dir.name}-{key}.npz"
+    return path, cache / path.stem
+
+
+def segment_measure_evaluate(run_dir: Path, sections: dict, out: Path, views: int | None = None):
+    """The recipe ``sections``' ``segment_mesh`` and ``measure`` on a run's ``mesh.npz``,
+    the labels and traits saved in ``out`` and evaluated against the scan's truth:
+    (mesh, labelled, traits, measurements, evaluation)."""
+    import population as pop
+    from plantscan_leaves.measure import measure_plant
+
+    from plantscan_core.api import build_stage
+    from plantscan_core.data import Mesh
+
+    mesh = Mesh.load(run_dir / "mesh.npz")
+    seg = build_stage("mesh_segmenter", sections["segment_mesh"]["plugin"],
+                      sections["segment_mesh"].get("params") or {})
+    mea = build_stage("measurer", sections["measure"]["plugin"],
+                      sections["measure"].get("params") or {})
+    labelled = seg.segment(mesh)
+    traits, measurements, _ = measure_plant(labelled, mea.params, views)
+    out.mkdir(parents=True, exist_ok=True)
+    labelled.save(out / "labelled.npz")
+    traits.save(out / "traits.csv", out / "plant_traits.json")
+    evaluation = pop.evaluate_plant(out, truth_dir_of(run_dir))
+    (out / "evaluation.json").write_text(json.dumps(evaluation, indent=1, default=str))
+    return mesh, labelled, traits, measurements, evaluation
+
+
 def fit_booster(plants: list[dict], feature_names, params: dict, rounds: int):
     """LightGBM on the plants' ``features`` rows and ``classes`` (every training script's
     fit: the same data in the same order, so a model is reproducible to the byte)."""

@@ -26,7 +26,6 @@ matched blade, rule against model.  Per-plant rows are cached under ``--cache``.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import sys
 from pathlib import Path
@@ -38,7 +37,13 @@ sys.path.insert(0, str(REPO / "scripts"))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
 from plantscan_leaves import tips  # noqa: E402
-from train_piece_model import fit_booster, parse_plants, truth_dir_of  # noqa: E402
+from train_piece_model import (  # noqa: E402
+    cached_run,
+    fit_booster,
+    parse_plants,
+    segment_measure_evaluate,
+    truth_dir_of,
+)
 
 BASE_WITHIN_UNITS = 8.0
 MIN_COVER = 0.9
@@ -111,32 +116,12 @@ def _rows(measurements, evaluation: dict, truth_dir: Path, unit: float) -> dict:
 
 def plant_rows(run_dir: Path, sections: dict, cache: Path) -> dict:
     """``_rows`` of one run folder, segmented and measured with ``sections`` (cached)."""
-    import population as pop
     from plantscan_leaves import geometry as geo
-    from plantscan_leaves.measure import measure_plant
 
-    from plantscan_core.api import build_stage
-    from plantscan_core.data import Mesh
-
-    mesh_file = run_dir / "mesh.npz"
-    key = hashlib.sha256(json.dumps([str(mesh_file), mesh_file.stat().st_size,
-                                     mesh_file.stat().st_mtime, sections,
-                                     training_config({})]).encode()).hexdigest()[:16]
-    path = cache / f"{run_dir.parent.name}-{run_dir.name}-{key}.npz"
+    path, out = cached_run(run_dir, sections, cache, training_config({}))
     if path.exists():
         return dict(np.load(path))
-    mesh = Mesh.load(mesh_file)
-    seg = build_stage("mesh_segmenter", sections["segment_mesh"]["plugin"],
-                      sections["segment_mesh"].get("params") or {})
-    mea = build_stage("measurer", sections["measure"]["plugin"],
-                      sections["measure"].get("params") or {})
-    labelled = seg.segment(mesh)
-    traits, measurements, _ = measure_plant(labelled, mea.params)
-    out = cache / path.stem
-    out.mkdir(parents=True, exist_ok=True)
-    labelled.save(out / "labelled.npz")
-    traits.save(out / "traits.csv", out / "plant_traits.json")
-    evaluation = pop.evaluate_plant(out, truth_dir_of(run_dir))
+    mesh, _, _, measurements, evaluation = segment_measure_evaluate(run_dir, sections, out)
     d = _rows(measurements, evaluation, truth_dir_of(run_dir),
               geo.mesh_unit(mesh.vertices, mesh.faces))
     np.savez_compressed(path, **d)

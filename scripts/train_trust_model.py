@@ -21,7 +21,6 @@ together flag, and the share of flagged leaves that are accurate (within 5 %).
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import sys
 import time
@@ -34,7 +33,12 @@ sys.path.insert(0, str(REPO / "scripts"))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
 from plantscan_leaves import trust_model as tm  # noqa: E402
-from train_piece_model import fit_booster, parse_plants, truth_dir_of  # noqa: E402
+from train_piece_model import (  # noqa: E402
+    cached_run,
+    fit_booster,
+    parse_plants,
+    segment_measure_evaluate,
+)
 
 GOOD = ("accurate", "fair")  # leaf_population.leaf_kinds: a truth leaf within 10 %
 BOOSTER_PARAMS = dict(objective="binary", learning_rate=0.05, num_leaves=4, min_data_in_leaf=8,
@@ -99,36 +103,16 @@ def plant_leaves(run_dir: Path, sections: dict, cache: Path) -> dict:
     """Features, classes and evaluation figures of one run's measured leaves (cached per
     mesh and recipe sections)."""
     import leaf_population as lp
-    import population as pop
     from plantscan_leaves import geometry as geo
-    from plantscan_leaves.measure import measure_plant
     from plantscan_leaves.trust import leaf_trust
 
-    from plantscan_core.api import build_stage
-    from plantscan_core.data import Mesh
-
-    mesh_file = run_dir / "mesh.npz"
-    key = hashlib.sha256(json.dumps([str(mesh_file), mesh_file.stat().st_size,
-                                     mesh_file.stat().st_mtime, sections,
-                                     training_config({})]).encode()).hexdigest()[:16]
-    path = cache / f"{run_dir.parent.name}-{run_dir.name}-{key}.npz"
+    path, out = cached_run(run_dir, sections, cache, training_config({}))
     if path.exists():
         return dict(np.load(path))
     info = json.loads((run_dir / "run.json").read_text())
     views = (info.get("scan_record") or {}).get("views")
-    mesh = Mesh.load(mesh_file)
-    seg = build_stage("mesh_segmenter", sections["segment_mesh"]["plugin"],
-                      sections["segment_mesh"].get("params") or {})
-    mea = build_stage("measurer", sections["measure"]["plugin"],
-                      sections["measure"].get("params") or {})
-    labelled = seg.segment(mesh)
-    traits, measurements, _ = measure_plant(labelled, mea.params, views)
-    out = cache / f"{run_dir.parent.name}-{run_dir.name}-{key}"
-    out.mkdir(parents=True, exist_ok=True)
-    labelled.save(out / "labelled.npz")
-    traits.save(out / "traits.csv", out / "plant_traits.json")
-    evaluation = pop.evaluate_plant(out, truth_dir_of(run_dir))
-    (out / "evaluation.json").write_text(json.dumps(evaluation, indent=1, default=str))
+    mesh, labelled, traits, measurements, evaluation = segment_measure_evaluate(
+        run_dir, sections, out, views)
     kinds = lp.leaf_kinds(evaluation)
     unit = geo.mesh_unit(mesh.vertices, mesh.faces)
     ids = np.array([m.traits.leaf_id for m in measurements], np.int64)
