@@ -7,7 +7,7 @@ The plants are ``benchmarks/population.py``'s run folders of development seeds (
 validation seeds are never trained on), ``DIR/<family>/seed-<n>`` with their ``mesh.npz``
 and the scan's truth.  Every plant is segmented and measured with its family recipe
 (``--recipe-dir``; the tip and trust models off, the rest as the recipe says, so the
-features follow its ``base_end`` and ``tip_taper_units``), its leaves matched with the
+features follow its segmentation and ``tip_taper_units``), its leaves matched with the
 truth (``population.evaluate_plant``, as ``plantscan evaluate``).  A blade is a training
 row when the truth's base is within ``BASE_WITHIN_UNITS`` mesh units of the measured
 base, the truth's tip nearer the measured tip than its base, and the measured leaf covers
