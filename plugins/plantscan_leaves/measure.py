@@ -726,6 +726,17 @@ LOST_TIP_MAX_SHARE = 0.3
 TAPER_FIT_STATIONS = 3
 
 
+def taper_stations(extent: np.ndarray, lost_width_mm: float) -> tuple[float, int, np.ndarray]:
+    """``(width, last, taper)`` of a leaf with some width: the 95th percentile of its
+    station extents, the last station ``TAPER_START_SHARE`` of that wide (where the taper
+    starts), and the taper's stations from there still ``lost_width_mm`` wide (what
+    ``_lost_tip`` and the tip model's features fit the taper to)."""
+    width = float(np.percentile(extent[extent > 0], 95))
+    last = int(np.flatnonzero(extent >= TAPER_START_SHARE * width)[-1])
+    taper = np.arange(last, len(extent))
+    return width, last, taper[extent[taper] >= lost_width_mm]
+
+
 def _lost_tip(extent: np.ndarray, length_mm: float, lost_width_mm: float) -> float:
     """Length of the tip the hull lost where the leaf is narrower than ``lost_width_mm``.
 
@@ -747,14 +758,11 @@ def _lost_tip(extent: np.ndarray, length_mm: float, lost_width_mm: float) -> flo
     seen = extent[extent > 0]
     if not len(seen) or length_mm <= 0:
         return 0.0
-    width = float(np.percentile(seen, 95))
+    width, last, taper = taper_stations(extent, lost_width_mm)
     start_width = TAPER_START_SHARE * width
-    last = int(np.flatnonzero(extent >= start_width)[-1])
     n = len(extent)
     run = length_mm * (1.0 - (last + 0.5) / n)
     cap = LOST_TIP_MAX_SHARE * length_mm
-    taper = np.arange(last, n)
-    taper = taper[extent[taper] >= lost_width_mm]
     if len(taper) >= TAPER_FIT_STATIONS:
         slope = -np.polyfit((taper + 0.5) / n * length_mm, extent[taper], 1)[0]
         if slope > 0:

@@ -46,16 +46,13 @@ def tip_features(extent: np.ndarray, seen_mm: float, lost_width_mm: float,
                  rule_mm: float) -> np.ndarray | None:
     """``FEATURE_NAMES`` of one leaf: its station extents (mm, base to tip), seen length,
     lost width and the rule's estimate (mm).  None for a leaf with no width."""
-    from plantscan_leaves.measure import TAPER_FIT_STATIONS, TAPER_START_SHARE
+    from plantscan_leaves.measure import TAPER_FIT_STATIONS, taper_stations
 
     e = np.asarray(extent, float)
-    seen = e[e > 0]
-    if not len(seen) or seen_mm <= 0 or lost_width_mm <= 0:
+    if not np.any(e > 0) or seen_mm <= 0 or lost_width_mm <= 0:
         return None
-    n, w = len(e), float(np.percentile(seen, 95))
-    last = int(np.flatnonzero(e >= TAPER_START_SHARE * w)[-1])
-    taper = np.arange(last, n)
-    taper = taper[e[taper] >= lost_width_mm]
+    n = len(e)
+    w, last, taper = taper_stations(e, lost_width_mm)
     slope = zero = resid = 0.0
     if len(taper) >= TAPER_FIT_STATIONS:
         x = (taper + 0.5) / n * seen_mm
